@@ -6,6 +6,7 @@ import math
 import pytest
 import torch
 
+from ablate.metrics.coco import MaskAP
 from ablate.tasks.instance import Anchors, YolactHead, assemble_masks, decode, fast_nms, match
 from ablate.tasks.yolact.anchors import box_iou, cxcywh_to_xyxy, decode_boxes, encode
 
@@ -115,3 +116,9 @@ def test_decode_returns_the_confident_anchor_as_an_instance():
     torch.testing.assert_close(res["boxes"][0], cxcywh_to_xyxy(a))
     assert res["masks"].shape == (1, 32, 32) and res["masks"][0].sum() > 0
     assert not res["masks"][0][:16].any()  # the box lies in the lower half
+    # the output is MaskAP's input format: scored against its own masks it is perfect
+    metric = MaskAP(min_height=0)
+    metric.update([res], [{"masks": res["masks"], "labels": res["labels"]}])
+    assert metric.compute()["map"].item() == 1.0
+    (none,) = decode(outputs, image, score_thresh=0.9999999, anchors=anchors)
+    assert none["masks"].shape == (0, 32, 32) and none["boxes"].shape == (0, 4) and none["labels"].numel() == 0
