@@ -1,0 +1,24 @@
+# `make run`: set up (a venv in .venv) and run ChiNet Table II on the generated default data.
+# `make test`: set up and run the tests.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+
+.PHONY: setup run test bench
+
+$(VENV)/.installed: pyproject.toml
+	python3 -m venv $(VENV)
+	# torch first and pinned: the CPU wheel; a looser range could pull a multi-GB CUDA build.
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e ".[test]"
+	touch $@
+
+setup: $(VENV)/.installed
+
+run: setup
+	$(PY) -m ablate -m experiment=chinet_table2
+
+test: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	for f in bench/bench_*.py; do echo "== $$f"; $(PY) $$f || exit 1; done

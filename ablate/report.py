@@ -1,0 +1,184 @@
+"""Tables from runs: MLflow ``search_runs`` -> pandas -> ``results/<table>.md`` and ``results/<table>.png``.
+
+``python -m ablate.report`` regenerates every table that has runs; ``python -m ablate.report
+experiment=chinet_table2`` just one (other ``key=value`` overrides, e.g. ``logger.tracking_uri=...``, apply too).
+A multirun writes its table at the end by itself. Only FINISHED job runs count (the latest per config hash), so a
+failed job never becomes a row; a row with no finished run is listed under the table instead. The same runs give
+the same bytes: no timestamps, rows in the paper's order, PNG written without metadata.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+from scipy.stats import kendalltau  # noqa: E402
+
+from ablate.tracking import KIND_JOB, KIND_SWEEP, Tracker, retry  # noqa: E402
+
+CONF = Path(__file__).resolve().parent.parent / "conf"
+LOWER_IS_BETTER = {"comp_time_ms", "params_m"}
+
+
+def collect(tracker: Tracker, table: str) -> pd.DataFrame:
+    """One row per FINISHED job run of ``table`` (the latest per config hash): row, seed, scale and metrics."""
+    exp = retry(tracker.client.get_experiment_by_name, table)
+    if exp is None:
+        return pd.DataFrame()
+    runs = tracker.runs(exp.experiment_id, f"attributes.status = 'FINISHED' and tags.kind = '{KIND_JOB}'")
+    records = [{"row": r.data.tags.get("row", "?"), "seed": r.data.tags.get("seed", "?"),
+                "scale": r.data.tags.get("scale", "?"), "config_hash": r.data.tags.get("config_hash", r.info.run_id),
+                "start": r.info.start_time, **r.data.metrics} for r in runs]
+    if not records:
+        return pd.DataFrame()
+    df = pd.DataFrame.from_records(records).sort_values(["start", "config_hash"])
+    return df.drop_duplicates("config_hash", keep="last").drop(columns="start").reset_index(drop=True)
+
+
+def summarise(runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
+    """Per table row (in the paper's order): mean, std and n of each metric over seeds, and the paper's value."""
+    rows = list(table.rows) or [{"row": r, "name": r, "paper": {}} for r in sorted(runs["row"].unique())]
+    out = []
+    for spec in rows:
+        sel = runs[runs["row"] == spec["row"]] if len(runs) else runs
+        if sel.empty:
+            continue
+        rec = {"row": spec["row"], "name": spec.get("name", spec["row"]), "n": len(sel)}
+        for key in table.metrics:
+            values = sel[key].dropna() if key in sel else pd.Series(dtype=float)
+            rec[f"{key}_mean"] = values.mean() if len(values) else np.nan
+            rec[f"{key}_std"] = values.std(ddof=1) if len(values) > 1 else np.nan
+            rec[f"{key}_paper"] = (spec.get("paper") or {}).get(key, np.nan)
+        out.append(rec)
+    return pd.DataFrame.from_records(out)
+
+
+def _fmt(mean: float, std: float, bold: bool) -> str:
+    if np.isnan(mean):
+        return "—"
+    text = f"{mean:.2f}" + ("" if np.isnan(std) else f" ± {std:.2f}")
+    return f"**{text}**" if bold else text
+
+
+def _best(values: pd.Series, key: str) -> float:
+    values = values.dropna()
+    if values.empty:
+        return np.nan
+    return values.min() if key in LOWER_IS_BETTER else values.max()
+
+
+def kendall(summary: pd.DataFrame, key: str) -> tuple[float, int]:
+    """Kendall's tau between our row ranking and the paper's on ``key``, and the number of rows compared."""
+    both = summary[[f"{key}_mean", f"{key}_paper"]].dropna() if len(summary) else pd.DataFrame()
+    if len(both) < 2:
+        return np.nan, len(both)
+    return float(kendalltau(both.iloc[:, 0], both.iloc[:, 1]).statistic), len(both)
+
+
+def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> str:
+    """The markdown table: ours (mean ± std over seeds) beside the paper's number, best value of a column bold."""
+    columns: dict[str, list[str]] = {"Row": list(summary["name"]) if len(summary) else []}
+    for key, label in table.metrics.items():
+        best = _best(summary[f"{key}_mean"], key) if len(summary) else np.nan
+        columns[f"{label} (ours)"] = [_fmt(m, s, m == best) for m, s in
+                                      zip(summary[f"{key}_mean"], summary[f"{key}_std"])] if len(summary) else []
+        paper = summary[f"{key}_paper"] if len(summary) else pd.Series(dtype=float)
+        if paper.notna().any():
+            pbest = _best(paper, key)
+            columns[f"{label} (paper)"] = [_fmt(p, np.nan, p == pbest) for p in paper]
+    columns["n"] = [str(n) for n in summary["n"]] if len(summary) else []
+    lines = [f"# {table.title}", ""]
+    if len(summary):
+        lines.append(pd.DataFrame(columns).to_markdown(index=False, disable_numparse=True))
+    else:
+        lines.append("No finished runs yet.")
+    tau, n = kendall(summary, table.primary)
+    label = table.metrics.get(table.primary, table.primary)
+    lines += ["", f"Kendall τ between our ranking and the paper's on {label}: "
+              + ("n/a (fewer than 2 rows with both)" if np.isnan(tau) else f"{tau:.2f} over {n} rows") + "."]
+    done = set(summary["row"]) if len(summary) else set()
+    missing = [spec.get("name", spec["row"]) for spec in table.rows if spec["row"] not in done]
+    if missing:
+        lines.append(f"Rows without a finished run: {', '.join(missing)}.")
+    scales = sorted(runs["scale"].unique()) if len(runs) else []
+    lines += ["", f"mean ± std over seeds (n runs per row); scale: {', '.join(scales) or '—'}. "
+              "Bold: best in its column. Regenerated by `python -m ablate.report`; do not edit by hand.", ""]
+    return "\n".join(lines)
+
+
+def plot(summary: pd.DataFrame, table: DictConfig):
+    """A bar chart of the primary metric per row: ours (mean, std as error bar) beside the paper's."""
+    key = table.primary
+    label = table.metrics.get(key, key)
+    fig, ax = plt.subplots(figsize=(max(4.0, 1.3 * len(summary) + 2), 3.2))
+    x = np.arange(len(summary))
+    if len(summary):
+        ax.bar(x - 0.2, summary[f"{key}_mean"], 0.4, yerr=summary[f"{key}_std"].fillna(0), capsize=3, label="ours")
+        ax.bar(x + 0.2, summary[f"{key}_paper"], 0.4, label="paper", alpha=0.7)
+        ax.set_xticks(x, summary["name"], rotation=20, ha="right")
+    ax.set_ylabel(label)
+    ax.set_title(table.title, fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def write_table(cfg: DictConfig, tracker: Tracker, parent_run: str | None = None,
+                results_dir: str | Path = "results") -> list[Path]:
+    """Write ``results/<table>.md`` and ``.png`` from the runs; log the figure to ``parent_run`` if given."""
+    table = cfg.table
+    runs = collect(tracker, table.name)
+    summary = summarise(runs, table)
+    out = Path(results_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    md, png = out / f"{table.name}.md", out / f"{table.name}.png"
+    md.write_text(to_markdown(summary, runs, table))
+    fig = plot(summary, table)
+    fig.savefig(png, dpi=100, metadata={"Software": None})
+    if parent_run:
+        tracker.log_figure(parent_run, fig, f"{table.name}.png")
+        tracker.log_artifact(parent_run, md)
+    plt.close(fig)
+    return [md, png]
+
+
+def _compose(overrides: list[str]) -> DictConfig:
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("config", overrides=overrides)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    named = [a.split("=", 1)[1] for a in args if a.startswith("experiment=")]
+    rest = [a for a in args if not a.startswith("experiment=")]
+    names = named or ["ablate"] + sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
+    written = 0
+    for name in names:
+        cfg = _compose(rest + ([] if name == "ablate" else [f"experiment={name}"]))
+        tracker = Tracker.from_config(cfg)
+        exp = retry(tracker.client.get_experiment_by_name, cfg.table.name)
+        if exp is None:
+            if named:
+                print(f"error: no runs for experiment '{name}' in {tracker.uri}", file=sys.stderr)
+                return 1
+            continue
+        sweeps = tracker.runs(exp.experiment_id, f"tags.kind = '{KIND_SWEEP}'")
+        parent = max(sweeps, key=lambda r: r.info.start_time).info.run_id if sweeps else None
+        for path in write_table(cfg, tracker, parent_run=parent):
+            print(path)
+        written += 1
+    if not written:
+        print(f"No tables written: no runs in {Tracker.from_config(_compose(rest)).uri}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,62 @@
+"""What every task's LightningModule shares: the optimiser and LR schedule from config, and a loud NaN check."""
+from __future__ import annotations
+
+import inspect
+from typing import Any, Callable
+
+import lightning as L
+import torch
+from torch import nn
+
+
+class NonFiniteLossError(FloatingPointError):
+    """The training loss became NaN or infinite; the job stops at once."""
+
+
+def poly_lr(optimizer: torch.optim.Optimizer, total_steps: int, power: float = 0.9) -> torch.optim.lr_scheduler.LRScheduler:
+    """Poly learning rate, SMoE eq. 6: lr = base_lr * (1 - step / total_steps) ** power (power = gamma = 0.9)."""
+    total = max(int(total_steps), 1)
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: max(1.0 - step / total, 0.0) ** power)
+
+
+class FusionTask(L.LightningModule):
+    """Base LightningModule: ``model`` maps a batch dict to a dict of raw outputs; subclasses add loss and metrics.
+
+    ``optimizer`` is a partial taking ``params``; ``scheduler`` a partial taking ``optimizer`` (and
+    ``total_steps`` when its signature has it, as :func:`poly_lr` does), stepped every optimisation step.
+    """
+
+    def __init__(self, model: nn.Module, optimizer: Callable[..., torch.optim.Optimizer],
+                 scheduler: Callable[..., Any] | None = None, monitor: str = "val/loss") -> None:
+        super().__init__()
+        self.model = model
+        self.optimizer_factory = optimizer
+        self.scheduler_factory = scheduler
+        self.monitor = monitor
+
+    def forward(self, batch: dict) -> dict:
+        return self.model(batch)
+
+    def check_finite(self, loss: torch.Tensor) -> torch.Tensor:
+        """Raise :class:`NonFiniteLossError` naming the epoch and step if ``loss`` is NaN or infinite."""
+        if not torch.isfinite(loss).all():
+            raise NonFiniteLossError(
+                f"training loss is {loss.detach().float().item()} at epoch {self.current_epoch}, step "
+                f"{self.global_step}; lower task.optimizer.lr or check the input data")
+        return loss
+
+    def configure_optimizers(self) -> Any:
+        params = [p for p in self.parameters() if p.requires_grad]
+        optimizer = self.optimizer_factory(params=params)
+        if self.scheduler_factory is None:
+            return optimizer
+        kwargs = {}
+        target = getattr(self.scheduler_factory, "func", self.scheduler_factory)
+        if "total_steps" in inspect.signature(target).parameters:
+            kwargs["total_steps"] = self.trainer.estimated_stepping_batches
+        scheduler = self.scheduler_factory(optimizer=optimizer, **kwargs)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def figure(self, batch: dict):
+        """A matplotlib figure of predictions on ``batch`` (fixed test frames), or None."""
+        return None

@@ -1,0 +1,202 @@
+"""MLflow tracking: one experiment per table, one parent run per sweep, one child run per job.
+
+The store defaults to ``sqlite:///mlflow.db`` in the working directory, so ``mlflow ui`` in the project root finds
+it; ``MLFLOW_TRACKING_URI`` in the environment wins over the config. Several processes (``hydra/launcher=joblib``)
+write one SQLite file: every write goes through :func:`retry`, which waits out "database is locked", and experiment
+creation tolerates a concurrent creator.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import random
+import subprocess
+import time
+from pathlib import Path
+from typing import Any, Callable, TypeVar
+
+from lightning.pytorch.loggers.logger import Logger
+from lightning.pytorch.utilities import rank_zero_only
+from mlflow.entities import Metric, Param, RunTag
+from mlflow.exceptions import MlflowException
+from mlflow.tracking import MlflowClient
+from omegaconf import DictConfig, OmegaConf
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+#: Config keys that do not change a result, so they are left out of the config hash (``table`` holds only
+#: the paper's numbers and row names; the experiment a run lands in already separates tables).
+UNHASHED = ("force", "logger", "hydra", "table", "trainer.enable_progress_bar", "data.num_workers")
+#: Tags every job run carries; the report reads them.
+KIND_JOB, KIND_SWEEP = "job", "sweep"
+
+
+def retry(fn: Callable[..., T], *args: Any, attempts: int = 12, **kwargs: Any) -> T:
+    """Call ``fn``, retrying with jittered backoff while SQLite says the database is locked or busy."""
+    for i in range(attempts):
+        try:
+            return fn(*args, **kwargs)
+        except Exception as err:  # sqlalchemy's OperationalError arrives wrapped in MlflowException
+            text = str(err).lower()
+            if i == attempts - 1 or not ("locked" in text or "busy" in text):
+                raise
+            time.sleep(min(0.1 * 2**i, 5.0) * (0.5 + random.random()))
+    raise AssertionError("unreachable")
+
+
+def tracking_uri(cfg_logger: DictConfig | dict | None = None) -> str:
+    """The tracking URI: ``MLFLOW_TRACKING_URI`` if set, else the config's, else ``sqlite:///mlflow.db``."""
+    uri = os.environ.get("MLFLOW_TRACKING_URI")
+    if uri:
+        return uri
+    if cfg_logger is not None and cfg_logger.get("tracking_uri"):
+        return str(cfg_logger["tracking_uri"])
+    return "sqlite:///mlflow.db"
+
+
+def config_hash(cfg: DictConfig) -> str:
+    """A short, stable hash of the resolved config without the keys in :data:`UNHASHED`."""
+    data = OmegaConf.to_container(cfg, resolve=True)
+    for dotted in UNHASHED:
+        *path, last = dotted.split(".")
+        node = data
+        for key in path:
+            node = node.get(key) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            node.pop(last, None)
+    return hashlib.sha1(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def flatten(data: Any, prefix: str = "") -> dict[str, str]:
+    """Flatten nested dicts / lists into ``a.b.0.c -> str(value)``, as MLflow params."""
+    out: dict[str, str] = {}
+    items = data.items() if isinstance(data, dict) else enumerate(data) if isinstance(data, list) else None
+    if items is None:
+        return {prefix: str(data)}
+    for key, value in items:
+        name = f"{prefix}.{key}" if prefix else str(key)
+        out.update(flatten(value, name))
+    return out
+
+
+def git_commit() -> str:
+    """The current git commit (with ``-dirty`` when the tree has changes), or ``unknown`` outside a checkout."""
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, check=True).stdout.strip()
+        return sha + ("-dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+class Tracker:
+    """A thin, retrying wrapper over :class:`MlflowClient` for the run lifecycle of a table."""
+
+    def __init__(self, uri: str, artifact_root: str = "mlartifacts") -> None:
+        self.uri = uri
+        self.artifact_root = Path(artifact_root).resolve()
+        self.client = MlflowClient(tracking_uri=uri)
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> "Tracker":
+        lg = cfg.get("logger") or {}
+        return cls(tracking_uri(lg), lg.get("artifact_root", "mlartifacts"))
+
+    def experiment_id(self, name: str) -> str:
+        """The id of experiment ``name``, created if missing; safe when another process creates it too."""
+        exp = retry(self.client.get_experiment_by_name, name)
+        if exp is not None:
+            return exp.experiment_id
+        try:
+            location = (self.artifact_root / name).as_uri()
+            return retry(self.client.create_experiment, name, artifact_location=location)
+        except MlflowException:
+            exp = retry(self.client.get_experiment_by_name, name)
+            if exp is None:
+                raise
+            return exp.experiment_id
+
+    def runs(self, experiment_id: str, filter_string: str = "") -> list:
+        """All runs of an experiment matching ``filter_string``, every page."""
+        out, token = [], None
+        while True:
+            page = retry(self.client.search_runs, [experiment_id], filter_string, max_results=1000,
+                         page_token=token)
+            out.extend(page)
+            token = page.token
+            if not token:
+                return out
+
+    def finished_run(self, experiment_id: str, chash: str):
+        """A FINISHED job run with this config hash, or None."""
+        runs = self.runs(experiment_id, f"tags.config_hash = '{chash}' and attributes.status = 'FINISHED'")
+        return runs[0] if runs else None
+
+    def close_stale(self, experiment_id: str, chash: str) -> int:
+        """Mark runs of this config hash still RUNNING (a killed process left them) as KILLED; return how many."""
+        stale = self.runs(experiment_id, f"tags.config_hash = '{chash}' and attributes.status = 'RUNNING'")
+        for run in stale:
+            retry(self.client.set_terminated, run.info.run_id, "KILLED")
+        return len(stale)
+
+    def start(self, experiment_id: str, name: str, tags: dict[str, str]) -> str:
+        run = retry(self.client.create_run, experiment_id, tags=tags, run_name=name)
+        return run.info.run_id
+
+    def end(self, run_id: str, status: str) -> None:
+        retry(self.client.set_terminated, run_id, status)
+
+    def log_params(self, run_id: str, params: dict[str, str]) -> None:
+        items = [Param(k[:250], v[:6000]) for k, v in sorted(params.items())]
+        for i in range(0, len(items), 100):
+            retry(self.client.log_batch, run_id, params=items[i:i + 100])
+
+    def log_metrics(self, run_id: str, metrics: dict[str, float], step: int = 0) -> None:
+        now = int(time.time() * 1000)
+        items = [Metric(k, float(v), now, step) for k, v in sorted(metrics.items())]
+        for i in range(0, len(items), 500):
+            retry(self.client.log_batch, run_id, metrics=items[i:i + 500])
+
+    def set_tags(self, run_id: str, tags: dict[str, str]) -> None:
+        retry(self.client.log_batch, run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
+
+    def log_artifact(self, run_id: str, path: str | Path, artifact_path: str | None = None) -> None:
+        retry(self.client.log_artifact, run_id, str(path), artifact_path)
+
+    def log_figure(self, run_id: str, figure, name: str) -> None:
+        retry(self.client.log_figure, run_id, figure, name)
+
+    def log_text(self, run_id: str, text: str, name: str) -> None:
+        retry(self.client.log_text, run_id, text, name)
+
+
+class RunLogger(Logger):
+    """A Lightning logger writing metrics into an existing MLflow run, through :func:`retry`.
+
+    Unlike Lightning's ``MLFlowLogger`` it never ends the run: the job ends it once testing and artifact logging
+    are done, so a run is FINISHED only when everything it should hold is there.
+    """
+
+    def __init__(self, tracker: Tracker, run_id: str) -> None:
+        super().__init__()
+        self.tracker, self.run_id = tracker, run_id
+
+    @property
+    def name(self) -> str:
+        return "mlflow"
+
+    @property
+    def version(self) -> str:
+        return self.run_id
+
+    @rank_zero_only
+    def log_hyperparams(self, params: Any, *args: Any, **kwargs: Any) -> None:
+        """Params are logged once by the job, from the resolved config."""
+
+    @rank_zero_only
+    def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
+        self.tracker.log_metrics(self.run_id, metrics, step or 0)

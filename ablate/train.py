@@ -1,0 +1,128 @@
+"""One job: one resolved config -> train, test, and one MLflow run.
+
+A job whose config hash already has a FINISHED run is skipped unless ``force=true``. A job that crashed or was
+killed is recorded FAILED or KILLED and runs again next time, resuming from its last checkpoint
+(``checkpoints/<table>/<config hash>/last.ckpt``) when one exists.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import traceback
+import warnings
+from pathlib import Path
+
+import lightning as L
+import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
+from lightning.pytorch.callbacks import ModelCheckpoint
+from omegaconf import DictConfig, OmegaConf
+
+from ablate.metrics.timing import forward_time_ms
+from ablate.sweep import parent_run_id, record_failure
+from ablate.tracking import KIND_JOB, RunLogger, Tracker, config_hash, flatten, git_commit
+
+log = logging.getLogger(__name__)
+warnings.filterwarnings("ignore", ".*does not have many workers.*")
+warnings.filterwarnings("ignore", ".*GPU available but not used.*")
+
+
+class JobFailed(RuntimeError):
+    """A job ended in error; its run is recorded FAILED."""
+
+
+def row_name(cfg: DictConfig) -> str:
+    """The table row a job belongs to: the `row` choice, else its own overrides (``fusion=sum``)."""
+    if HydraConfig.initialized():
+        hc = HydraConfig.get()
+        if hc.runtime.choices.get("row"):
+            return str(hc.runtime.choices["row"])
+        skip = ("seed=", "scale=", "force=", "experiment=", "hydra", "logger")
+        own = [o for o in hc.overrides.task if not o.lstrip("+~").startswith(skip)]
+        if own:
+            return " ".join(sorted(own))
+    return "default"
+
+
+def run(cfg: DictConfig) -> str:
+    """Run one job and return its status: FINISHED, SKIPPED or FAILED (KILLED re-raises the interrupt)."""
+    tracker = Tracker.from_config(cfg)
+    exp = tracker.experiment_id(cfg.table.name)
+    chash = config_hash(cfg)
+    row = row_name(cfg)
+    done = None if cfg.force else tracker.finished_run(exp, chash)
+    if done is not None:
+        log.info("Skipping %s (seed %s): run %s with config hash %s is FINISHED (force=true reruns it)",
+                 row, cfg.seed, done.info.run_id, chash)
+        return "SKIPPED"
+    if stale := tracker.close_stale(exp, chash):
+        log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, chash)
+    parent = parent_run_id()
+    tags = {"kind": KIND_JOB, "table": cfg.table.name, "row": row, "seed": str(cfg.seed),
+            "config_hash": chash, "git_commit": git_commit(), "scale": cfg.scale.name}
+    if parent:
+        tags.update({"mlflow.parentRunId": parent, "sweep_id": parent})
+    run_id = tracker.start(exp, f"{row} seed={cfg.seed}", tags)
+    log.info("MLflow run %s: %s, seed %s, config %s", run_id, row, cfg.seed, chash)
+    try:
+        tracker.log_params(run_id, flatten(OmegaConf.to_container(cfg, resolve=True)))
+        tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
+        metrics = fit_and_test(cfg, tracker, run_id, Path("checkpoints") / cfg.table.name / chash)
+    except KeyboardInterrupt:
+        tracker.end(run_id, "KILLED")
+        raise
+    except Exception as err:
+        message = f"{type(err).__name__}: {err}"
+        tracker.set_tags(run_id, {"error": message[:5000]})
+        tracker.log_text(run_id, traceback.format_exc(), "error.txt")
+        tracker.end(run_id, "FAILED")
+        log.error("Job %s (seed %s) FAILED: %s", row, cfg.seed, message)
+        if parent is None:
+            raise JobFailed(message) from err
+        record_failure(f"{HydraConfig.get().job.num}_{row.replace(' ', '_').replace('/', '-')}", message)
+        return "FAILED"
+    tracker.end(run_id, "FINISHED")
+    log.info("FINISHED %s seed %s: %s", row, cfg.seed,
+             ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items())))
+    return "FINISHED"
+
+
+def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path) -> dict[str, float]:
+    """Train with Lightning, test the best checkpoint, and log metrics, checkpoint and figures to ``run_id``."""
+    L.seed_everything(cfg.seed, workers=True)
+    datamodule = instantiate(cfg.data)
+    model = instantiate(cfg.model)
+    task = instantiate(cfg.task, model=model)
+    checkpoint = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor=task.monitor, mode="max",
+                                 save_last=True, save_top_k=1)
+    trainer = instantiate(cfg.trainer, logger=RunLogger(tracker, run_id), callbacks=[checkpoint],
+                          default_root_dir=str(ckpt_dir))
+    last = ckpt_dir / "last.ckpt"
+    if last.exists():
+        log.info("Resuming from %s", last)
+    trainer.fit(task, datamodule=datamodule, ckpt_path=str(last) if last.exists() else None)
+    best = checkpoint.best_model_path or None
+    results = trainer.test(task, datamodule=datamodule, ckpt_path=best, verbose=False)[0]
+    metrics = {k.split("/", 1)[-1]: float(v) for k, v in results.items() if k.startswith("test/")}
+    sample = next(iter(datamodule.test_dataloader()))
+    metrics["comp_time_ms"] = forward_time_ms(task.model, sample, **cfg.comp_time)
+    metrics["params_m"] = sum(p.numel() for p in task.model.parameters()) / 1e6
+    tracker.log_metrics(run_id, metrics, step=trainer.global_step)
+    tracker.set_tags(run_id, {"device": str(next(task.model.parameters()).device),
+                              "threads": str(torch.get_num_threads())})
+    figure = task.figure(sample)
+    if figure is not None:
+        tracker.log_figure(run_id, figure, "predictions.png")
+    if best and cfg.logger.get("log_checkpoint", True):
+        tracker.log_artifact(run_id, best, "checkpoints")
+    return metrics
+
+
+def main(cfg: DictConfig) -> str:
+    """Hydra task function; a failed single run exits with status 1 and one clear line."""
+    try:
+        return run(cfg)
+    except JobFailed as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(1) from None

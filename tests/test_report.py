@@ -1,0 +1,79 @@
+"""Tables from runs: rows in the paper's order, mean ± std, failed runs left out, same runs -> same bytes."""
+import math
+
+import pytest
+from omegaconf import OmegaConf
+
+from ablate.report import collect, kendall, summarise, write_table
+from ablate.tracking import KIND_JOB, Tracker
+
+TABLE = OmegaConf.create({"table": {
+    "name": "t2", "title": "Table II", "primary": "det_rate",
+    "metrics": {"det_rate": "Det. Rate %", "comp_time_ms": "Comp Time (ms)"},
+    "rows": [{"row": "chinet", "name": "ChiNet", "paper": {"det_rate": 97.35, "comp_time_ms": 192}},
+             {"row": "unet", "name": "U-Net", "paper": {"det_rate": 94.2, "comp_time_ms": 82}},
+             {"row": "fusenet", "name": "FuseNet", "paper": {"det_rate": 95.2, "comp_time_ms": 125}}]}})
+
+
+@pytest.fixture
+def tracker(tmp_path):
+    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    exp = tracker.experiment_id("t2")
+
+    def job(row, seed, rate, ms, status="FINISHED", chash=None):
+        run = tracker.start(exp, row, {"kind": KIND_JOB, "row": row, "seed": str(seed), "scale": "smoke",
+                                       "config_hash": chash or f"{row}-{seed}"})
+        tracker.log_metrics(run, {"det_rate": rate, "comp_time_ms": ms})
+        tracker.end(run, status)
+
+    job("unet", 0, 80.0, 10.0)
+    job("unet", 1, 82.0, 12.0)
+    job("chinet", 0, 90.0, 30.0)
+    job("chinet", 1, 0.0, 1.0, status="FAILED", chash="chinet-1")
+    job("fusenet", 0, 70.0, 20.0, chash="f")
+    job("fusenet", 0, 85.0, 20.0, chash="f")  # a forced rerun: the latest of a config hash counts
+    return tracker
+
+
+def test_summary_follows_paper_order_and_skips_failed_runs(tracker):
+    runs = collect(tracker, "t2")
+    assert len(runs) == 4
+    summary = summarise(runs, TABLE.table)
+    assert list(summary["name"]) == ["ChiNet", "U-Net", "FuseNet"]
+    chinet = summary.iloc[0]
+    assert chinet["n"] == 1 and chinet["det_rate_mean"] == 90.0 and math.isnan(chinet["det_rate_std"])
+    unet = summary.iloc[1]
+    assert unet["det_rate_mean"] == 81.0 and unet["det_rate_std"] == pytest.approx(math.sqrt(2.0))
+    assert summary.iloc[2]["det_rate_mean"] == 85.0
+
+
+def test_kendall_tau_against_the_paper(tracker):
+    summary = summarise(collect(tracker, "t2"), TABLE.table)
+    tau, n = kendall(summary, "det_rate")
+    # ours: ChiNet 90 > FuseNet 85 > U-Net 81; paper: ChiNet > FuseNet > U-Net
+    assert n == 3 and tau == pytest.approx(1.0)
+
+
+def test_markdown_has_rows_paper_column_bold_best_and_is_reproducible(tracker, tmp_path):
+    md, png = write_table(TABLE, tracker, results_dir=tmp_path / "r1")
+    text = md.read_text()
+    lines = [line for line in text.splitlines() if line.startswith("|")]
+    assert len(lines) == 2 + 3
+    assert "**90.00**" in text and "**97.35**" in text          # best det rate, ours and paper
+    assert "**11.00 ± 1.41**" in text and "**82.00**" in text   # lowest comp time is best
+    assert "Kendall τ" in text and "1.00 over 3 rows" in text
+    md2, png2 = write_table(TABLE, tracker, results_dir=tmp_path / "r2")
+    assert md2.read_bytes() == md.read_bytes()
+    assert png2.read_bytes() == png.read_bytes()
+
+
+def test_rows_without_finished_runs_are_listed_not_tabled(tmp_path):
+    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    exp = tracker.experiment_id("t2")
+    run = tracker.start(exp, "u", {"kind": KIND_JOB, "row": "unet", "seed": "0", "config_hash": "x"})
+    tracker.log_metrics(run, {"det_rate": 50.0, "comp_time_ms": 5.0})
+    tracker.end(run, "FINISHED")
+    md, _ = write_table(TABLE, tracker, results_dir=tmp_path)
+    text = md.read_text()
+    assert len([line for line in text.splitlines() if line.startswith("|")]) == 3
+    assert "Rows without a finished run: ChiNet, FuseNet." in text

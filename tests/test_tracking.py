@@ -1,0 +1,70 @@
+"""Config hashing, param flattening and the SQLite retry of ablate.tracking."""
+import sqlite3
+
+import pytest
+from omegaconf import OmegaConf
+
+from ablate.tracking import Tracker, config_hash, flatten, retry
+
+
+def _cfg(**over):
+    base = {"seed": 0, "model": {"width": 0.25}, "force": False, "logger": {"tracking_uri": "sqlite:///a.db"},
+            "trainer": {"max_epochs": 2, "enable_progress_bar": True}, "data": {"num_workers": 0, "frames": 8},
+            "table": {"name": "t", "rows": []}}
+    return OmegaConf.merge(OmegaConf.create(base), OmegaConf.create(over))
+
+
+def test_hash_ignores_keys_that_do_not_change_results():
+    h = config_hash(_cfg())
+    assert h == config_hash(_cfg(force=True, logger={"tracking_uri": "sqlite:///b.db"}))
+    assert h == config_hash(_cfg(trainer={"enable_progress_bar": False}, data={"num_workers": 4}))
+    assert h == config_hash(_cfg(table={"name": "t", "rows": [{"row": "x"}]}))
+
+
+def test_hash_changes_with_results_relevant_keys():
+    h = config_hash(_cfg())
+    assert h != config_hash(_cfg(seed=1))
+    assert h != config_hash(_cfg(model={"width": 0.5}))
+    assert h != config_hash(_cfg(trainer={"max_epochs": 3}))
+
+
+def test_flatten_nested_dicts_and_lists():
+    assert flatten({"a": {"b": 1, "c": [2, {"d": 3}]}, "e": None}) == {
+        "a.b": "1", "a.c.0": "2", "a.c.1.d": "3", "e": "None"}
+
+
+def test_retry_waits_out_a_locked_database():
+    calls = []
+
+    def flaky():
+        calls.append(1)
+        if len(calls) < 3:
+            raise sqlite3.OperationalError("database is locked")
+        return "ok"
+
+    assert retry(flaky) == "ok" and len(calls) == 3
+
+
+def test_retry_reraises_other_errors_at_once():
+    calls = []
+
+    def broken():
+        calls.append(1)
+        raise ValueError("no such column")
+
+    with pytest.raises(ValueError):
+        retry(broken)
+    assert len(calls) == 1
+
+
+def test_experiment_creation_is_idempotent_and_stale_runs_are_killed(tmp_path):
+    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    exp = tracker.experiment_id("table")
+    assert tracker.experiment_id("table") == exp
+    run = tracker.start(exp, "job", {"config_hash": "abc"})
+    assert tracker.finished_run(exp, "abc") is None
+    assert tracker.close_stale(exp, "abc") == 1
+    assert tracker.client.get_run(run).info.status == "KILLED"
+    done = tracker.start(exp, "job", {"config_hash": "abc"})
+    tracker.end(done, "FINISHED")
+    assert tracker.finished_run(exp, "abc").info.run_id == done
