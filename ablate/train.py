@@ -10,6 +10,7 @@ import logging
 import sys
 import traceback
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import lightning as L
@@ -19,8 +20,10 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
+from ablate.experts import attach as attach_experts
+from ablate.experts import prepare as prepare_experts
 from ablate.metrics.timing import forward_time_ms
-from ablate.sweep import parent_run_id, record_failure
+from ablate.sweep import parent_run_id, record_failure, sweep_dir
 from ablate.tracking import KIND_JOB, RunLogger, Tracker, config_hash, flatten, git_commit
 
 log = logging.getLogger(__name__)
@@ -45,21 +48,32 @@ def row_name(cfg: DictConfig) -> str:
     return "default"
 
 
-def run(cfg: DictConfig) -> str:
-    """Run one job and return its status: FINISHED, SKIPPED or FAILED (KILLED re-raises the interrupt)."""
+@dataclass
+class Outcome:
+    """What a job ended as: FINISHED or SKIPPED, its run, and its checkpoint directory."""
+
+    status: str
+    run_id: str
+    ckpt_dir: Path
+
+
+def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcome:
+    """Run one job tracked as an MLflow run of ``cfg.table.name``; raise :class:`JobFailed` after recording a
+    FAILED run, and re-raise an interrupt after recording KILLED."""
     tracker = Tracker.from_config(cfg)
     exp = tracker.experiment_id(cfg.table.name)
     chash = config_hash(cfg)
-    row = row_name(cfg)
+    row = row or row_name(cfg)
+    ckpt_dir = Path("checkpoints") / cfg.table.name / chash
     done = None if cfg.force else tracker.finished_run(exp, chash)
     if done is not None:
         log.info("Skipping %s (seed %s): run %s with config hash %s is FINISHED (force=true reruns it)",
                  row, cfg.seed, done.info.run_id, chash)
-        return "SKIPPED"
+        return Outcome("SKIPPED", done.info.run_id, ckpt_dir)
     if stale := tracker.close_stale(exp, chash):
         log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, chash)
-    parent = parent_run_id()
-    tags = {"kind": KIND_JOB, "table": cfg.table.name, "row": row, "seed": str(cfg.seed),
+    parent = parent_run_id() if kind == KIND_JOB else None
+    tags = {"kind": kind, "table": cfg.table.name, "row": row, "seed": str(cfg.seed),
             "config_hash": chash, "git_commit": git_commit(), "scale": cfg.scale.name}
     if parent:
         tags.update({"mlflow.parentRunId": parent, "sweep_id": parent})
@@ -68,7 +82,7 @@ def run(cfg: DictConfig) -> str:
     try:
         tracker.log_params(run_id, flatten(OmegaConf.to_container(cfg, resolve=True)))
         tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
-        metrics = fit_and_test(cfg, tracker, run_id, Path("checkpoints") / cfg.table.name / chash)
+        metrics = fit_and_test(cfg, tracker, run_id, ckpt_dir)
     except KeyboardInterrupt:
         tracker.end(run_id, "KILLED")
         raise
@@ -77,19 +91,21 @@ def run(cfg: DictConfig) -> str:
         tracker.set_tags(run_id, {"error": message[:5000]})
         tracker.log_text(run_id, traceback.format_exc(), "error.txt")
         tracker.end(run_id, "FAILED")
-        log.error("Job %s (seed %s) FAILED: %s", row, cfg.seed, message)
-        if parent is None:
-            raise JobFailed(message) from err
-        record_failure(f"{HydraConfig.get().job.num}_{row.replace(' ', '_').replace('/', '-')}", message)
-        return "FAILED"
+        log.error("%s %s (seed %s) FAILED: %s", kind, row, cfg.seed, message)
+        raise JobFailed(message) from err
     tracker.end(run_id, "FINISHED")
     log.info("FINISHED %s seed %s: %s", row, cfg.seed,
              ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items())))
-    return "FINISHED"
+    return Outcome("FINISHED", run_id, ckpt_dir)
 
 
 def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path) -> dict[str, float]:
-    """Train with Lightning, test the best checkpoint, and log metrics, checkpoint and figures to ``run_id``."""
+    """Train with Lightning, test the best checkpoint, and log metrics, checkpoint and figures to ``run_id``.
+
+    With ``experts`` set (SMoE §4.3), a fused model first gets its frozen single-modal experts, and a
+    single-modal job *is* the expert: it is tested from the expert's checkpoint, never trained twice.
+    """
+    experts = prepare_experts(cfg) if cfg.get("experts") else {}
     L.seed_everything(cfg.seed, workers=True)
     datamodule = instantiate(cfg.data)
     model = instantiate(cfg.model)
@@ -98,11 +114,13 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
                                  save_last=True, save_top_k=1)
     trainer = instantiate(cfg.trainer, logger=RunLogger(tracker, run_id), callbacks=[checkpoint],
                           default_root_dir=str(ckpt_dir))
-    last = ckpt_dir / "last.ckpt"
-    if last.exists():
-        log.info("Resuming from %s", last)
-    trainer.fit(task, datamodule=datamodule, ckpt_path=str(last) if last.exists() else None)
-    best = checkpoint.best_model_path or None
+    best = attach_experts(cfg, model, experts, tracker, run_id) if cfg.get("experts") else None
+    if best is None:
+        last = ckpt_dir / "last.ckpt"
+        if last.exists():
+            log.info("Resuming from %s", last)
+        trainer.fit(task, datamodule=datamodule, ckpt_path=str(last) if last.exists() else None)
+        best = checkpoint.best_model_path or None
     results = trainer.test(task, datamodule=datamodule, ckpt_path=best, verbose=False)[0]
     metrics = {k.split("/", 1)[-1]: float(v) for k, v in results.items() if k.startswith("test/")}
     sample = next(iter(datamodule.test_dataloader()))
@@ -111,18 +129,23 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     tracker.log_metrics(run_id, metrics, step=trainer.global_step)
     tracker.set_tags(run_id, {"device": str(next(task.model.parameters()).device),
                               "threads": str(torch.get_num_threads())})
-    figure = task.figure(sample)
-    if figure is not None:
-        tracker.log_figure(run_id, figure, "predictions.png")
-    if best and cfg.logger.get("log_checkpoint", True):
+    for method, name in (("figure", "predictions.png"), ("gate_figure", "gates.png")):
+        figure = getattr(task, method, lambda _: None)(sample)
+        if figure is not None:
+            tracker.log_figure(run_id, figure, name)
+    if best and cfg.logger.get("log_checkpoint", True) and Path(best).parent == ckpt_dir:
         tracker.log_artifact(run_id, best, "checkpoints")
     return metrics
 
 
 def main(cfg: DictConfig) -> str:
-    """Hydra task function; a failed single run exits with status 1 and one clear line."""
+    """Hydra task function. In a multirun a failed job is noted for the end-of-sweep summary and the other jobs
+    go on; a failed single run exits with status 1 and one clear line."""
     try:
-        return run(cfg)
+        return run(cfg).status
     except JobFailed as err:
-        print(f"error: {err}", file=sys.stderr)
-        raise SystemExit(1) from None
+        if sweep_dir() is None:
+            print(f"error: {err}", file=sys.stderr)
+            raise SystemExit(1) from None
+        record_failure(f"{HydraConfig.get().job.num}_{row_name(cfg).replace(' ', '_').replace('/', '-')}", str(err))
+        return "FAILED"
