@@ -1,0 +1,153 @@
+"""Lightning DataModule over real KITTI or the generated default dataset.
+
+Sample dict (a batch after :func:`collate` holds the same keys):
+
+- modalities, float32 [C,H,W]: ``rgb`` [3] 0-1 (condition applied), ``intensity`` [1] grayscale of that rgb,
+  ``sparse_depth`` / ``dense_depth`` [1] metres / max_depth, ``ddm_jet`` [3] 0-1, ``dhi`` [3] 0-1, ``bev`` [6,Hb,Wb];
+- targets: ``free_space`` / ``road_objects`` [1,H,W] {0,1}; ``semantic`` [H,W] int64 (0 background, 1 free space,
+  2 road object); ``instances`` dict(masks [N,H,W] bool, labels [N] 0 car 1 pedestrian, boxes [N,4] xyxy);
+  ``boxes2d`` dict(boxes, labels 0 car 1 pedestrian 2 cyclist, difficulty 0/1/2/-1); ``ignore`` [H,W] bool
+  (DontCare boxes); ``road_bev`` [1,Hb,Wb] {0,1};
+- ``frame`` (id) and ``condition`` (name); lists in a batch, as are ``instances`` and ``boxes2d``.
+
+Splits (fixed, independent of ``seed``): a folder's ``ImageSets/{train,val,test}.txt`` when present (the
+generated dataset writes a seeded 60/20/20 split there); otherwise a permutation of the sorted frames with seed 0
+cut 4489/1496/1496 when all 7481 KITTI object frames are present (SMoE §3.3), else 60/20/20.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from ablate.data import DataError, kitti
+from ablate.data.dataset import LIDAR_DERIVED, MODALITIES, KittiDataset
+from ablate.data.generate import generate, split_frames
+
+DEFAULT_SYNTH = {"frames": 500, "seed": 0, "height": 128, "width": 416}
+LIST_KEYS = ("frame", "condition", "instances", "boxes2d")
+
+
+def collate(samples: list[dict]) -> dict:
+    """Stack tensors; keep ``frame``, ``condition``, ``instances`` and ``boxes2d`` as lists."""
+    return {k: [s[k] for s in samples] if k in LIST_KEYS else torch.stack([s[k] for s in samples])
+            for k in samples[0]}
+
+
+def synth_dir(data_dir: str | Path, params: dict) -> Path:
+    """data_dir/synth-<hash of the generator parameters>."""
+    key = hashlib.sha1(json.dumps(params, sort_keys=True).encode()).hexdigest()[:8]
+    return Path(data_dir) / f"synth-{key}"
+
+
+def ensure_synth(data_dir: str | Path, params: dict | None) -> Path:
+    """The generated dataset for ``params``, generated on first use."""
+    params = {**DEFAULT_SYNTH, **(params or {})}
+    out = synth_dir(data_dir, params)
+    if not (out / "synth.json").is_file():  # written last, so its presence means a complete dataset
+        generate(out, params["frames"], params["seed"], params["height"], params["width"],
+                 workers=min(2, os.cpu_count() or 1))
+    return out
+
+
+def resolve_split_dir(root: str | Path) -> Path:
+    for bench in ("object", "road"):
+        try:
+            return kitti.find_split_dir(root, bench)
+        except DataError:
+            continue
+    raise DataError(f"{root}: no KITTI object or road layout (image_2/ and calib/) found")
+
+
+def splits(split_dir: Path) -> dict[str, list[str]]:
+    sets = split_dir / "ImageSets"
+    if all((sets / f"{s}.txt").is_file() for s in ("train", "val", "test")):
+        return {s: (sets / f"{s}.txt").read_text().split() for s in ("train", "val", "test")}
+    frames = kitti.list_frames(split_dir)
+    if len(frames) == 7481:
+        return split_frames(frames, 0, (4489 / 7481, 1496 / 7481, 1496 / 7481))
+    return split_frames(frames, 0)
+
+
+class KittiDataModule(L.LightningDataModule):
+    """Camera + LiDAR data for every task; every argument is a plain value so Hydra can build it."""
+
+    def __init__(self, root: str | None = None, synth: dict | None = None, data_dir: str = "data",
+                 modalities: list[str] = ("rgb", "dense_depth"), targets: list[str] = (),
+                 conditions: list[str] = ("clear",), severity: float = 1.0, corruption: dict | None = None,
+                 batch_size: int = 4, num_workers: int = 0, seed: int = 0, max_depth: float = 80.0,
+                 limit_frames: dict | None = None, bev: dict | None = None, cache: bool = True,
+                 image_size: list[int] | None = None) -> None:
+        super().__init__()
+        for m in modalities:
+            if m not in MODALITIES:
+                raise KeyError(f"unknown modality {m!r}; valid: {', '.join(MODALITIES)}")
+        self.root, self.synth, self.data_dir = root, synth, data_dir
+        self.modalities, self.targets, self.conditions = list(modalities), list(targets), list(conditions)
+        self.severity, self.corruption, self.batch_size = severity, corruption, batch_size
+        self.num_workers, self.seed, self.max_depth = num_workers, seed, max_depth
+        self.limit_frames, self.bev, self.cache = dict(limit_frames or {}), bev, cache
+        # Real KITTI images range from 1224x370 to 1242x375: crop to the smallest unless told otherwise.
+        self.image_size = image_size if image_size or root is None else [370, 1224]
+        self.datasets: dict[str, KittiDataset] = {}
+
+    @property
+    def channels(self) -> dict[str, int]:
+        return {m: MODALITIES[m] for m in self.modalities}
+
+    def split_dir(self) -> Path:
+        if self.root is not None:
+            if not Path(self.root).exists():
+                raise DataError(f"data root {self.root} does not exist")
+            return resolve_split_dir(self.root)
+        return ensure_synth(self.data_dir, self.synth)
+
+    def prepare_data(self) -> None:
+        self.split_dir()
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.datasets:
+            return
+        split_dir = self.split_dir()
+        for name, frames in splits(split_dir).items():
+            cap = self.limit_frames.get(name)
+            self.datasets[name] = KittiDataset(
+                split_dir, frames[:cap] if cap is not None else frames, self.modalities, self.targets,
+                self.conditions, self.severity, self.corruption, self.seed, self.max_depth,
+                Path(self.data_dir) / "cache" if self.cache else None, self.bev, self.image_size)
+
+    def _loader(self, split: str, shuffle: bool) -> DataLoader:
+        self.setup()
+        gen = torch.Generator().manual_seed(self.seed)
+        return DataLoader(self.datasets[split], self.batch_size, shuffle=shuffle, num_workers=self.num_workers,
+                          collate_fn=collate, generator=gen, persistent_workers=self.num_workers > 0)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", False)
+
+
+def prepare(root: str | None, data_dir: str = "data", modalities: list[str] = ("sparse_depth", "dense_depth"),
+            max_depth: float = 80.0) -> int:
+    """Precompute the cache of derived LiDAR modalities for every frame of ``root`` (tqdm progress bar)."""
+    split_dir = resolve_split_dir(root) if root else ensure_synth(data_dir, None)
+    derived = [m for m in modalities if m in LIDAR_DERIVED and m != "ddm_jet"]
+    ds = KittiDataset(split_dir, kitti.list_frames(split_dir), derived, [], ["clear"], max_depth=max_depth,
+                      cache_dir=Path(data_dir) / "cache")
+    for frame in tqdm(ds.frames, desc=f"caching {', '.join(derived)}", unit="frame"):
+        shape = kitti.read_image(kitti.frame_paths(split_dir, frame)["image"]).shape[:2]
+        for m in derived:
+            ds.lidar(frame, m, shape)
+    return len(ds.frames)

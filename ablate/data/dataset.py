@@ -1,0 +1,212 @@
+"""Torch dataset over a KITTI-layout folder: network-ready modalities, targets, conditions and an on-disk cache
+of the derived LiDAR modalities (keyed by folder, frame and parameters, so the second epoch does no LiDAR work)."""
+from __future__ import annotations
+
+import hashlib
+import json
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from ablate.data import DataError
+from ablate.data import kitti, lidar
+from ablate.data.conditions import apply_condition, apply_corruption
+
+MODALITIES = {"rgb": 3, "intensity": 1, "sparse_depth": 1, "dense_depth": 1, "ddm_jet": 3, "dhi": 3, "bev": 6}
+TARGETS = ("free_space", "road_objects", "semantic", "instances", "boxes2d", "road_bev")
+CLASSES = ("Car", "Pedestrian", "Cyclist")  # label ids 0, 1, 2
+LIDAR_DERIVED = {"sparse_depth", "dense_depth", "ddm_jet", "dhi", "bev"}
+
+
+def _key(obj) -> str:
+    return hashlib.sha1(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:10]
+
+
+class KittiDataset(Dataset):
+    """One split of a KITTI-layout folder. Returns the sample dict described in ``ablate.data.datamodule``."""
+
+    def __init__(self, split_dir: Path, frames: list[str], modalities: list[str], targets: list[str],
+                 conditions: list[str], severity: float = 1.0, corruption: dict | None = None, seed: int = 0,
+                 max_depth: float = 80.0, cache_dir: str | Path | None = None, bev: dict | None = None,
+                 image_size: tuple[int, int] | None = None) -> None:
+        for m in modalities:
+            if m not in MODALITIES:
+                raise KeyError(f"unknown modality {m!r}; valid: {', '.join(MODALITIES)}")
+        for t in targets:
+            if t not in TARGETS:
+                raise KeyError(f"unknown target {t!r}; valid: {', '.join(TARGETS)}")
+        self.split_dir, self.frames = Path(split_dir), list(frames)
+        self.modalities, self.targets = list(modalities), list(targets)
+        self.severity, self.corruption, self.seed, self.max_depth = severity, corruption, seed, max_depth
+        self.bev = {"x_range": (6.0, 46.0), "y_range": (-10.0, 10.0), "cell": 0.5, **(bev or {})}
+        self.cache_dir = Path(cache_dir) / _key(str(self.split_dir.resolve())) if cache_dir else None
+        self.cache_hits = self.cache_misses = 0
+        self.image_size = tuple(image_size) if image_size else None  # bottom-centre crop (KITTI sizes vary)
+        self._check_available()
+        order = np.random.default_rng([seed, len(self.frames)]).permutation(len(self.frames))
+        self.condition = {f: conditions[i % len(conditions)] for f, i in zip(self.frames, np.argsort(order))}
+
+    def _check_available(self) -> None:
+        d = self.split_dir
+        has = {"velodyne": (d / "velodyne").is_dir(), "labels": (d / "label_2").is_dir(),
+               "instances": (d / "instance_2").is_dir(), "road": (d / "gt_image_2").is_dir()}
+        need = {"free_space": "road", "semantic": "road", "road_bev": "road", "road_objects": "instances",
+                "instances": "instances", "boxes2d": "labels"}
+        for name in [m for m in self.modalities if m in LIDAR_DERIVED] + self.targets:
+            src = "velodyne" if name in LIDAR_DERIVED else need[name]
+            if not has[src]:
+                raise DataError(f"{d}: cannot provide {name!r}: this data has no {src} "
+                                f"({'instance masks' if src == 'instances' else src} folder missing)")
+        if "semantic" in self.targets and not has["instances"]:
+            raise DataError(f"{d}: cannot provide 'semantic': this data has no instance masks (instance_2/)")
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def _cached(self, frame: str, name: str, params: dict, compute):
+        if self.cache_dir is None:
+            self.cache_misses += 1
+            return compute()
+        path = self.cache_dir / f"{name}-{_key(params)}" / f"{frame}.npy"
+        if path.is_file():
+            self.cache_hits += 1
+            return np.load(path)
+        self.cache_misses += 1
+        value = compute()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{np.random.randint(1 << 30)}.tmp.npy")
+        np.save(tmp, value)
+        tmp.replace(path)
+        return value
+
+    def lidar(self, frame: str, name: str, shape: tuple[int, int]) -> np.ndarray:
+        """A derived LiDAR modality in its raw units (metres, uint8 DHI, BEV), from the cache when present."""
+        paths = kitti.frame_paths(self.split_dir, frame)
+        calib = lambda: kitti.Calibration.from_file(paths["calib"])  # noqa: E731
+        points = lambda: kitti.read_velodyne(paths["velodyne"])  # noqa: E731
+        if name == "sparse_depth":
+            return self._cached(frame, name, {"shape": shape}, lambda: lidar.sparse_depth(points(), calib(), shape))
+        if name == "dense_depth":
+            return self._cached(frame, name, {"shape": shape},
+                                lambda: lidar.dense_depth(self.lidar(frame, "sparse_depth", shape)))
+        if name == "dhi":
+            return self._cached(frame, name, {"shape": shape}, lambda: lidar.dhi_image(points(), calib(), shape))
+        return self._cached(frame, name, self.bev, lambda: lidar.bev_image(points(), **self.bev))
+
+    def __getitem__(self, i: int) -> dict:
+        frame = self.frames[i]
+        paths = kitti.frame_paths(self.split_dir, frame)
+        condition = self.condition[frame]
+        rng = np.random.default_rng([self.seed, zlib.crc32(frame.encode())])
+        rgb = kitti.read_image(paths["image"]).astype(np.float32) / 255.0
+        shape = rgb.shape[:2]
+        rgb = apply_condition(condition, rgb, rng, self.severity)
+        corr = self.corruption or {}
+        if corr.get("modality") == "rgb" and rng.random() < corr.get("p", 1.0):
+            rgb = apply_corruption(corr["name"], rgb.transpose(2, 0, 1), rng, "rgb", self.severity).transpose(1, 2, 0)
+        sample: dict = {"frame": frame, "condition": condition}
+        for m in self.modalities:
+            if m == "rgb":
+                x = rgb.transpose(2, 0, 1)
+            elif m == "intensity":
+                x = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)[None]
+            elif m in ("sparse_depth", "dense_depth"):
+                x = self.lidar(frame, m, shape)[None] / self.max_depth
+            elif m == "ddm_jet":
+                x = lidar.jet(self.lidar(frame, "dense_depth", shape), self.max_depth).transpose(2, 0, 1) / 255.0
+            elif m == "dhi":
+                x = self.lidar(frame, "dhi", shape).transpose(2, 0, 1) / 255.0
+            else:
+                x = self.lidar(frame, "bev", shape)
+            if corr.get("modality") == m and m != "rgb" and rng.random() < corr.get("p", 1.0):
+                x = apply_corruption(corr["name"], x, rng, m, self.severity)
+            sample[m] = torch.from_numpy(np.ascontiguousarray(x, np.float32))
+        sample.update(self._targets(paths, shape))
+        return self._crop(sample, shape) if self.image_size and self.image_size != shape else sample
+
+    def _crop(self, sample: dict, shape: tuple[int, int]) -> dict:
+        """Crop every image-space tensor to ``image_size``, keeping the bottom rows and the centre columns."""
+        (h, w), (ch, cw) = shape, self.image_size
+        if ch > h or cw > w:
+            raise DataError(f"{self.split_dir}: image {w}x{h} is smaller than image_size {cw}x{ch}")
+        top, left = h - ch, (w - cw) // 2
+        shift = torch.tensor([left, top, left, top], dtype=torch.float32)
+        for k, v in sample.items():
+            if isinstance(v, torch.Tensor) and k not in ("bev", "road_bev"):
+                sample[k] = v[..., top:top + ch, left:left + cw]
+            elif k in ("instances", "boxes2d"):
+                v = dict(v, boxes=v["boxes"] - shift)
+                if "masks" in v:
+                    v["masks"] = v["masks"][..., top:top + ch, left:left + cw]
+                sample[k] = v
+        return sample
+
+    def _targets(self, paths: dict, shape: tuple[int, int]) -> dict:
+        out: dict = {}
+        if not self.targets:
+            return out
+        h, w = shape
+        labels = kitti.read_labels(paths["label"]) if paths["label"].is_file() else []
+        road = kitti.read_road_gt(paths["road_gt"])[0] if "road_gt" in paths and paths["road_gt"].is_file() else None
+        inst = cv2.imread(str(paths["instance"]), cv2.IMREAD_UNCHANGED) if paths["instance"].is_file() else None
+        if any(t in self.targets for t in ("free_space", "semantic", "road_bev")) and road is None:
+            raise DataError(f"{paths['image']}: road ground truth {paths.get('road_gt')} is missing")
+        if any(t in self.targets for t in ("road_objects", "semantic", "instances")) and inst is None:
+            raise DataError(f"{paths['image']}: instance masks {paths['instance']} are missing")
+        if "free_space" in self.targets:
+            out["free_space"] = torch.from_numpy(road[None].astype(np.float32))
+        if "road_objects" in self.targets:
+            out["road_objects"] = torch.from_numpy((inst > 0)[None].astype(np.float32))
+        if "semantic" in self.targets:
+            out["semantic"] = torch.from_numpy(np.where(inst > 0, 2, road.astype(np.int64)).astype(np.int64))
+        if "instances" in self.targets:
+            ids = [k + 1 for k, o in enumerate(labels) if o.type in CLASSES[:2]]
+            out["instances"] = {
+                "masks": torch.from_numpy(np.stack([inst == k for k in ids]) if ids else np.zeros((0, h, w), bool)),
+                "labels": torch.tensor([CLASSES.index(labels[k - 1].type) for k in ids], dtype=torch.int64),
+                "boxes": torch.tensor([labels[k - 1].bbox for k in ids], dtype=torch.float32).reshape(-1, 4)}
+        if "boxes2d" in self.targets:
+            objs = [o for o in labels if o.type in CLASSES]
+            scale = h / 375.0  # KITTI's difficulty heights are for 375-row images
+            out["boxes2d"] = {"boxes": torch.tensor([o.bbox for o in objs], dtype=torch.float32).reshape(-1, 4),
+                              "labels": torch.tensor([CLASSES.index(o.type) for o in objs], dtype=torch.int64),
+                              "difficulty": torch.tensor([o.difficulty_at(scale) for o in objs], dtype=torch.int64)}
+        if "instances" in self.targets or "boxes2d" in self.targets:
+            ignore = np.zeros((h, w), bool)
+            for o in labels:
+                if o.type == "DontCare":
+                    x0, y0, x1, y1 = (int(round(v)) for v in o.bbox)
+                    ignore[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1] = True
+            out["ignore"] = torch.from_numpy(ignore)
+        if "road_bev" in self.targets:
+            calib = kitti.Calibration.from_file(paths["calib"])
+            out["road_bev"] = torch.from_numpy(road_bev(road, calib, **self.bev)[None])
+        return out
+
+
+def road_bev(road: np.ndarray, calib: kitti.Calibration, x_range=(6.0, 46.0), y_range=(-10.0, 10.0),
+             cell: float = 0.5) -> np.ndarray:
+    """Road mask in the BEV grid of :func:`ablate.data.lidar.bev_image`: each cell centre is dropped onto the road
+    plane (Tr_cam_to_road) and looked up in the image road mask; cells outside the image are 0."""
+    if calib.Tr_cam_to_road is None:
+        raise DataError(f"{calib.path}: road_bev needs Tr_cam_to_road in the calibration")
+    hb, wb = lidar.bev_grid(x_range, y_range, cell)
+    xs = x_range[1] - (np.arange(hb) + 0.5) * cell
+    ys = y_range[1] - (np.arange(wb) + 0.5) * cell
+    x, y = np.meshgrid(xs, ys, indexing="ij")
+    # velodyne -> road frame is affine; solve for the z that puts the point on the road plane (road Y = 0).
+    velo_to_rect = np.vstack([np.hstack([calib.R0_rect @ calib.Tr_velo_to_cam[:, :3],
+                                         (calib.R0_rect @ calib.Tr_velo_to_cam[:, 3])[:, None]]), [0, 0, 0, 1]])
+    a = calib.Tr_cam_to_road[1] @ velo_to_rect  # road Y as a function of (x, y, z, 1)
+    z = -(a[0] * x + a[1] * y + a[3]) / a[2]
+    uv, depth = calib.velo_to_image(np.stack([x.ravel(), y.ravel(), z.ravel()], 1))
+    u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+    h, w = road.shape
+    ok = (depth > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    out = np.zeros(hb * wb, np.float32)
+    out[ok] = road[v[ok].astype(np.int64), u[ok].astype(np.int64)]
+    return out.reshape(hb, wb)
