@@ -22,7 +22,6 @@ import os
 from pathlib import Path
 
 import lightning as L
-import numpy as np
 import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ablate.data.raycast import BORDER, BOX, CAMERA_HEIGHT, ROAD, SKY, cast, road_centre
+from ablate.data.raycast import BORDER, BOX, CAMERA_HEIGHT, ROAD, SKY, road_centre
 
 KITTI_P2 = (721.5377, 609.5593, 172.854, 1242, 375)  # focal, cx, cy, width, height
 LIDAR_ORIGIN = np.array([0.0, -0.08, -0.27])  # velodyne origin in the camera frame (1.73 m above the road)

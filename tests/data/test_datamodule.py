@@ -1,0 +1,79 @@
+"""KittiDataModule: batch shapes and value ranges, cache hits, conditions spread, missing targets."""
+import pytest
+import torch
+
+from ablate.data import DataError
+from ablate.data.datamodule import KittiDataModule
+
+ALL_MODALITIES = ["rgb", "intensity", "sparse_depth", "dense_depth", "ddm_jet", "dhi", "bev"]
+ALL_TARGETS = ["free_space", "road_objects", "semantic", "instances", "boxes2d", "road_bev"]
+SMALL = {"frames": 10, "seed": 1, "height": 64, "width": 208}
+
+
+@pytest.fixture(scope="module")
+def dm(tmp_path_factory):
+    dm = KittiDataModule(synth=SMALL, data_dir=str(tmp_path_factory.mktemp("data")), modalities=ALL_MODALITIES,
+                         targets=ALL_TARGETS, conditions=["clear", "night", "rain_day", "rain_night", "glare"],
+                         batch_size=3)
+    dm.prepare_data()
+    dm.setup()
+    return dm
+
+
+def test_batch_shapes_and_ranges(dm):
+    b = next(iter(dm.train_dataloader()))
+    h, w = 64, 208
+    assert dm.channels == {"rgb": 3, "intensity": 1, "sparse_depth": 1, "dense_depth": 1, "ddm_jet": 3, "dhi": 3,
+                           "bev": 6}
+    for m, c in dm.channels.items():
+        size = (80, 40) if m == "bev" else (h, w)
+        assert b[m].shape == (3, c, *size) and b[m].dtype == torch.float32, m
+    for m in ("rgb", "intensity", "ddm_jet", "dhi", "sparse_depth"):
+        assert 0 <= b[m].min() and b[m].max() <= 1.6, m
+    assert (b["dense_depth"] > 0).all()
+    assert b["free_space"].shape == b["road_objects"].shape == (3, 1, h, w)
+    assert b["semantic"].dtype == torch.int64 and set(b["semantic"].unique().tolist()) <= {0, 1, 2}
+    assert ((b["semantic"] == 2) == (b["road_objects"][:, 0] > 0)).all()
+    assert b["road_bev"].shape == (3, 1, 80, 40) and b["road_bev"].sum() > 0
+    assert b["ignore"].shape == (3, h, w) and b["ignore"].dtype == torch.bool
+    assert len(b["frame"]) == len(b["condition"]) == len(b["instances"]) == len(b["boxes2d"]) == 3
+    for inst, box in zip(b["instances"], b["boxes2d"]):
+        n = len(inst["labels"])
+        assert inst["masks"].shape == (n, h, w) and inst["boxes"].shape == (n, 4)
+        assert box["boxes"].shape == (len(box["labels"]), 4) and box["difficulty"].shape == box["labels"].shape
+
+
+def test_cache_hit_on_second_access(dm):
+    ds = dm.datasets["val"]
+    first = ds[0]
+    hits, misses = ds.cache_hits, ds.cache_misses
+    second = ds[0]
+    assert ds.cache_misses == misses and ds.cache_hits > hits
+    for m in ALL_MODALITIES:
+        assert torch.equal(first[m], second[m]), m
+
+
+def test_conditions_spread_and_fixed_split(dm):
+    conds = [dm.datasets["train"][i]["condition"] for i in range(len(dm.datasets["train"]))]
+    assert len(conds) == 6 and len(set(conds)) == 5
+    assert sum(len(d) for d in dm.datasets.values()) == SMALL["frames"]
+
+
+def test_corruption_applied_to_named_modality(tmp_path, dm):
+    kw = dict(synth=SMALL, data_dir=dm.data_dir, modalities=["rgb", "dense_depth"], batch_size=2)
+    plain = KittiDataModule(**kw)
+    blank = KittiDataModule(**kw, corruption={"name": "blank", "modality": "dense_depth"})
+    a, b = (next(iter(d.test_dataloader())) for d in (plain, blank))
+    assert torch.equal(a["rgb"], b["rgb"]) and not b["dense_depth"].any() and a["dense_depth"].all()
+
+
+def test_real_kitti_object(kitti_root, tmp_path):
+    dm = KittiDataModule(root=str(kitti_root / "object"), data_dir=str(tmp_path), modalities=["rgb", "dhi"],
+                         targets=["boxes2d"], batch_size=2, limit_frames={"train": 2})
+    b = next(iter(dm.train_dataloader()))
+    assert b["rgb"].shape == (2, 3, 370, 1224) and b["dhi"].shape == (2, 3, 370, 1224)
+    with pytest.raises(DataError, match=r"instances.*instance masks") as err:
+        KittiDataModule(root=str(kitti_root / "object"), data_dir=str(tmp_path), targets=["instances"]).setup()
+    assert str(kitti_root / "object") in str(err.value)
+    with pytest.raises(KeyError, match="valid: rgb"):
+        KittiDataModule(modalities=["lidar"])
