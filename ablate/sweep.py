@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
@@ -19,6 +20,7 @@ from ablate.tracking import KIND_SWEEP, Tracker, git_commit
 
 log = logging.getLogger(__name__)
 PARENT_FILE = ".parent_run"
+SWEPT_FILE = ".swept_keys"
 FAILURES = "failures"
 
 
@@ -37,6 +39,13 @@ def parent_run_id() -> str | None:
     sdir = sweep_dir()
     path = sdir / PARENT_FILE if sdir else None
     return path.read_text().strip() if path and path.exists() else None
+
+
+def swept_keys() -> list[str] | None:
+    """The config keys the running multirun sweeps over (``fusion`` in ``fusion=sum,max``), or None."""
+    sdir = sweep_dir()
+    path = sdir / SWEPT_FILE if sdir else None
+    return path.read_text().split() if path and path.exists() else None
 
 
 def record_failure(job: str, message: str) -> None:
@@ -60,6 +69,8 @@ class SweepCallback(Callback):
             "kind": KIND_SWEEP, "table": config.table.name, "overrides": overrides,
             "git_commit": git_commit(), "sweep_dir": str(sdir)})
         (sdir / PARENT_FILE).write_text(run_id)
+        parsed = OverridesParser.create().parse_overrides(list(config.hydra.overrides.task))
+        (sdir / SWEPT_FILE).write_text(" ".join(o.get_key_element() for o in parsed if o.is_sweep_override()))
         log.info("MLflow parent run %s in experiment '%s' (%s)", run_id, config.table.name, tracker.uri)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:

@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from ablate.experts import attach as attach_experts
 from ablate.experts import prepare as prepare_experts
 from ablate.metrics.timing import forward_time_ms
-from ablate.sweep import parent_run_id, record_failure, sweep_dir
+from ablate.sweep import parent_run_id, record_failure, swept_keys, sweep_dir
 from ablate.tracking import KIND_JOB, RunLogger, Tracker, config_hash, flatten, git_commit
 
 log = logging.getLogger(__name__)
@@ -36,16 +36,21 @@ class JobFailed(RuntimeError):
 
 
 def row_name(cfg: DictConfig) -> str:
-    """The table row a job belongs to: the `row` choice, else its own overrides (``fusion=sum``)."""
-    if HydraConfig.initialized():
-        hc = HydraConfig.get()
-        if hc.runtime.choices.get("row"):
-            return str(hc.runtime.choices["row"])
-        skip = ("seed=", "scale=", "force=", "experiment=", "hydra", "logger")
-        own = [o for o in hc.overrides.task if not o.lstrip("+~").startswith(skip)]
-        if own:
-            return " ".join(sorted(own))
-    return "default"
+    """The table row a job belongs to: the `row` choice; else, in a sweep, the values of the swept keys
+    (``fusion=sum``); else the job's own overrides; else ``default``."""
+    if not HydraConfig.initialized():
+        return "default"
+    hc = HydraConfig.get()
+    if hc.runtime.choices.get("row"):
+        return str(hc.runtime.choices["row"])
+    swept = swept_keys()
+    skip = ("seed", "scale", "force", "experiment", "hydra", "logger", "trainer.enable_progress_bar")
+    own = []
+    for override in hc.overrides.task:
+        key = override.split("=", 1)[0].lstrip("+~")
+        if (key in swept and key != "seed") if swept is not None else not key.startswith(skip):
+            own.append(override.lstrip("+~"))
+    return " ".join(sorted(own)) or "default"
 
 
 @dataclass
@@ -133,7 +138,7 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
         figure = getattr(task, method, lambda _: None)(sample)
         if figure is not None:
             tracker.log_figure(run_id, figure, name)
-    if best and cfg.logger.get("log_checkpoint", True) and Path(best).parent == ckpt_dir:
+    if best and cfg.logger.get("log_checkpoint", True) and Path(best).resolve().parent == ckpt_dir.resolve():
         tracker.log_artifact(run_id, best, "checkpoints")
     return metrics
 

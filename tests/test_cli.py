@@ -1,0 +1,111 @@
+"""`python -m ablate` end to end at scale=smoke, as a user runs it: sweeps, tables, skip, failure and resume."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = ["scale=smoke", "data.synth.frames=20", "trainer.enable_progress_bar=false", "comp_time.repeats=2"]
+
+
+def ablate(cwd: Path, *args: str, module: str = "ablate") -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=600)
+
+
+def runs(cwd: Path, experiment: str, kind: str = "job"):
+    client = MlflowClient(f"sqlite:///{cwd / 'mlflow.db'}")
+    exp = client.get_experiment_by_name(experiment)
+    return client, client.search_runs([exp.experiment_id], f"tags.kind = '{kind}'") if exp else []
+
+
+@pytest.fixture(scope="module")
+def table2(tmp_path_factory):
+    cwd = tmp_path_factory.mktemp("table2")
+    first = ablate(cwd, "-m", "experiment=chinet_table2", *TINY)
+    return cwd, first
+
+
+def test_a_table_sweep_leaves_one_parent_with_a_finished_child_per_row(table2):
+    cwd, first = table2
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    client, jobs = runs(cwd, "chinet_table2")
+    assert sorted(r.data.tags["row"] for r in jobs) == ["chinet", "fusenet", "unet"]
+    assert {r.info.status for r in jobs} == {"FINISHED"}
+    _, sweeps = runs(cwd, "chinet_table2", kind="sweep")
+    assert len(sweeps) == 1 and sweeps[0].info.status == "FINISHED"
+    assert {r.data.tags["mlflow.parentRunId"] for r in jobs} == {sweeps[0].info.run_id}
+    job = jobs[0]
+    for tag in ("table", "row", "seed", "config_hash", "git_commit", "sweep_id"):
+        assert tag in job.data.tags
+    assert "det_rate" in job.data.metrics and "comp_time_ms" in job.data.metrics
+    assert job.data.params["model._target_"] == "ablate.nn.chinet.build"
+    artifacts = {a.path for a in client.list_artifacts(job.info.run_id)}
+    assert {"config.yaml", "predictions.png", "checkpoints"} <= artifacts
+
+
+def test_the_table_has_the_rows_in_paper_order_beside_the_paper(table2):
+    cwd, _ = table2
+    text = (cwd / "results" / "chinet_table2.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| ")][1:]
+    assert [r.split("|")[1].strip() for r in rows] == ["ChiNet", "U-Net", "FuseNet"]
+    assert "Det. Rate % (paper)" in text and "97.35" in text and "Kendall τ" in text
+    assert (cwd / "results" / "chinet_table2.png").stat().st_size > 0
+
+
+def test_running_a_table_again_trains_nothing_and_rewrites_the_same_table(table2):
+    cwd, _ = table2
+    before = (cwd / "results" / "chinet_table2.md").read_bytes()
+    again = ablate(cwd, "-m", "experiment=chinet_table2", *TINY)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stdout.count("Skipping") == 3 and "Epoch" not in again.stdout + again.stderr
+    _, jobs = runs(cwd, "chinet_table2")
+    assert len(jobs) == 3
+    assert (cwd / "results" / "chinet_table2.md").read_bytes() == before
+    report = ablate(cwd, "experiment=chinet_table2", module="ablate.report")
+    assert report.returncode == 0, report.stderr[-3000:]
+    assert (cwd / "results" / "chinet_table2.md").read_bytes() == before
+
+
+def test_a_failing_job_is_recorded_failed_and_the_others_still_run(tmp_path):
+    # lr 1e30 blows the weights up: the NaN guard fails that job at once
+    out = ablate(tmp_path, "-m", "task.optimizer.lr=0.001,1e30", *TINY)
+    assert out.returncode == 1
+    assert "1 job(s) failed" in out.stdout + out.stderr
+    assert "NonFiniteLossError" in out.stdout + out.stderr
+    _, jobs = runs(tmp_path, "ablate")
+    assert sorted(r.info.status for r in jobs) == ["FAILED", "FINISHED"]
+    text = (tmp_path / "results" / "ablate.md").read_text()
+    assert "task.optimizer.lr=0.001" in text and "1e30" not in text
+
+
+def test_parallel_joblib_sweep_of_fusion_operators_loses_no_run(tmp_path):
+    out = ablate(tmp_path, "-m", "fusion=sum,max", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", *TINY)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    _, jobs = runs(tmp_path, "ablate")
+    assert sorted(r.data.tags["row"] for r in jobs) == ["fusion=max", "fusion=sum"]
+    assert {r.info.status for r in jobs} == {"FINISHED"}
+
+
+def test_a_killed_job_resumes_from_its_checkpoint_without_duplicates(tmp_path):
+    first = ablate(tmp_path, "row=unet", "experiment=chinet_table2", *TINY)
+    assert first.returncode == 0, first.stderr[-3000:]
+    client, (job,) = runs(tmp_path, "chinet_table2")
+    # as if the process had been killed mid-job: the run stays RUNNING, its last checkpoint on disk
+    client.update_run(job.info.run_id, status="RUNNING")
+    again = ablate(tmp_path, "row=unet", "experiment=chinet_table2", *TINY)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "Marked 1 stale RUNNING run" in again.stdout and "Resuming from" in again.stdout
+    _, jobs = runs(tmp_path, "chinet_table2")
+    assert sorted(r.info.status for r in jobs) == ["FINISHED", "KILLED"]
+
+
+def test_an_unknown_option_fails_with_the_valid_choices(tmp_path):
+    out = ablate(tmp_path, "fusion=bogus", *TINY)
+    assert out.returncode != 0
+    assert "Could not find 'fusion/bogus'" in out.stderr and "smoe" in out.stderr and "sharpen" in out.stderr
