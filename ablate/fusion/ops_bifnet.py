@@ -69,9 +69,9 @@ class LidCamNet(FusionOp):
         self.alpha = nn.Parameter(torch.full((num_inputs - 1,), float(init)))
 
     def fuse(self, features: list[Tensor]) -> Tensor:
-        weights = [torch.ones_like(self.alpha[0])] + list(self.alpha.unbind(0))
-        self.last_gates = [w.detach().view(1, 1, 1, 1) for w in weights]
-        return reduce(torch.add, [w * f for w, f in zip(weights, features)])
+        alphas = list(self.alpha.unbind(0))
+        self.last_gates = [self.alpha.new_ones(1, 1, 1, 1)] + [a.detach().view(1, 1, 1, 1) for a in alphas]
+        return reduce(torch.add, [features[0]] + [a * f for a, f in zip(alphas, features[1:])])
 
 
 @register("plard")

@@ -60,7 +60,8 @@ class FusionModel(nn.Module):
             raise ValueError(f"stage {stage!r} fuses >= 2 modalities, got {list(modalities)}")
         if stage in ("backbone", "fpn", "late") and fusion is None:
             raise ValueError(f"stage {stage!r} needs a fusion operator (`fusion`)")
-        self.stage, self.modalities, self.single = stage, modalities, single
+        self.stage, self.modalities = stage, modalities
+        self.single = single if stage == "single" else None
         self.backbone_options, self.fpn_channels = backbone, fpn_channels
         self._frozen: list[nn.Module] = []
         n = len(modalities)
