@@ -227,18 +227,26 @@ class GFU(FusionOp):
     F_G = concat(F_C, F_L) (eq. 5); w_k = sigmoid(Conv3x3_k(F_G) -> 1 channel) with its own conv and
     bias per input (eq. 6-7); F_F = concat(F_k * w_k) (eq. 8); F_J = ReLU(Conv1x1(F_F) -> C) (eq. 9).
     Concatenation follows the input order (camera first); the order only permutes conv weights.
+    ``gated=False`` is DGFN's baseline "without GFU" (§IV-B: weight maps fixed to one): concat, 1x1, ReLU.
     N-way: one independent sigmoid gate per input, as the two DGFN gates are independent (not a softmax).
     """
 
-    def __init__(self, channels: int, num_inputs: int = 2) -> None:
+    def __init__(self, channels: int, num_inputs: int = 2, gated: bool = True) -> None:
         super().__init__(channels, num_inputs)
-        self.gates = nn.ModuleList(nn.Conv2d(num_inputs * channels, 1, 3, padding=1) for _ in range(num_inputs))
+        self.gated = bool(gated)
+        n = num_inputs if self.gated else 0
+        self.gates = nn.ModuleList(nn.Conv2d(num_inputs * channels, 1, 3, padding=1) for _ in range(n))
         self.joint = nn.Conv2d(num_inputs * channels, channels, 1)
 
     def fuse(self, features: list[Tensor]) -> Tensor:
         f_g = torch.cat(features, 1)
+        if not self.gated:
+            self.last_gates = [f_g.new_ones(f_g.shape[0], 1, *f_g.shape[2:]) for _ in features]
+            return F.relu(self.joint(f_g))
         w = [torch.sigmoid(conv(f_g)) for conv in self.gates]
         self.last_gates = [wk.detach() for wk in w]
         f_f = torch.cat([f * wk for f, wk in zip(features, w)], 1)
         return F.relu(self.joint(f_f))
 
+    def extra_repr(self) -> str:
+        return f"{super().extra_repr()}, gated={self.gated}"

@@ -26,7 +26,7 @@ class CBF(FusionOp):
     MLP sees the descriptors of all inputs concatenated ([B, N*C] -> [B, N*C]), so the gain of each sensor
     depends on the context seen by every sensor, which is how the prose motivates CBF (suppress the sensor
     that expresses the scene badly). ``joint=False`` gives each input its own MLP on its own descriptor
-    (plain SE per sensor). Hidden width: max(in_features // reduction, 4), SENet's reduction ratio.
+    (plain SE per sensor). Hidden width: max(in_features // reduction, 8), SENet's reduction ratio.
     N-way: N descriptors, N*C gains, sum of the N reweighted inputs.
     """
 
@@ -36,7 +36,7 @@ class CBF(FusionOp):
             raise ValueError(f"fusion operator 'cbf': reduction must be >= 1, got {reduction}")
         self.joint = bool(joint)
         width = num_inputs * channels if self.joint else channels
-        self.mlps = nn.ModuleList(self._mlp(width, max(width // reduction, 4)) for _ in range(1 if joint else num_inputs))
+        self.mlps = nn.ModuleList(self._mlp(width, max(width // reduction, 8)) for _ in range(1 if joint else num_inputs))
 
     @staticmethod
     def _mlp(width: int, hidden: int) -> nn.Sequential:
@@ -69,9 +69,9 @@ class LidCamNet(FusionOp):
         self.alpha = nn.Parameter(torch.full((num_inputs - 1,), float(init)))
 
     def fuse(self, features: list[Tensor]) -> Tensor:
-        weights = [torch.ones_like(self.alpha[0])] + list(self.alpha.unbind(0))
-        self.last_gates = [w.detach().view(1, 1, 1, 1) for w in weights]
-        return reduce(torch.add, [w * f for w, f in zip(weights, features)])
+        alphas = list(self.alpha.unbind(0))
+        self.last_gates = [self.alpha.new_ones(1, 1, 1, 1)] + [a.detach().view(1, 1, 1, 1) for a in alphas]
+        return reduce(torch.add, [features[0]] + [a * f for a, f in zip(alphas, features[1:])])
 
 
 @register("plard")

@@ -14,7 +14,7 @@ The head never sees the stage: it is called as ``head(in_channels=fpn_channels, 
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable, Mapping
 
 import torch
 from torch import Tensor, nn
@@ -39,12 +39,14 @@ class FusionModel(nn.Module):
     Per-modality parts are ``encoders[m]`` (all stages but early), ``fpns[m]`` (fpn, late), ``heads[m]`` (late).
     """
 
-    def __init__(self, stage: str, modalities: dict[str, int], head: Callable[..., nn.Module],
-                 fusion: Callable[..., nn.Module] | None = None, backbone: dict | None = None,
+    def __init__(self, stage: str, modalities: Mapping[str, int], fusion: Callable[..., nn.Module] | None = None,
+                 head: Callable[..., nn.Module] | None = None, backbone: Mapping | None = None,
                  fpn_channels: int = 64, single: str | None = None) -> None:
         super().__init__()
         if stage not in STAGES:
             raise ValueError(f"unknown fusion stage {stage!r}; valid: {', '.join(STAGES)}")
+        if head is None:
+            raise ValueError("FusionModel needs `head`: called as head(in_channels=..., num_levels=5)")
         modalities = {str(k): int(v) for k, v in dict(modalities).items()}
         backbone = dict(backbone or {})
         if bad := sorted(set(backbone) - set(BACKBONE_KEYS)):
@@ -58,7 +60,8 @@ class FusionModel(nn.Module):
             raise ValueError(f"stage {stage!r} fuses >= 2 modalities, got {list(modalities)}")
         if stage in ("backbone", "fpn", "late") and fusion is None:
             raise ValueError(f"stage {stage!r} needs a fusion operator (`fusion`)")
-        self.stage, self.modalities, self.single = stage, modalities, single
+        self.stage, self.modalities = stage, modalities
+        self.single = single if stage == "single" else None
         self.backbone_options, self.fpn_channels = backbone, fpn_channels
         self._frozen: list[nn.Module] = []
         n = len(modalities)
@@ -87,7 +90,7 @@ class FusionModel(nn.Module):
 
     def _resnet(self, in_channels: int, modality: str | None) -> ResNet:
         opts = dict(self.backbone_options)
-        if isinstance(opts.get("weights"), dict):
+        if isinstance(opts.get("weights"), Mapping):
             opts["weights"] = dict(opts["weights"]).get(modality)
         return ResNet(depth=int(opts.get("depth", 18)), width=float(opts.get("width", 1.0)),
                       in_channels=in_channels, weights=opts.get("weights"))

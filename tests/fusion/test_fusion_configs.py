@@ -8,7 +8,8 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from ablate.fusion import OPERATORS, STAGES, FusionModel
+from ablate.fusion import OPERATORS, STAGES
+from ablate.nn import ResNet
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
@@ -30,12 +31,21 @@ def test_fusion_yaml_instantiates_a_partial_of_build(name):
 
 
 @pytest.mark.parametrize("stage", STAGES)
-def test_groups_compose_into_a_fusion_model(stage, tiny_head):
+def test_groups_compose_into_a_fusion_model(stage, tiny_head, tmp_path):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose(overrides=["+fusion=smoe", f"+stage={stage}"])
     assert cfg.stage.name == stage and cfg.fusion.a == 2.0
-    model = FusionModel(stage=cfg.stage.name, modalities={"rgb": 3, "dense_depth": 1}, fusion=instantiate(cfg.fusion),
-                        head=tiny_head, backbone={"depth": 18, "width": 0.125}, fpn_channels=8, single=cfg.stage.get("modality"))
+    torch.save(ResNet(18, 0.125).state_dict(), tmp_path / "rgb.pth")
+    OmegaConf.set_struct(cfg, False)
+    cfg.modalities = {"rgb": 3, "dense_depth": 1}
+    cfg.model = {"_target_": "ablate.fusion.stages.FusionModel", "stage": "${stage.name}",
+                 "single": "${oc.select:stage.modality,null}", "modalities": "${modalities}", "fusion": "${fusion}",
+                 "backbone": {"depth": 18, "width": 0.125, "weights": {"rgb": str(tmp_path / "rgb.pth")}},
+                 "fpn_channels": 8}
+    model = instantiate(cfg.model, head=tiny_head)
+    assert model.single == ("rgb" if stage == "single" else None)
+    if stage != "early":
+        loaded = ResNet(18, 0.125, weights=tmp_path / "rgb.pth").conv1.weight
+        torch.testing.assert_close(model.encoders["rgb"].conv1.weight, loaded)
     out = model({"rgb": torch.randn(1, 3, 64, 64), "dense_depth": torch.randn(1, 1, 64, 64)})
     assert out["proto"].shape == (1, 4, 8, 8)
-    assert model.single == ("rgb" if stage == "single" else None)

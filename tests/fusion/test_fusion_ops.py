@@ -135,6 +135,17 @@ def test_gfu_gate_is_a_padded_3x3_conv_over_both_inputs():
     torch.testing.assert_close(op.last_gates[1], torch.sigmoid(fj))
 
 
+def test_gfu_ungated_baseline_is_concat_conv_relu():
+    op = build("gfu", 2, gated=False)
+    assert len(op.gates) == 0
+    with torch.no_grad():
+        op.joint.weight.copy_(torch.cat([torch.eye(2), -torch.eye(2)], 1)[:, :, None, None])
+        op.joint.bias.zero_()
+    fi, fj = pair()
+    torch.testing.assert_close(op([fi, fj]), torch.relu(fi - fj))  # DGFN baseline: weight maps fixed to one
+    torch.testing.assert_close(op.last_gates[1], torch.ones(2, 1, 3, 4))
+
+
 def set_cbf_gains(op: CBF, gains):
     with torch.no_grad():
         for mlp, g in zip(op.mlps, gains):

@@ -55,8 +55,8 @@ def test_fusion_order_is_modality_order(make_model):
 
 def test_late_with_sum_is_two_singles(tiny_head):
     two = {"a": 1, "b": 1}
-    late = FusionModel("late", two, tiny_head, functools.partial(build, name="sum"), BACKBONE, 8)
-    single = FusionModel("single", two, tiny_head, None, BACKBONE, 8, single="a")
+    late = FusionModel("late", two, functools.partial(build, name="sum"), tiny_head, BACKBONE, 8)
+    single = FusionModel("single", two, None, tiny_head, BACKBONE, 8, single="a")
     assert late.num_parameters() == 2 * single.num_parameters()
     shapes = {"a": (1, 64, 64), "b": (1, 64, 64)}
     assert late.macs(shapes) == 2 * single.macs({"a": (1, 64, 64)}) > 0
@@ -88,11 +88,13 @@ def test_errors_name_the_problem(make_model, tiny_head):
     with pytest.raises(KeyError, match="missing \\['dense_depth'\\]"):
         make_model("fpn")({"rgb": torch.zeros(1, 3, 64, 64)})
     with pytest.raises(ValueError, match="one of \\['rgb', 'dense_depth'\\]"):
-        FusionModel("single", MODALITIES, tiny_head, backbone=BACKBONE)
+        FusionModel("single", MODALITIES, head=tiny_head, backbone=BACKBONE)
     with pytest.raises(ValueError, match="needs a fusion operator"):
-        FusionModel("fpn", MODALITIES, tiny_head, backbone=BACKBONE)
+        FusionModel("fpn", MODALITIES, head=tiny_head, backbone=BACKBONE)
     with pytest.raises(ValueError, match="unknown backbone option"):
-        FusionModel("early", MODALITIES, tiny_head, backbone={"depht": 18})
+        FusionModel("early", MODALITIES, head=tiny_head, backbone={"depht": 18})
+    with pytest.raises(ValueError, match="needs `head`"):
+        FusionModel("early", MODALITIES)
     with pytest.raises(ValueError, match="one H, W"):
         make_model("backbone")({"rgb": torch.zeros(1, 3, 64, 64), "dense_depth": torch.zeros(1, 1, 32, 64)})
 
