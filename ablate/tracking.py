@@ -136,6 +136,25 @@ class Tracker:
         runs = self.runs(experiment_id, f"tags.config_hash = '{chash}' and attributes.status = 'FINISHED'")
         return runs[0] if runs else None
 
+    def finished_elsewhere(self, chash: str):
+        """A FINISHED job run with this config hash in any experiment, or None (tables share rows: ChiNet
+        Tables II-V all hold the ChiNet row)."""
+        ids = [e.experiment_id for e in retry(self.client.search_experiments)]
+        runs = retry(self.client.search_runs, ids, f"tags.config_hash = '{chash}' and attributes.status = "
+                     f"'FINISHED' and tags.kind = '{KIND_JOB}'", max_results=1) if ids else []
+        return runs[0] if runs else None
+
+    def copy_run(self, source, experiment_id: str, tags: dict[str, str]) -> str:
+        """A FINISHED copy of ``source`` (params, final metrics, tags) in ``experiment_id``, tagged
+        ``reused_from``; artifacts stay with the source run."""
+        keep = {k: v for k, v in source.data.tags.items() if not k.startswith("mlflow.") and k != "sweep_id"}
+        run_id = self.start(experiment_id, source.info.run_name or "reused",
+                            {**keep, **tags, "reused_from": source.info.run_id})
+        self.log_params(run_id, dict(source.data.params))
+        self.log_metrics(run_id, dict(source.data.metrics))
+        self.end(run_id, "FINISHED")
+        return run_id
+
     def close_stale(self, experiment_id: str, chash: str) -> int:
         """Mark runs of this config hash still RUNNING (a killed process left them) as KILLED; return how many."""
         stale = self.runs(experiment_id, f"tags.config_hash = '{chash}' and attributes.status = 'RUNNING'")

@@ -75,13 +75,19 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
         log.info("Skipping %s (seed %s): run %s with config hash %s is FINISHED (force=true reruns it)",
                  row, cfg.seed, done.info.run_id, chash)
         return Outcome("SKIPPED", done.info.run_id, ckpt_dir)
-    if stale := tracker.close_stale(exp, chash):
-        log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, chash)
     parent = parent_run_id() if kind == KIND_JOB else None
     tags = {"kind": kind, "table": cfg.table.name, "row": row, "seed": str(cfg.seed),
             "config_hash": chash, "git_commit": git_commit(), "scale": cfg.scale.name}
     if parent:
         tags.update({"mlflow.parentRunId": parent, "sweep_id": parent})
+    source = None if cfg.force or kind != KIND_JOB else tracker.finished_elsewhere(chash)
+    if source is not None:
+        run_id = tracker.copy_run(source, exp, {k: v for k, v in tags.items() if k not in ("git_commit",)})
+        log.info("Reusing %s (seed %s): the same config finished as run %s of another table; copied as %s",
+                 row, cfg.seed, source.info.run_id, run_id)
+        return Outcome("SKIPPED", run_id, Path("checkpoints") / source.data.tags.get("table", "") / chash)
+    if stale := tracker.close_stale(exp, chash):
+        log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, chash)
     run_id = tracker.start(exp, f"{row} seed={cfg.seed}", tags)
     log.info("MLflow run %s: %s, seed %s, config %s", run_id, row, cfg.seed, chash)
     try:

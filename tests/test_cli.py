@@ -109,3 +109,15 @@ def test_an_unknown_option_fails_with_the_valid_choices(tmp_path):
     out = ablate(tmp_path, "fusion=bogus", *TINY)
     assert out.returncode != 0
     assert "Could not find 'fusion/bogus'" in out.stderr and "smoe" in out.stderr and "sharpen" in out.stderr
+
+
+def test_a_row_shared_with_another_table_is_reused_not_retrained(table2):
+    cwd, _ = table2
+    out = ablate(cwd, "-m", "experiment=chinet_table3", *TINY)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "Reusing chinet (seed 0)" in out.stdout
+    _, jobs = runs(cwd, "chinet_table3")
+    reused = [r for r in jobs if "reused_from" in r.data.tags]
+    assert [r.data.tags["row"] for r in reused] == ["chinet"] and reused[0].data.metrics["det_rate"] >= 0
+    rows = [line for line in (cwd / "results" / "chinet_table3.md").read_text().splitlines() if line.startswith("| ")]
+    assert len(rows) == 3  # header + ChiNet + ChiNet SIMO
