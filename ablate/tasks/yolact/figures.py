@@ -1,0 +1,82 @@
+"""Figures of the instance task: masks over the image (SMoE Fig. 6) and gate maps over the inputs (DGFN Fig. 5)."""
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
+
+from ablate.tasks.yolact import CLASSES  # noqa: E402
+
+
+
+def _rgb(image: torch.Tensor) -> torch.Tensor:
+    """[C, H, W] in 0-1 -> [H, W, 3] for imshow (one channel shown as grey)."""
+    img = image.detach().float().cpu().clamp(0, 1).permute(1, 2, 0)
+    return img.expand(-1, -1, 3) if img.shape[-1] == 1 else img[..., :3]
+
+
+def _overlay(ax, image: torch.Tensor, masks: torch.Tensor, boxes: torch.Tensor, captions: list[str]) -> None:
+    """Each mask in its own colour at half opacity over ``image`` [H, W, 3], with its box and caption."""
+    shown = image.clone()
+    colours = plt.get_cmap("tab10")
+    for k, mask in enumerate(masks.bool()):
+        colour = torch.tensor(colours(k % 10)[:3], dtype=shown.dtype)
+        shown[mask] = 0.5 * shown[mask] + 0.5 * colour
+    ax.imshow(shown.numpy())
+    for k, (box, caption) in enumerate(zip(boxes.tolist(), captions)):
+        x1, y1, x2, y2 = box
+        ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, lw=0.8, color=colours(k % 10)))
+        ax.text(x1, y1, caption, fontsize=6, color="white", va="bottom",
+                bbox={"facecolor": colours(k % 10), "alpha": 0.7, "pad": 0.5, "lw": 0})
+    ax.set_axis_off()
+
+
+def draw_instances(images: torch.Tensor, targets: list[dict], preds: list[dict], conditions: list[str] | None,
+                   score: float = 0.3):
+    """Rows: frames; columns: ground truth, predictions with score >= ``score`` (class and score captioned)."""
+    n = images.shape[0]
+    fig, axes = plt.subplots(n, 2, figsize=(10, 1.9 * n + 0.6), squeeze=False)
+    for i in range(n):
+        img = _rgb(images[i])
+        gt = targets[i]
+        _overlay(axes[i, 0], img, gt["masks"].cpu(), gt["boxes"].cpu().reshape(-1, 4),
+                 [CLASSES[c] if c < len(CLASSES) else str(c) for c in gt["labels"].tolist()])
+        keep = preds[i]["scores"] >= score
+        p = {k: v[keep] for k, v in preds[i].items()}
+        _overlay(axes[i, 1], img, p["masks"], p["boxes"],
+                 [f"{CLASSES[c] if c < len(CLASSES) else c} {s:.2f}"
+                  for c, s in zip(p["labels"].tolist(), p["scores"].tolist())])
+        where = f" ({conditions[i]})" if conditions else ""
+        axes[i, 0].set_title(f"ground truth{where}", fontsize=8)
+        axes[i, 1].set_title(f"prediction, score >= {score:g}", fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def draw_gates(images: dict[str, torch.Tensor], gates: list[torch.Tensor], conditions: list[str] | None):
+    """Rows: frames; per modality its input, then its gate map (``gates[k]`` [B, h, w] in 0-1, bilinearly
+    upsampled to the input size) over that input."""
+    names = list(images)
+    if len(gates) != len(names):
+        raise ValueError(f"draw_gates: {len(gates)} gate maps for modalities {names}")
+    n = next(iter(images.values())).shape[0]
+    fig, axes = plt.subplots(n, 2 * len(names), figsize=(4.2 * len(names), 1.9 * n + 0.8), squeeze=False)
+    for k, (name, gate) in enumerate(zip(names, gates)):
+        size = images[name].shape[-2:]
+        up = F.interpolate(gate[:, None].float(), size=size, mode="bilinear", align_corners=False)[:, 0]
+        for i in range(n):
+            img = _rgb(images[name][i])
+            axes[i, 2 * k].imshow(img.numpy())
+            axes[i, 2 * k + 1].imshow(img.mean(-1).numpy(), cmap="gray")
+            heat = axes[i, 2 * k + 1].imshow(up[i].numpy(), cmap="jet", vmin=0, vmax=1, alpha=0.6)
+            where = f" ({conditions[i]})" if conditions else ""
+            axes[i, 2 * k].set_title(f"{name}{where}", fontsize=8)
+            axes[i, 2 * k + 1].set_title(f"gate of {name}, mean {up[i].mean():.2f}", fontsize=8)
+            for ax in axes[i, 2 * k:2 * k + 2]:
+                ax.set_axis_off()
+    fig.colorbar(heat, ax=axes.ravel().tolist(), shrink=0.6, label="gate weight")
+    return fig
