@@ -19,6 +19,11 @@ def _rgb(image: torch.Tensor) -> torch.Tensor:
     return img.expand(-1, -1, 3) if img.shape[-1] == 1 else img[..., :3]
 
 
+def _size(rows: int, cols: int, hw: tuple[int, int], panel: float = 3.2) -> tuple[float, float]:
+    """Figure size for panels ``panel`` inches wide keeping the images' aspect, with room for titles."""
+    return panel * cols, rows * (panel * hw[0] / hw[1] + 0.35) + 0.2
+
+
 def _overlay(ax, image: torch.Tensor, masks: torch.Tensor, boxes: torch.Tensor, captions: list[str]) -> None:
     """Each mask in its own colour at half opacity over ``image`` [H, W, 3], with its box and caption."""
     shown = image.clone()
@@ -36,10 +41,10 @@ def _overlay(ax, image: torch.Tensor, masks: torch.Tensor, boxes: torch.Tensor, 
 
 
 def draw_instances(images: torch.Tensor, targets: list[dict], preds: list[dict], conditions: list[str] | None,
-                   score: float = 0.3):
+                   score: float = 0.5):
     """Rows: frames; columns: ground truth, predictions with score >= ``score`` (class and score captioned)."""
     n = images.shape[0]
-    fig, axes = plt.subplots(n, 2, figsize=(10, 1.9 * n + 0.6), squeeze=False)
+    fig, axes = plt.subplots(n, 2, figsize=_size(n, 2, images.shape[-2:]), squeeze=False)
     for i in range(n):
         img = _rgb(images[i])
         gt = targets[i]
@@ -63,8 +68,10 @@ def draw_gates(images: dict[str, torch.Tensor], gates: list[torch.Tensor], condi
     names = list(images)
     if len(gates) != len(names):
         raise ValueError(f"draw_gates: {len(gates)} gate maps for modalities {names}")
-    n = next(iter(images.values())).shape[0]
-    fig, axes = plt.subplots(n, 2 * len(names), figsize=(4.2 * len(names), 1.9 * n + 0.8), squeeze=False)
+    first = next(iter(images.values()))
+    n = first.shape[0]
+    width, height = _size(n, 2 * len(names), first.shape[-2:])
+    fig, axes = plt.subplots(n, 2 * len(names), figsize=(width + 1.2, height), squeeze=False)
     for k, (name, gate) in enumerate(zip(names, gates)):
         size = images[name].shape[-2:]
         up = F.interpolate(gate[:, None].float(), size=size, mode="bilinear", align_corners=False)[:, 0]

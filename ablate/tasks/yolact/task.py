@@ -178,7 +178,7 @@ class InstanceTask(FusionTask):
             self.model.train(was_training)
         return sub, outputs
 
-    def figure(self, batch: dict, score: float = 0.3):
+    def figure(self, batch: dict, score: float = 0.5):
         """Ground truth and predicted masks (score >= ``score``) over the RGB of the first frames, as SMoE Fig. 6."""
         n = min(self.figure_frames, len(batch["instances"]))
         sub, outputs = self._forward_frames(batch, list(range(n)))
