@@ -40,8 +40,8 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
         ecfg.fusion = None
         ecfg.experts = None
         ecfg.force = False
-        ecfg.table = {"name": EXPERTS_TABLE, "title": "Single-modal experts", "primary": cfg.table.primary,
-                      "metrics": dict(cfg.table.metrics), "rows": []}
+        ecfg.table = {"name": EXPERTS_TABLE, "title": "Single-modal experts", "primary": None, "metrics": None,
+                      "rows": []}
     return ecfg
 
 

@@ -17,7 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
-from omegaconf import DictConfig  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from scipy.stats import kendalltau  # noqa: E402
 
 from ablate.tracking import KIND_JOB, KIND_SWEEP, Tracker, retry  # noqa: E402
@@ -129,10 +129,18 @@ def plot(summary: pd.DataFrame, table: DictConfig):
     return fig
 
 
+def table_spec(cfg: DictConfig) -> DictConfig:
+    """``cfg.table`` with ``metrics`` and ``primary`` falling back to the task's when the table leaves them null."""
+    table = OmegaConf.to_container(cfg.table, resolve=True)
+    table["metrics"] = table.get("metrics") or OmegaConf.to_container(cfg.get("metrics") or {}, resolve=True)
+    table["primary"] = table.get("primary") or cfg.get("primary") or next(iter(table["metrics"]), None)
+    return OmegaConf.create(table)
+
+
 def write_table(cfg: DictConfig, tracker: Tracker, parent_run: str | None = None,
                 results_dir: str | Path = "results") -> list[Path]:
     """Write ``results/<table>.md`` and ``.png`` from the runs; log the figure to ``parent_run`` if given."""
-    table = cfg.table
+    table = table_spec(cfg)
     runs = collect(tracker, table.name)
     summary = summarise(runs, table)
     out = Path(results_dir)
