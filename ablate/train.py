@@ -19,6 +19,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from ablate.experts import attach as attach_experts
 from ablate.experts import prepare as prepare_experts
@@ -154,7 +155,7 @@ def main(cfg: DictConfig) -> str:
     go on; a failed single run exits with status 1 and one clear line."""
     try:
         return run(cfg).status
-    except JobFailed as err:
+    except (JobFailed, OmegaConfBaseException) as err:  # a config that does not resolve fails before any run
         if sweep_dir() is None:
             print(f"error: {err}", file=sys.stderr)
             raise SystemExit(1) from None
