@@ -148,8 +148,8 @@ class Tracker:
         """A FINISHED copy of ``source`` (params, final metrics, tags) in ``experiment_id``, tagged
         ``reused_from``; artifacts stay with the source run."""
         keep = {k: v for k, v in source.data.tags.items() if not k.startswith("mlflow.") and k != "sweep_id"}
-        run_id = self.start(experiment_id, source.info.run_name or "reused",
-                            {**keep, **tags, "reused_from": source.info.run_id})
+        origin = source.data.tags.get("reused_from", source.info.run_id)
+        run_id = self.start(experiment_id, source.info.run_name or "reused", {**keep, **tags, "reused_from": origin})
         self.log_params(run_id, dict(source.data.params))
         self.log_metrics(run_id, dict(source.data.metrics))
         self.end(run_id, "FINISHED")

@@ -7,6 +7,7 @@ killed is recorded FAILED or KILLED and runs again next time, resuming from its 
 from __future__ import annotations
 
 import logging
+import shutil
 import sys
 import traceback
 import warnings
@@ -129,6 +130,8 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     best = attach_experts(cfg, model, experts, tracker, run_id) if cfg.get("experts") else None
     if best is None:
         last = ckpt_dir / "last.ckpt"
+        if cfg.force and ckpt_dir.exists():  # a forced rerun trains afresh
+            shutil.rmtree(ckpt_dir)
         if last.exists():
             log.info("Resuming from %s", last)
         trainer.fit(task, datamodule=datamodule, ckpt_path=str(last) if last.exists() else None)

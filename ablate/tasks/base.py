@@ -13,10 +13,22 @@ class NonFiniteLossError(FloatingPointError):
     """The training loss became NaN or infinite; the job stops at once."""
 
 
-def poly_lr(optimizer: torch.optim.Optimizer, total_steps: int, power: float = 0.9) -> torch.optim.lr_scheduler.LRScheduler:
-    """Poly learning rate, SMoE eq. 6: lr = base_lr * (1 - step / total_steps) ** power (power = gamma = 0.9)."""
+def poly_lr(optimizer: torch.optim.Optimizer, total_steps: int, power: float = 0.9,
+            warmup_steps: int = 0) -> torch.optim.lr_scheduler.LRScheduler:
+    """Poly learning rate, SMoE eq. 6: lr = base_lr * (1 - step / total_steps) ** power (power = gamma = 0.9).
+
+    ``warmup_steps`` > 0 ramps the factor linearly from 1/3 to 1 over the first steps, as YOLACT's training does
+    (SMoE trains its YOLACT-style head from that code base but does not state a warm-up; 0 turns it off).
+    """
     total = max(int(total_steps), 1)
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: max(1.0 - step / total, 0.0) ** power)
+
+    def factor(step: int) -> float:
+        poly = max(1.0 - step / total, 0.0) ** power
+        if step < warmup_steps:
+            poly *= 1.0 / 3.0 + (2.0 / 3.0) * step / warmup_steps
+        return poly
+
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
 
 
 class FusionTask(L.LightningModule):

@@ -84,3 +84,13 @@ def test_poly_lr_follows_smoe_eq6():
         opt.step()
         sched.step()
     assert opt.param_groups[0]["lr"] == pytest.approx((1 - 5 / 10) ** 0.9)
+
+
+def test_poly_lr_warms_up_linearly_from_a_third():
+    opt = torch.optim.SGD([torch.nn.Parameter(torch.zeros(()))], lr=1.0)
+    sched = poly_lr(opt, total_steps=100, power=1.0, warmup_steps=10)
+    assert opt.param_groups[0]["lr"] == pytest.approx(1 / 3)
+    for _ in range(5):
+        opt.step()
+        sched.step()
+    assert opt.param_groups[0]["lr"] == pytest.approx((1 / 3 + 2 / 3 * 0.5) * 0.95)
