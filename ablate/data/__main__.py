@@ -5,16 +5,18 @@ from __future__ import annotations
 import argparse
 import os
 
+from ablate.data import DEFAULT_SYNTH
+
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m ablate.data")
     sub = parser.add_subparsers(dest="command", required=True)
     syn = sub.add_parser("synth", help="generate a KITTI-format dataset")
     syn.add_argument("--out", required=True)
-    syn.add_argument("--frames", type=int, default=500)
-    syn.add_argument("--seed", type=int, default=0)
-    syn.add_argument("--height", type=int, default=128)
-    syn.add_argument("--width", type=int, default=416)
+    syn.add_argument("--frames", type=int, default=DEFAULT_SYNTH["frames"])
+    syn.add_argument("--seed", type=int, default=DEFAULT_SYNTH["seed"])
+    syn.add_argument("--height", type=int, default=DEFAULT_SYNTH["height"])
+    syn.add_argument("--width", type=int, default=DEFAULT_SYNTH["width"])
     syn.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     prep = sub.add_parser("prepare", help="precompute the cache of derived LiDAR modalities")
     prep.add_argument("--root", required=True)

@@ -26,11 +26,10 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from ablate.data import DataError, kitti
+from ablate.data import DEFAULT_SYNTH, DataError, kitti
 from ablate.data.dataset import LIDAR_DERIVED, MODALITIES, KittiDataset
 from ablate.data.generate import generate, split_frames
 
-DEFAULT_SYNTH = {"frames": 500, "seed": 0, "height": 128, "width": 416}
 LIST_KEYS = ("frame", "condition", "instances", "boxes2d")
 
 
