@@ -7,6 +7,8 @@ lists those notes at the end, marks the parent FAILED and exits with status 1 af
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import time
 from pathlib import Path
 from typing import Any
@@ -56,6 +58,27 @@ def record_failure(job: str, message: str) -> None:
         (sdir / FAILURES / f"{job}.txt").write_text(message)
 
 
+def close_dead_sweeps(tracker: Tracker, experiment_id: str) -> int:
+    """Mark RUNNING sweep runs of this host whose process is gone (a killed multirun) as KILLED."""
+    closed = 0
+    for run in tracker.runs(experiment_id, f"tags.kind = '{KIND_SWEEP}' and attributes.status = 'RUNNING'"):
+        tags = run.data.tags
+        if tags.get("host") == socket.gethostname() and tags.get("pid", "").isdigit() and not _alive(int(tags["pid"])):
+            tracker.end(run.info.run_id, "KILLED")
+            closed += 1
+    return closed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 class SweepCallback(Callback):
     """Creates the parent run before the jobs, and closes it, writes the table and reports failures after."""
 
@@ -64,10 +87,11 @@ class SweepCallback(Callback):
         sdir.mkdir(parents=True, exist_ok=True)
         tracker = Tracker.from_config(config)
         exp = tracker.experiment_id(config.table.name)
+        close_dead_sweeps(tracker, exp)
         overrides = " ".join(config.hydra.overrides.task)
         run_id = tracker.start(exp, f"sweep {time.strftime('%Y-%m-%d %H:%M:%S')}", {
-            "kind": KIND_SWEEP, "table": config.table.name, "overrides": overrides,
-            "git_commit": git_commit(), "sweep_dir": str(sdir)})
+            "kind": KIND_SWEEP, "table": config.table.name, "overrides": overrides, "git_commit": git_commit(),
+            "sweep_dir": str(sdir), "host": socket.gethostname(), "pid": str(os.getpid())})
         (sdir / PARENT_FILE).write_text(run_id)
         parsed = OverridesParser.create().parse_overrides(list(config.hydra.overrides.task))
         (sdir / SWEPT_FILE).write_text(" ".join(o.get_key_element() for o in parsed if o.is_sweep_override()))

@@ -68,3 +68,24 @@ def test_experiment_creation_is_idempotent_and_stale_runs_are_killed(tmp_path):
     done = tracker.start(exp, "job", {"config_hash": "abc"})
     tracker.end(done, "FINISHED")
     assert tracker.finished_run(exp, "abc").info.run_id == done
+
+
+def test_sweeps_whose_process_died_are_closed_as_killed(tmp_path):
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    from ablate.sweep import close_dead_sweeps
+    from ablate.tracking import KIND_SWEEP
+
+    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    exp = tracker.experiment_id("table")
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    host = socket.gethostname()
+    gone = tracker.start(exp, "s1", {"kind": KIND_SWEEP, "host": host, "pid": dead.stdout.strip()})
+    alive = tracker.start(exp, "s2", {"kind": KIND_SWEEP, "host": host, "pid": str(os.getpid())})
+    elsewhere = tracker.start(exp, "s3", {"kind": KIND_SWEEP, "host": "another-host", "pid": dead.stdout.strip()})
+    assert close_dead_sweeps(tracker, exp) == 1
+    status = {r: tracker.client.get_run(r).info.status for r in (gone, alive, elsewhere)}
+    assert status == {gone: "KILLED", alive: "RUNNING", elsewhere: "RUNNING"}
