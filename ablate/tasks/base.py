@@ -69,6 +69,26 @@ class FusionTask(L.LightningModule):
         scheduler = self.scheduler_factory(optimizer=optimizer, **kwargs)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
+    # Validation and test share one path: ``_eval_step(batch, stage)`` updates the stage's metrics,
+    # ``_eval_end(stage)`` logs and resets them (stage is "val" or "test").
+    def _eval_step(self, batch: dict, stage: str) -> None:
+        raise NotImplementedError
+
+    def _eval_end(self, stage: str) -> None:
+        raise NotImplementedError
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        self._eval_step(batch, "val")
+
+    def on_validation_epoch_end(self) -> None:
+        self._eval_end("val")
+
+    def test_step(self, batch: dict, batch_idx: int) -> None:
+        self._eval_step(batch, "test")
+
+    def on_test_epoch_end(self) -> None:
+        self._eval_end("test")
+
     def figure(self, batch: dict):
         """A matplotlib figure of predictions on ``batch`` (fixed test frames), or None."""
         return None

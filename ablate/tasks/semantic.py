@@ -106,18 +106,6 @@ class SemanticTask(FusionTask):
         rate.reset()
         iou.reset()
 
-    def validation_step(self, batch: dict, batch_idx: int) -> None:
-        self._eval_step(batch, "val")
-
-    def on_validation_epoch_end(self) -> None:
-        self._eval_end("val")
-
-    def test_step(self, batch: dict, batch_idx: int) -> None:
-        self._eval_step(batch, "test")
-
-    def on_test_epoch_end(self) -> None:
-        self._eval_end("test")
-
     @torch.no_grad()
     def figure(self, batch: dict):
         """Input intensity, ground truth and prediction for the first frames; red free space, blue objects

@@ -151,18 +151,6 @@ class InstanceTask(FusionTask):
                     self.log(f"test/{key}", _percent(m.compute()["map"]))
                 m.reset()
 
-    def validation_step(self, batch: dict, batch_idx: int) -> None:
-        self._eval_step(batch, "val")
-
-    def on_validation_epoch_end(self) -> None:
-        self._eval_end("val")
-
-    def test_step(self, batch: dict, batch_idx: int) -> None:
-        self._eval_step(batch, "test")
-
-    def on_test_epoch_end(self) -> None:
-        self._eval_end("test")
-
     # -- figures --------------------------------------------------------------------------------------------
     def _forward_frames(self, batch: dict, index: list[int]) -> tuple[dict, dict]:
         """Run the model in eval mode on frames ``index``; returns (their sub-batch, raw outputs)."""
