@@ -2,11 +2,14 @@
 and BEV raster (BiFNet §V-A)."""
 from __future__ import annotations
 
+import threading
+
 import cv2
 import numpy as np
 
 from ablate.data import DataError
 from ablate.data.kitti import Calibration
+from ablate.data.triangles import KEY, raster_triangles, scratch
 
 LIDAR_HEIGHT = 1.73
 """Height of KITTI's velodyne above the road (m); heights in DHI and BEV are measured from the road plane."""
@@ -42,74 +45,59 @@ def sparse_depth(points: np.ndarray, calib: Calibration, shape: tuple[int, int])
     return out.reshape(shape)
 
 
-def _raster_triangles(tri: np.ndarray, values: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Rasterise triangles with linear (barycentric) interpolation, one span per (triangle, pixel row), vectorised.
-
-    tri: (T,3,2) vertex (x, y) pixel coordinates; values: (T,3). Returns (flat pixel indices, values); pixels on
-    a shared edge appear once per triangle (with the same value)."""
-    h, w = shape
-    order = np.argsort(tri[:, :, 1], axis=1, kind="stable")  # vertices top to bottom
-    rows = np.arange(len(tri))[:, None]
-    tri, values = tri[rows, order], values[rows, order]
-    (x0, x1, x2), (y0, y1, y2) = tri[:, :, 0].T, tri[:, :, 1].T
-    det = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-    good = np.flatnonzero(np.abs(det) > 1e-9)
-    x0, x1, x2, y0, y1, y2, det, values = (v[good] for v in (x0, x1, x2, y0, y1, y2, det, values))
-    # Plane z = a x + b y + c through the three vertices.
-    dz1, dz2 = values[:, 1] - values[:, 0], values[:, 2] - values[:, 0]
-    a = (dz1 * (y2 - y0) - dz2 * (y1 - y0)) / det
-    b = ((x1 - x0) * dz2 - (x2 - x0) * dz1) / det
-    c = values[:, 0] - a * x0 - b * y0
-    s02 = (x2 - x0) / (y2 - y0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s01 = np.where(y1 > y0, (x1 - x0) / (y1 - y0), 0.0)
-        s12 = np.where(y2 > y1, (x2 - x1) / (y2 - y1), 0.0)
-    ystart = np.ceil(y0).astype(np.int64)
-    nrows = np.maximum(np.ceil(y2).astype(np.int64) - ystart, 0)
-    t = np.repeat(np.arange(len(x0)), nrows)
-    row = (np.arange(len(t)) - np.repeat(np.cumsum(nrows) - nrows, nrows) + ystart[t]).astype(np.float64)
-    xa = x0[t] + (row - y0[t]) * s02[t]  # long edge
-    xb = np.where(row < y1[t], x0[t] + (row - y0[t]) * s01[t], x1[t] + (row - y1[t]) * s12[t])
-    xs = np.maximum(np.ceil(np.minimum(xa, xb) - 1e-9), 0)
-    xe = np.minimum(np.ceil(np.maximum(xa, xb) - 1e-9), w)
-    count = (xe - xs).astype(np.int64)
-    count = np.where((count > 0) & (row >= 0) & (row < h), count, 0)
-    slope = a[t]
-    v_start = (slope * xs + b[t] * row + c[t]).astype(np.float32)
-    k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    lin = np.repeat((row * w + xs).astype(np.int64), count) + k
-    return lin, np.repeat(v_start, count) + np.repeat(slope.astype(np.float32), count) * k.astype(np.float32)
+def _nearest_fill(seeds: np.ndarray, lut: np.ndarray, dist: np.ndarray, labels: np.ndarray, out: np.ndarray) -> None:
+    """out = lut[label of the nearest seed (zero pixel of `seeds`)], labels numbering the seeds row-major from 1."""
+    cv2.distanceTransformWithLabels(seeds, cv2.DIST_L2, 5, dst=dist, labels=labels, labelType=cv2.DIST_LABEL_PIXEL)
+    np.take(lut, labels.ravel(), out=out)
 
 
 def dense_depth(sparse: np.ndarray) -> np.ndarray:
     """Dense depth map (DDM), SMoE §3.2: Delaunay triangulation of the LiDAR pixels, linear interpolation inside
     the triangles, nearest-neighbour fill outside the convex hull.
 
-    The triangulation is OpenCV's incremental Delaunay (``cv2.Subdiv2D``) over the pixel centres; triangles are
-    rasterised by a vectorised scanline; the nearest fill uses ``cv2.distanceTransformWithLabels`` (5x5 L2
-    mask, so "nearest" is exact up to the mask's distance approximation). LiDAR pixels keep their sparse value.
-    Returns (H,W) float32, positive and finite everywhere."""
+    Reading: the triangulation is over the LiDAR pixel centres (integer (column, row)), OpenCV's incremental
+    Delaunay (``cv2.Subdiv2D``); where several Delaunay triangulations exist (four or more co-circular pixel
+    centres, common on the pixel grid) OpenCV's choice is kept, so values there may differ from SciPy/Qhull's.
+    Triangles are rasterised by ablate.data.triangles.raster_triangles (pixel centres on the bottom/right hull
+    boundary count as outside). Outside the triangles every pixel takes the depth of its nearest LiDAR pixel by
+    ``cv2.distanceTransformWithLabels`` (5x5 L2 mask: nearest up to that mask's distance approximation), computed
+    in a second thread while the main one triangulates. LiDAR pixels keep their sparse value exactly.
+    Returns (H,W) float32, positive and finite everywhere; deterministic."""
     sparse = np.asarray(sparse, np.float32)
     h, w = sparse.shape
-    ys, xs = np.nonzero(sparse > 0)
+    if max(h, w) >= KEY:
+        raise DataError(f"dense_depth: image {w}x{h} too large (each side must be < {int(KEY)})")
+    lin_seed = np.flatnonzero(np.greater(sparse, 0, out=scratch("dense.mask", (h, w), bool)))
+    ys, xs = np.divmod(lin_seed, w)
     if len(ys) == 0:
         raise DataError("dense_depth: the sparse depth map has no LiDAR return (all zeros)")
     depth = sparse[ys, xs]
-    seeds = np.ones((h, w), np.uint8)
+    seeds = scratch("dense.seeds", (h, w), np.uint8)
+    seeds.fill(1)
     seeds[ys, xs] = 0
-    _, labels = cv2.distanceTransformWithLabels(seeds, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-    lut = np.concatenate([[0], depth]).astype(np.float32)  # labels number the seeds row-major from 1
-    out = lut[labels.ravel()]  # nearest fill everywhere, then the triangles overwrite the hull
-    if len(ys) >= 3:
-        sub = cv2.Subdiv2D((-1, -1, w + 2, h + 2))
-        order = np.lexsort((ys, xs))  # column-major insertion keeps OpenCV's point location walk short
-        sub.insert(np.stack([xs[order], ys[order]], 1).astype(np.float32))
-        tri = sub.getTriangleList().reshape(-1, 3, 2)
-        tri = tri[(tri >= 0).all((1, 2)) & (tri[..., 0] < w).all(1) & (tri[..., 1] < h).all(1)]
-        vals = sparse[tri[..., 1].astype(np.int64), tri[..., 0].astype(np.int64)].astype(np.float64)
-        lin, z = _raster_triangles(tri.astype(np.float64), vals, (h, w))
-        out[lin] = z
-    out[ys * w + xs] = depth
+    lut = np.concatenate([[0], depth]).astype(np.float32)
+    out = np.empty(h * w, np.float32)
+    fill = threading.Thread(target=_nearest_fill, args=(seeds, lut, scratch("dense.dist", (h, w), np.float32),
+                                                         scratch("dense.labels", (h, w), np.int32), out))
+    fill.start()
+    try:
+        lin = z = None
+        if len(ys) >= 3:
+            sub = cv2.Subdiv2D((-1, -1, w + 2, h + 2))
+            order = np.argsort(xs.astype(np.uint16), kind="stable")  # column-major insertion keeps OpenCV's
+            # point location walk short
+            sub.insert(np.stack([xs[order], ys[order]], 1).astype(np.float32))
+            tri = np.asarray(sub.getTriangleList(), np.float32).reshape(-1, 3, 2)  # () when all collinear
+            real = np.ones(len(tri), bool)  # drop the triangles on Subdiv2D's outer virtual vertices
+            for k in range(3):
+                real &= (tri[:, k, 0] >= 0) & (tri[:, k, 0] < w) & (tri[:, k, 1] >= 0) & (tri[:, k, 1] < h)
+            tri = tri[real]
+            lin, z = raster_triangles(tri, sparse.ravel(), w)
+    finally:
+        fill.join()
+    if lin is not None:
+        out[lin] = z  # the triangles overwrite the nearest fill inside the hull
+    out[lin_seed] = depth
     out = out.reshape(h, w)
     np.maximum(out, depth.min(), out=out)  # interpolation cannot leave the range of its vertices
     return out
