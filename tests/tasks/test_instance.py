@@ -18,9 +18,9 @@ def xyxy_to_cxcywh(b: torch.Tensor) -> torch.Tensor:
 
 
 def test_anchor_count_centres_and_sizes():
-    anchors = Anchors(scales=(0.1, 0.2, 0.4, 0.8, 1.0))(image_size=(64, 128), level_sizes=LEVELS)
+    anchors = Anchors(scales=(0.8, 1.6, 3.2, 3.2, 1.0))(image_size=(64, 128), level_sizes=LEVELS)
     assert anchors.shape == ((128 + 32 + 8 + 2 + 1) * 3, 4)
-    # first cell of P3 (stride 8): centre (4, 4); ratios 1, 1/2, 2 of a 0.1 * 64 = 6.4 px anchor
+    # first cell of P3 (stride 8): centre (4, 4); ratios 1, 1/2, 2 of a 0.8 strides = 6.4 px anchor
     r = math.sqrt(2)
     expected = torch.tensor([[4, 4, 6.4, 6.4], [4, 4, 6.4 / r, 6.4 * r], [4, 4, 6.4 * r, 6.4 / r]])
     torch.testing.assert_close(anchors[:3], expected)
@@ -28,7 +28,7 @@ def test_anchor_count_centres_and_sizes():
     torch.testing.assert_close(anchors[3, :2], torch.tensor([12.0, 4.0]))
     torch.testing.assert_close(anchors[-3], torch.tensor([64.0, 32.0, 64.0, 64.0]))
     # sizes scale with the input
-    big = Anchors(scales=(0.1, 0.2, 0.4, 0.8, 1.0))((128, 256), LEVELS)
+    big = Anchors(scales=(0.8, 1.6, 3.2, 3.2, 1.0))((128, 256), LEVELS)
     torch.testing.assert_close(big, anchors * 2)
 
 
@@ -122,3 +122,21 @@ def test_decode_returns_the_confident_anchor_as_an_instance():
     assert metric.compute()["map"].item() == 1.0
     (none,) = decode(outputs, image, score_thresh=0.9999999, anchors=anchors)
     assert none["masks"].shape == (0, 32, 32) and none["boxes"].shape == (0, 4) and none["labels"].numel() == 0
+
+
+def test_default_anchors_keep_yolacts_layout_at_any_input_size():
+    # YOLACT at 550 px: 24 px anchors on P3's 8 px grid; a small KITTI-shaped input keeps 3 strides per anchor
+    for image, p3 in (((550, 550), (69, 69)), ((128, 416), (16, 52))):
+        levels = [(math.ceil(p3[0] / 2**i), math.ceil(p3[1] / 2**i)) for i in range(5)]
+        anchors = Anchors()(image, levels)
+        stride = image[0] / p3[0]
+        torch.testing.assert_close(anchors[0, 2:], torch.full((2,), 3.0 * stride))
+    # every 24 px box on the 128x416 grid has an anchor with IoU >= 0.5 somewhere
+    anchors = Anchors()((128, 416), [(16, 52), (8, 26), (4, 13), (2, 7), (1, 4)])
+    for x in range(0, 390, 5):
+        box = torch.tensor([[x, 50.0, x + 24, 74.0]])
+        a = torch.cat([anchors[:, :2] - anchors[:, 2:] / 2, anchors[:, :2] + anchors[:, 2:] / 2], 1)
+        lt, rb = torch.max(a[:, :2], box[:, :2]), torch.min(a[:, 2:], box[:, 2:])
+        inter = (rb - lt).clamp(min=0).prod(1)
+        iou = inter / ((a[:, 2:] - a[:, :2]).prod(1) + 24 * 24 - inter)
+        assert iou.max() >= 0.5, x

@@ -10,9 +10,12 @@ import math
 import torch
 from torch import Tensor
 
-#: YOLACT's anchor sizes 24, 48, 96, 192, 384 px at its 550 px input, kept as fractions of the input height so
-#: that anchors scale with the input (at KITTI's 375 px height: 16, 33, 65, 131, 262 px on P3..P7).
-ANCHOR_SCALES = (24 / 550, 48 / 550, 96 / 550, 192 / 550, 384 / 550)
+#: Anchor sizes in units of each level's stride. YOLACT's 24, 48, 96, 192, 384 px on P3..P7 at its 550 px input
+#: are 3 strides each (24 / 8, 48 / 16, ...); tying the size to the stride keeps that layout at any input size.
+#: (Sizes taken as fractions of the input height instead shrink below the grid step on small inputs: at 128x416
+#: they are 5.6 px on P3's 8 px grid, and only 3% of the generated data's boxes then have an anchor with
+#: IoU >= 0.5, against 58% with 3 strides.)
+ANCHOR_SCALES = (3.0, 3.0, 3.0, 3.0, 3.0)
 #: Width / height ratios of the anchors at every location (issue 5: 1, 1/2, 2).
 ASPECT_RATIOS = (1.0, 0.5, 2.0)
 #: SSD's encoding variances (centre, size).
@@ -22,8 +25,9 @@ VARIANCES = (0.1, 0.2)
 class Anchors:
     """Anchor boxes for an input of size (H, W) and FPN levels of sizes [(H3, W3), ..., (H7, W7)].
 
-    On level l an anchor of aspect ratio r is ``s_l * H * sqrt(r)`` wide and ``s_l * H / sqrt(r)`` tall, with
-    ``s_l = scales[l]`` a fraction of the input height, centred on each cell ``((j + .5) W / Wl, (i + .5) H / Hl)``.
+    On level l an anchor of aspect ratio r is ``s_l * d_l * sqrt(r)`` wide and ``s_l * d_l / sqrt(r)`` tall, with
+    ``s_l = scales[l]`` in units of the level's stride ``d_l = H / Hl``, centred on each cell
+    ``((j + .5) W / Wl, (i + .5) H / Hl)``.
     Order: level, row i, column j, ratio — the order of a head map [B, A*D, Hl, Wl] permuted to [B, Hl, Wl, A, D].
     """
 
@@ -51,7 +55,8 @@ class Anchors:
                 cy = (torch.arange(hl, dtype=torch.float32) + 0.5) * h / hl
                 cx = (torch.arange(wl, dtype=torch.float32) + 0.5) * w / wl
                 cy, cx = torch.meshgrid(cy, cx, indexing="ij")
-                sizes = torch.tensor([[s * h * math.sqrt(r), s * h / math.sqrt(r)] for r in self.aspect_ratios])
+                size = s * h / hl
+                sizes = torch.tensor([[size * math.sqrt(r), size / math.sqrt(r)] for r in self.aspect_ratios])
                 centres = torch.stack([cx, cy], -1)[:, :, None, :].expand(hl, wl, len(self.aspect_ratios), 2)
                 per_level.append(torch.cat([centres, sizes.expand_as(centres)], -1).reshape(-1, 4))
             self._cache[key] = torch.cat(per_level).to(device)
