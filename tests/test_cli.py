@@ -121,3 +121,18 @@ def test_a_row_shared_with_another_table_is_reused_not_retrained(table2):
     assert [r.data.tags["row"] for r in reused] == ["chinet"] and reused[0].data.metrics["det_rate"] >= 0
     rows = [line for line in (cwd / "results" / "chinet_table3.md").read_text().splitlines() if line.startswith("| ")]
     assert len(rows) == 3  # header + ChiNet + ChiNet SIMO
+
+
+def test_smoe_table1_trains_each_expert_once_and_fills_eight_rows(tmp_path):
+    out = ablate(tmp_path, "-m", "experiment=smoe_table1", *TINY)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    _, experts = runs(tmp_path, "experts", kind="expert")
+    assert sorted(r.data.tags["row"] for r in experts) == ["expert ddm_jet", "expert rgb"]
+    assert {r.info.status for r in experts} == {"FINISHED"}
+    _, jobs = runs(tmp_path, "smoe_table1")
+    assert len(jobs) == 8 and {r.info.status for r in jobs} == {"FINISHED"}
+    fused = [r for r in jobs if r.data.tags["row"] not in ("smoe_rgb", "smoe_ddm")]
+    assert all({"expert_rgb", "expert_ddm_jet"} <= set(r.data.tags) for r in fused)
+    rows = [line for line in (tmp_path / "results" / "smoe_table1.md").read_text().splitlines()
+            if line.startswith("| ")]
+    assert len(rows) == 1 + 8 and "AP (paper)" in rows[0]
