@@ -74,7 +74,7 @@ def test_running_a_table_again_trains_nothing_and_rewrites_the_same_table(table2
 
 def test_a_failing_job_is_recorded_failed_and_the_others_still_run(tmp_path):
     # lr 1e30 blows the weights up: the NaN guard fails that job at once
-    out = ablate(tmp_path, "-m", "task.optimizer.lr=0.001,1e30", *TINY)
+    out = ablate(tmp_path, "-m", "task=semantic", "task.optimizer.lr=0.001,1e30", *TINY)
     assert out.returncode == 1
     assert "1 job(s) failed" in out.stdout + out.stderr
     assert "NonFiniteLossError" in out.stdout + out.stderr
@@ -85,11 +85,16 @@ def test_a_failing_job_is_recorded_failed_and_the_others_still_run(tmp_path):
 
 
 def test_parallel_joblib_sweep_of_fusion_operators_loses_no_run(tmp_path):
+    # the default job is SMoE's: both jobs need the same two experts, trained once under a file lock
     out = ablate(tmp_path, "-m", "fusion=sum,max", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", *TINY)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     _, jobs = runs(tmp_path, "ablate")
     assert sorted(r.data.tags["row"] for r in jobs) == ["fusion=max", "fusion=sum"]
     assert {r.info.status for r in jobs} == {"FINISHED"}
+    _, experts = runs(tmp_path, "experts", kind="expert")
+    assert sorted(r.data.tags["row"] for r in experts) == ["expert ddm_jet", "expert rgb"]
+    assert {r.data.tags["expert_rgb"] for r in jobs} == {next(r.info.run_id for r in experts
+                                                               if r.data.tags["row"] == "expert rgb")}
 
 
 def test_a_killed_job_resumes_from_its_checkpoint_without_duplicates(tmp_path):
