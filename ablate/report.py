@@ -2,9 +2,10 @@
 
 ``python -m ablate.report`` regenerates every table that has runs; ``python -m ablate.report
 experiment=chinet_table2`` just one (other ``key=value`` overrides, e.g. ``logger.tracking_uri=...``, apply too).
-A multirun writes its table at the end by itself. Only FINISHED job runs count (the latest per config hash), so a
-failed job never becomes a row; a row with no finished run is listed under the table instead. The same runs give
-the same bytes: no timestamps, rows in the paper's order, PNG written without metadata.
+A multirun writes its table at the end by itself. Only FINISHED job runs count (per row and seed the latest, at
+the scale of the latest run), so a failed job never becomes a row; a row with no finished run is listed under the
+table instead. The same runs give the same bytes: no timestamps, rows in the paper's order, PNG written without
+metadata.
 """
 from __future__ import annotations
 
@@ -27,7 +28,11 @@ LOWER_IS_BETTER = {"comp_time_ms", "params_m"}
 
 
 def collect(tracker: Tracker, table: str) -> pd.DataFrame:
-    """One row per FINISHED job run of ``table`` (the latest per config hash): row, seed, scale and metrics."""
+    """One row per (row, seed) of ``table``: its latest FINISHED job run, at the scale of the latest such run.
+
+    A rerun after a config change (another recipe, another dataset) supersedes the earlier run of the same row and
+    seed instead of counting as one more seed; runs at another scale (a smoke sweep beside the default-scale table)
+    stay in the store and out of the table."""
     exp = retry(tracker.client.get_experiment_by_name, table)
     if exp is None:
         return pd.DataFrame()
@@ -37,8 +42,9 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
                 "start": r.info.start_time, **r.data.metrics} for r in runs]
     if not records:
         return pd.DataFrame()
-    df = pd.DataFrame.from_records(records).sort_values(["start", "config_hash"])
-    return df.drop_duplicates("config_hash", keep="last").drop(columns="start").reset_index(drop=True)
+    df = pd.DataFrame.from_records(records).sort_values(["start", "config_hash"], kind="stable")
+    df = df[df["scale"] == df["scale"].iloc[-1]]
+    return df.drop_duplicates(["row", "seed"], keep="last").drop(columns="start").reset_index(drop=True)
 
 
 def summarise(runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:

@@ -20,12 +20,14 @@ def tracker(tmp_path):
     tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
     exp = tracker.experiment_id("t2")
 
-    def job(row, seed, rate, ms, status="FINISHED", chash=None):
-        run = tracker.start(exp, row, {"kind": KIND_JOB, "row": row, "seed": str(seed), "scale": "smoke",
+    def job(row, seed, rate, ms, status="FINISHED", chash=None, scale="cpu"):
+        run = tracker.start(exp, row, {"kind": KIND_JOB, "row": row, "seed": str(seed), "scale": scale,
                                        "config_hash": chash or f"{row}-{seed}"})
         tracker.log_metrics(run, {"det_rate": rate, "comp_time_ms": ms})
         tracker.end(run, status)
 
+    job("unet", 0, 5.0, 1.0, scale="smoke")  # a smoke run in the same store: not part of the cpu-scale table
+    job("unet", 0, 60.0, 10.0, chash="unet-old")  # superseded by a rerun after a config change
     job("unet", 0, 80.0, 10.0)
     job("unet", 1, 82.0, 12.0)
     job("chinet", 0, 90.0, 30.0)

@@ -1,0 +1,291 @@
+"""Where fusion can gain over the single-modal experts, and where its gates look: ``python -m ablate.diagnose``.
+
+SMoE's claim (seed 000 §5.1, Table 1) is that fusing the RGB and the DDM experts beats both. Whether it can on
+given data depends on what the experts know that the other does not. For every seed of a two-stage table
+(default ``experiment=smoe_table1``; any ``key=value`` override applies, e.g. ``scale=smoke``) this evaluates the
+trained checkpoints on the test split:
+
+* recall of every counted ground-truth object (the AP's objects: >= 25 px tall at KITTI's height, see
+  :class:`~ablate.metrics.coco.MaskAP`) per condition group: found = a detection of its class, among all the
+  detections AP sees, with mask IoU >= 0.5. For the RGB and DDM experts, their union (objects either expert finds:
+  what a fusion could recover without learning anything new) and "RGB only" (found by RGB, missed by DDM: the
+  room fusion has over the better expert), and for every fused row;
+* the mean gate weight on each modality per condition group and fusion point (rows with a gated operator;
+  SMoE eq. 2-3: W on f_i = RGB, 1 - W on f_j = DDM), averaged over channels and positions;
+* the validation AP per epoch of each expert, from MLflow: whether an expert was still learning when it stopped.
+
+Writes ``results/<table>_diagnosis.md`` and ``.png``. Needs the table's checkpoints (``checkpoints/``, kept by
+``python -m ablate -m experiment=...``): a missing one is named with the command that makes it.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+import torch  # noqa: E402
+from hydra.utils import instantiate  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from ablate.experts import EXPERTS_TABLE, expert_config, load_model  # noqa: E402
+from ablate.tasks.yolact.nms import decode  # noqa: E402
+from ablate.tasks.yolact.task import CONDITION_GROUPS, condition_group  # noqa: E402
+from ablate.tracking import Tracker, config_hash, retry  # noqa: E402
+
+IOU = 0.5
+MIN_HEIGHT, REFERENCE_HEIGHT = 25.0, 375.0  # as MaskAP's defaults
+
+
+class MissingCheckpoint(FileNotFoundError):
+    pass
+
+
+def checkpoint(cfg: DictConfig, table: str, row: str = "?") -> Path:
+    """The best checkpoint of a job: its expert's for a single-modal row of a two-stage table, else the job's own
+    (looked up under every table, since a row shared by two tables is trained once)."""
+    if cfg.stage.name == "single" and cfg.get("experts"):
+        chash = config_hash(expert_config(cfg, cfg.stage.modality))
+        found = [Path("checkpoints") / EXPERTS_TABLE / chash / "best.ckpt"]
+    else:
+        chash = config_hash(cfg)
+        found = sorted(Path("checkpoints").glob(f"*/{chash}/best.ckpt"))
+    found = [p for p in found if p.exists()]
+    if not found:
+        raise MissingCheckpoint(f"no checkpoint for row {row} seed {cfg.seed} (config {chash}) "
+                                f"under {Path('checkpoints').resolve()}: run `python -m ablate -m experiment={table}` "
+                                "with the same overrides first")
+    return found[0]
+
+
+def found_objects(pred: dict, target: dict, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """(counted, found) per ground-truth object of one image: counted = tall enough for the AP; found = a
+    same-class detection with mask IoU >= 0.5."""
+    gt, labels = target["masks"].bool(), target["labels"]
+    if "boxes" in target:
+        tall = (target["boxes"][:, 3] - target["boxes"][:, 1]).cpu().numpy()
+    else:
+        rows = gt.any(2)
+        tall = np.array([(r.nonzero().max() - r.nonzero().min() + 1).item() if r.any() else 0 for r in rows])
+    counted = tall >= MIN_HEIGHT * height / REFERENCE_HEIGHT
+    found = np.zeros(len(gt), dtype=bool)
+    if len(gt) and len(pred["masks"]):
+        g = gt.flatten(1).float()
+        p = pred["masks"].bool().flatten(1).float().to(g.device)
+        inter = g @ p.T
+        union = g.sum(1, keepdim=True) + p.sum(1) - inter
+        iou = inter / union.clamp(min=1)
+        same = labels.view(-1, 1).to(pred["labels"].device) == pred["labels"].view(1, -1)
+        found = ((iou * same.to(iou.device)) >= IOU).any(1).cpu().numpy()
+    return counted, found
+
+
+def evaluate(cfg: DictConfig, ckpt: Path, datamodule) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Per counted GT object: (image, object, group, found) and per image x fusion point x modality: mean gate."""
+    model = load_model(cfg, ckpt).eval()
+    task = instantiate(cfg.task, model=model)
+    ops = [op for op in (model.fusion_modules() if hasattr(model, "fusion_modules") else [])
+           if hasattr(op, "last_gates")]
+    names = list(model.modalities)
+    objects, gates, image = [], [], 0
+    with torch.no_grad():
+        for batch in datamodule.test_dataloader():
+            inputs = {k: v for k, v in batch.items() if torch.is_tensor(v) and k in names}
+            outputs = model(inputs)
+            size = task.image_size(batch)
+            preds = decode(outputs, size, anchors=task.anchors, **task.decode_options)
+            conditions = batch.get("condition") or ["?"] * len(preds)
+            for b, (pred, target) in enumerate(zip(preds, task.targets(batch))):
+                group = condition_group(conditions[b]) or conditions[b]
+                counted, found = found_objects(pred, target, size[0])
+                objects += [{"image": image + b, "object": i, "group": group, "found": bool(f)}
+                            for i, (c, f) in enumerate(zip(counted, found)) if c]
+                for level, op in enumerate(ops):
+                    for m, gate in zip(names, op.last_gates or []):
+                        gates.append({"image": image + b, "group": group, "point": level, "modality": m,
+                                      "gate": float(gate[b].float().mean())})
+            image += len(preds)
+    return pd.DataFrame(objects), pd.DataFrame(gates)
+
+
+def compose(overrides: list[str]) -> DictConfig:
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    from ablate.report import CONF
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return hydra_compose("config", overrides=overrides)
+
+
+def expert_curves(cfg: DictConfig, experts: dict[str, DictConfig]) -> pd.DataFrame:
+    """Validation AP per epoch of each expert (seed, modality), from the MLflow experiment ``experts``."""
+    tracker = Tracker.from_config(cfg)
+    exp = retry(tracker.client.get_experiment_by_name, EXPERTS_TABLE)
+    out = []
+    for (seed, modality), ecfg in experts.items():
+        runs = [] if exp is None else tracker.runs(
+            exp.experiment_id, f"attributes.status = 'FINISHED' and tags.config_hash = '{config_hash(ecfg)}'")
+        if runs:
+            history = retry(tracker.client.get_metric_history, runs[0].info.run_id, "val/map")
+            out += [{"seed": seed, "modality": modality, "step": h.step, "val_map": h.value} for h in history]
+    return pd.DataFrame(out, columns=["seed", "modality", "step", "val_map"])
+
+
+def diagnose(overrides: list[str]) -> dict:
+    """Evaluate every row of the table for every seed; returns the per-object and gate frames and the curves."""
+    base = compose(overrides)
+    table = base.table
+    if not base.get("experts"):
+        raise ValueError(f"{table.name}: not a two-stage table (experts: null); nothing to compare fusion with")
+    objects, gates, experts = [], [], {}
+    jobs = [(seed, spec) for seed in range(int(base.scale.seeds)) for spec in table.rows]
+    for seed, spec in tqdm(jobs, desc=f"diagnose {table.name}", unit="job"):
+        cfg = compose(overrides + [f"row={spec.row}", f"seed={seed}"])
+        if cfg.stage.name == "single":
+            experts[(seed, cfg.stage.modality)] = expert_config(cfg, cfg.stage.modality)
+        datamodule = instantiate(cfg.data)
+        datamodule.prepare_data()
+        datamodule.setup("test")
+        obj, gate = evaluate(cfg, checkpoint(cfg, table.name, spec.row), datamodule)
+        for frame, into in ((obj, objects), (gate, gates)):
+            if len(frame):
+                into.append(frame.assign(seed=seed, row=spec.row, name=spec.get("name", spec.row),
+                                         modality_row=cfg.stage.get("modality")))
+    return {"table": table, "objects": pd.concat(objects, ignore_index=True) if objects else pd.DataFrame(),
+            "gates": pd.concat(gates, ignore_index=True) if gates else pd.DataFrame(),
+            "curves": expert_curves(base, experts)}
+
+
+def recall_table(objects: pd.DataFrame) -> pd.DataFrame:
+    """Recall in percent per (row or expert union) x condition group, mean and std over seeds."""
+    found = objects.pivot_table(index=["seed", "group", "image", "object"], columns="row", values="found",
+                                aggfunc="first")
+    single = objects.drop_duplicates("row").set_index("row")["modality_row"].dropna().to_dict()
+    by_modality = {m: r for r, m in single.items()}
+    if {"rgb", "ddm_jet"} <= set(by_modality):
+        rgb, ddm = found[by_modality["rgb"]].astype(bool), found[by_modality["ddm_jet"]].astype(bool)
+        found["RGB ∪ DDM"] = rgb | ddm
+        found["RGB only"] = rgb & ~ddm
+    per = found.astype(float).groupby(level=["seed", "group"]).mean() * 100
+    overall = found.astype(float).groupby(level="seed").mean() * 100
+    overall["group"] = "all"
+    per = pd.concat([per.reset_index(), overall.reset_index()], ignore_index=True)
+    counts = found.groupby(level=["seed", "group"]).size().groupby(level="group").mean()
+    stats = per.groupby("group").agg(["mean", "std"])
+    stats[("objects", "mean")] = counts.reindex(stats.index).fillna(found.groupby(level="seed").size().mean())
+    order = [g for g in [*CONDITION_GROUPS, "all"] if g in stats.index]
+    return stats.loc[order]
+
+
+def gate_table(gates: pd.DataFrame) -> pd.DataFrame:
+    """Mean gate weight on each modality per (row, fusion point) x condition group, mean over images and seeds."""
+    if gates.empty:
+        return gates
+    g = gates.groupby(["name", "point", "modality", "group"])["gate"].mean().unstack("group")
+    g["all"] = gates.groupby(["name", "point", "modality"])["gate"].mean()
+    return g[[c for c in [*CONDITION_GROUPS, "all"] if c in g.columns]]
+
+
+def to_markdown(result: dict) -> str:
+    table, objects = result["table"], result["objects"]
+    rec = recall_table(objects)
+    names = objects.drop_duplicates("row").set_index("row")["name"].to_dict()
+    cols = [c for c in rec.columns.get_level_values(0).unique() if c != "objects"]
+    out = pd.DataFrame({"condition": rec.index, "objects / seed": [f"{v:.0f}" for v in rec[("objects", "mean")]]})
+    for c in cols:
+        mean, std = rec[(c, "mean")], rec[(c, "std")]
+        out[names.get(c, c)] = [f"{m:.1f}" + ("" if np.isnan(s) else f" ± {s:.1f}") for m, s in zip(mean, std)]
+    seeds = objects["seed"].nunique()
+    lines = [f"# Diagnosis of {table.title}", "",
+             f"Recall (%) of the counted test objects (mask IoU >= {IOU} with a detection of their class, among all "
+             f"detections the AP sees), mean ± std over {seeds} seed(s). *RGB ∪ DDM*: found by either expert; "
+             "*RGB only*: found by the RGB expert and missed by the DDM expert, the most a fusion of the two "
+             "experts could add to the DDM expert's recall without learning anything new.", "",
+             out.to_markdown(index=False, disable_numparse=True)]
+    gates = gate_table(result["gates"])
+    if len(gates):
+        g = gates.reset_index()
+        g["point"] = [f"P{3 + p}" if len(gates.index.get_level_values('point').unique()) == 5 else str(p)
+                      for p in g["point"]]
+        g = g.rename(columns={"name": "row", "point": "fusion point"})
+        lines += ["", "Mean gate weight per modality (channels, positions, images and seeds averaged); the two of a "
+                  "fusion point sum to 1 for the MoE operators.", "",
+                  g.to_markdown(index=False, floatfmt=".3f")]
+    curves = result["curves"]
+    if len(curves):
+        last = curves.sort_values("step").groupby(["modality", "seed"]).agg(
+            first=("val_map", "first"), best=("val_map", "max"), last=("val_map", "last"),
+            epochs=("val_map", "size"))
+        lines += ["", "Experts' validation mask AP (%) over their epochs (first, best, last):", "",
+                  last.reset_index().to_markdown(index=False, floatfmt=".2f")]
+    lines += ["", "Regenerated by `python -m ablate.diagnose` from the checkpoints and MLflow runs; do not edit by hand.",
+              ""]
+    return "\n".join(lines)
+
+
+def plot(result: dict):
+    """Recall per condition (experts, their union, fused rows); gates on RGB per condition; experts' val AP."""
+    objects, gates, curves = result["objects"], result["gates"], result["curves"]
+    rec = recall_table(objects)
+    names = objects.drop_duplicates("row").set_index("row")["name"].to_dict()
+    cols = [c for c in rec.columns.get_level_values(0).unique() if c not in ("objects", "RGB only")]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 3.8), gridspec_kw={"width_ratios": [2.2, 1, 1]})
+    x, width = np.arange(len(rec)), 0.8 / max(len(cols), 1)
+    for k, c in enumerate(cols):
+        axes[0].bar(x + (k - (len(cols) - 1) / 2) * width, rec[(c, "mean")], width,
+                    yerr=rec[(c, "std")].fillna(0), capsize=2, label=names.get(c, c))
+    axes[0].set_xticks(x, rec.index)
+    axes[0].set_ylabel(f"recall % (mask IoU >= {IOU})")
+    axes[0].legend(fontsize=7, ncol=2)
+    axes[0].set_title("Objects found, per condition", fontsize=9)
+    table = gate_table(gates)
+    if len(table):
+        rgb = table.xs("rgb", level="modality") if "rgb" in table.index.get_level_values("modality") else table
+        for (name, point), values in rgb.iterrows():
+            if name == rgb.index.get_level_values(0)[-1]:
+                axes[1].plot(values.index, values.values, marker="o", label=f"{name[:18]} P{3 + point}")
+        axes[1].axhline(0.5, color="grey", lw=0.8, ls="--")
+        axes[1].set_ylabel("mean gate on RGB")
+        axes[1].legend(fontsize=6)
+    axes[1].set_title("Gate weight on RGB (last gated row)", fontsize=9)
+    for (modality, seed), c in curves.groupby(["modality", "seed"]):
+        axes[2].plot(np.arange(1, len(c) + 1), c.sort_values("step")["val_map"], marker=".",
+                     color="C0" if modality == "rgb" else "C1", label=f"{modality} seed {seed}")
+    axes[2].set_xlabel("epoch")
+    axes[2].set_ylabel("val mask AP %")
+    axes[2].legend(fontsize=6)
+    axes[2].set_title("Experts while training", fontsize=9)
+    fig.suptitle(f"Diagnosis: {result['table'].title}", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not any(a.startswith("experiment=") for a in args):
+        args.append("experiment=smoe_table1")
+    try:
+        result = diagnose(args)
+    except (MissingCheckpoint, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    out = Path("results")
+    out.mkdir(exist_ok=True)
+    md, png = out / f"{result['table'].name}_diagnosis.md", out / f"{result['table'].name}_diagnosis.png"
+    md.write_text(to_markdown(result))
+    fig = plot(result)
+    fig.savefig(png, dpi=100, metadata={"Software": None})
+    plt.close(fig)
+    print(md)
+    print(png)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
