@@ -14,12 +14,15 @@ trained checkpoints on the test split:
   SMoE eq. 2-3: W on f_i = RGB, 1 - W on f_j = DDM), averaged over channels and positions;
 * the validation AP per epoch of each expert, from MLflow: whether an expert was still learning when it stopped.
 
-Writes ``results/<table>_diagnosis.md`` and ``.png``. Needs the table's checkpoints (``checkpoints/``, kept by
+Writes ``results/<table>_diagnosis.md`` and ``.png``, and two figures of seed 0: ``<table>_masks.png`` (SMoE Fig.
+6: ground truth and every row's masks on a frame of each condition) and ``<table>_gates.png`` (the gate maps of
+the table's last gated row on a night and a glare frame). Needs the table's checkpoints (``checkpoints/``, kept by
 ``python -m ablate -m experiment=...``): a missing one is named with the command that makes it.
 """
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import matplotlib
@@ -34,6 +37,8 @@ from omegaconf import DictConfig  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from ablate.experts import EXPERTS_TABLE, expert_config, load_model  # noqa: E402
+from ablate.report import compose  # noqa: E402
+from ablate.tasks.yolact.figures import draw_rows  # noqa: E402
 from ablate.tasks.yolact.nms import decode  # noqa: E402
 from ablate.tasks.yolact.task import CONDITION_GROUPS, condition_group  # noqa: E402
 from ablate.tracking import Tracker, config_hash, retry  # noqa: E402
@@ -85,14 +90,25 @@ def found_objects(pred: dict, target: dict, height: int) -> tuple[np.ndarray, np
     return counted, found
 
 
-def evaluate(cfg: DictConfig, ckpt: Path, datamodule) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Per counted GT object: (image, object, group, found) and per image x fusion point x modality: mean gate."""
+@dataclass
+class Evaluation:
+    """One checkpoint on the test split: per counted GT object (image, object, group, found), per image x fusion
+    point x modality the mean gate, the first frame of each condition group (inputs, target, prediction) and the
+    first batch holding a night and a glare frame, or else the first batch (for the gate figure)."""
+    objects: pd.DataFrame
+    gates: pd.DataFrame
+    showcase: dict = field(default_factory=dict)
+    gate_batch: dict | None = None
+    task: object = None
+
+
+def evaluate(cfg: DictConfig, ckpt: Path, datamodule) -> Evaluation:
     model = load_model(cfg, ckpt).eval()
     task = instantiate(cfg.task, model=model)
     ops = [op for op in (model.fusion_modules() if hasattr(model, "fusion_modules") else [])
            if hasattr(op, "last_gates")]
     names = list(model.modalities)
-    objects, gates, image = [], [], 0
+    objects, gates, image, showcase, gate_batch = [], [], 0, {}, None
     with torch.no_grad():
         for batch in datamodule.test_dataloader():
             inputs = {k: v for k, v in batch.items() if torch.is_tensor(v) and k in names}
@@ -100,6 +116,9 @@ def evaluate(cfg: DictConfig, ckpt: Path, datamodule) -> tuple[pd.DataFrame, pd.
             size = task.image_size(batch)
             preds = decode(outputs, size, anchors=task.anchors, **task.decode_options)
             conditions = batch.get("condition") or ["?"] * len(preds)
+            if gate_batch is None or (not {"night", "glare"} <= set(gate_batch["condition"] or [])
+                                      and {"night", "glare"} <= set(conditions)):
+                gate_batch = batch  # the first holding a night and a glare frame, else the first
             for b, (pred, target) in enumerate(zip(preds, task.targets(batch))):
                 group = condition_group(conditions[b]) or conditions[b]
                 counted, found = found_objects(pred, target, size[0])
@@ -109,18 +128,11 @@ def evaluate(cfg: DictConfig, ckpt: Path, datamodule) -> tuple[pd.DataFrame, pd.
                     for m, gate in zip(names, op.last_gates or []):
                         gates.append({"image": image + b, "group": group, "point": level, "modality": m,
                                       "gate": float(gate[b].float().mean())})
+                if group not in showcase:
+                    shown = batch["rgb"][b] if "rgb" in batch else inputs[names[0]][b]
+                    showcase[group] = (shown, target, pred)
             image += len(preds)
-    return pd.DataFrame(objects), pd.DataFrame(gates)
-
-
-def compose(overrides: list[str]) -> DictConfig:
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    from ablate.report import CONF
-
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return hydra_compose("config", overrides=overrides)
+    return Evaluation(pd.DataFrame(objects), pd.DataFrame(gates), showcase, gate_batch, task)
 
 
 def expert_curves(cfg: DictConfig, experts: dict[str, DictConfig]) -> pd.DataFrame:
@@ -143,29 +155,37 @@ def diagnose(overrides: list[str]) -> dict:
     table = base.table
     if not base.get("experts"):
         raise ValueError(f"{table.name}: not a two-stage table (experts: null); nothing to compare fusion with")
-    objects, gates, experts = [], [], {}
+    objects, gates, experts, showcase, gate_figure = [], [], {}, {}, None
     jobs = [(seed, spec) for seed in range(int(base.scale.seeds)) for spec in table.rows]
     for seed, spec in tqdm(jobs, desc=f"diagnose {table.name}", unit="job"):
         cfg = compose(overrides + [f"row={spec.row}", f"seed={seed}"])
         if cfg.stage.name == "single":
             experts[(seed, cfg.stage.modality)] = expert_config(cfg, cfg.stage.modality)
+        ckpt = checkpoint(cfg, table.name, spec.row)
         datamodule = instantiate(cfg.data)
         datamodule.prepare_data()
         datamodule.setup("test")
-        obj, gate = evaluate(cfg, checkpoint(cfg, table.name, spec.row), datamodule)
-        for frame, into in ((obj, objects), (gate, gates)):
+        ev = evaluate(cfg, ckpt, datamodule)
+        for frame, into in ((ev.objects, objects), (ev.gates, gates)):
             if len(frame):
                 into.append(frame.assign(seed=seed, row=spec.row, name=spec.get("name", spec.row),
                                          modality_row=cfg.stage.get("modality")))
+        if seed == 0:
+            showcase[spec.get("name", spec.row)] = ev.showcase
+            if len(ev.gates) and ev.gate_batch is not None:  # the last gated row of the table wins
+                if gate_figure is not None:
+                    plt.close(gate_figure)
+                gate_figure = ev.task.gate_figure(ev.gate_batch)
     return {"table": table, "objects": pd.concat(objects, ignore_index=True) if objects else pd.DataFrame(),
             "gates": pd.concat(gates, ignore_index=True) if gates else pd.DataFrame(),
-            "curves": expert_curves(base, experts)}
+            "curves": expert_curves(base, experts), "showcase": showcase, "gate_figure": gate_figure}
 
 
 def recall_table(objects: pd.DataFrame) -> pd.DataFrame:
-    """Recall in percent per (row or expert union) x condition group, mean and std over seeds."""
+    """Recall in percent per (row or expert union) x condition group, mean and std over seeds; rows in the
+    order they first appear in ``objects`` (the table's)."""
     found = objects.pivot_table(index=["seed", "group", "image", "object"], columns="row", values="found",
-                                aggfunc="first")
+                                aggfunc="first")[list(objects["row"].unique())]
     single = objects.drop_duplicates("row").set_index("row")["modality_row"].dropna().to_dict()
     by_modality = {m: r for r, m in single.items()}
     if {"rgb", "ddm_jet"} <= set(by_modality):
@@ -175,7 +195,7 @@ def recall_table(objects: pd.DataFrame) -> pd.DataFrame:
     per = found.astype(float).groupby(level=["seed", "group"]).mean() * 100
     overall = found.astype(float).groupby(level="seed").mean() * 100
     overall["group"] = "all"
-    per = pd.concat([per.reset_index(), overall.reset_index()], ignore_index=True)
+    per = pd.concat([per.reset_index(), overall.reset_index()], ignore_index=True).drop(columns="seed")
     counts = found.groupby(level=["seed", "group"]).size().groupby(level="group").mean()
     stats = per.groupby("group").agg(["mean", "std"])
     stats[("objects", "mean")] = counts.reindex(stats.index).fillna(found.groupby(level="seed").size().mean())
@@ -208,14 +228,17 @@ def to_markdown(result: dict) -> str:
              "*RGB only*: found by the RGB expert and missed by the DDM expert, the most a fusion of the two "
              "experts could add to the DDM expert's recall without learning anything new.", "",
              out.to_markdown(index=False, disable_numparse=True)]
-    gates = gate_table(result["gates"])
+    gates = result["gates"]
+    if len(gates) and "rgb" in set(gates["modality"]):
+        gates = gates[gates["modality"] == "rgb"]
+    gates = gate_table(gates)
     if len(gates):
         g = gates.reset_index()
         g["point"] = [f"P{3 + p}" if len(gates.index.get_level_values('point').unique()) == 5 else str(p)
                       for p in g["point"]]
         g = g.rename(columns={"name": "row", "point": "fusion point"})
-        lines += ["", "Mean gate weight per modality (channels, positions, images and seeds averaged); the two of a "
-                  "fusion point sum to 1 for the MoE operators.", "",
+        lines += ["", "Mean gate weight on RGB (channels, positions, images and seeds averaged; the MoE operators "
+                  "weight DDM by 1 minus it), per fusion point and condition.", "",
                   g.to_markdown(index=False, floatfmt=".3f")]
     curves = result["curves"]
     if len(curves):
@@ -235,25 +258,27 @@ def plot(result: dict):
     rec = recall_table(objects)
     names = objects.drop_duplicates("row").set_index("row")["name"].to_dict()
     cols = [c for c in rec.columns.get_level_values(0).unique() if c not in ("objects", "RGB only")]
-    fig, axes = plt.subplots(1, 3, figsize=(15, 3.8), gridspec_kw={"width_ratios": [2.2, 1, 1]})
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), gridspec_kw={"width_ratios": [2.2, 1, 1]})
     x, width = np.arange(len(rec)), 0.8 / max(len(cols), 1)
     for k, c in enumerate(cols):
         axes[0].bar(x + (k - (len(cols) - 1) / 2) * width, rec[(c, "mean")], width,
                     yerr=rec[(c, "std")].fillna(0), capsize=2, label=names.get(c, c))
     axes[0].set_xticks(x, rec.index)
     axes[0].set_ylabel(f"recall % (mask IoU >= {IOU})")
-    axes[0].legend(fontsize=7, ncol=2)
+    axes[0].legend(fontsize=7, ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.1))
     axes[0].set_title("Objects found, per condition", fontsize=9)
-    table = gate_table(gates)
-    if len(table):
-        rgb = table.xs("rgb", level="modality") if "rgb" in table.index.get_level_values("modality") else table
-        for (name, point), values in rgb.iterrows():
-            if name == rgb.index.get_level_values(0)[-1]:
-                axes[1].plot(values.index, values.values, marker="o", label=f"{name[:18]} P{3 + point}")
+    if len(gates) and "rgb" in set(gates["modality"]):
+        order = [spec.row for spec in result["table"].rows]
+        last = max(gates["row"].unique(), key=lambda r: order.index(r) if r in order else -1)
+        rgb = gate_table(gates[(gates["row"] == last) & (gates["modality"] == "rgb")])
+        points = rgb.index.get_level_values("point")
+        for (name, point, _), values in rgb.iterrows():
+            label = f"P{3 + point}" if points.nunique() == 5 else f"point {point}"
+            axes[1].plot(values.index, values.values, marker="o", label=label)
         axes[1].axhline(0.5, color="grey", lw=0.8, ls="--")
         axes[1].set_ylabel("mean gate on RGB")
         axes[1].legend(fontsize=6)
-    axes[1].set_title("Gate weight on RGB (last gated row)", fontsize=9)
+        axes[1].set_title(f"Gate on RGB: {names.get(last, last)}", fontsize=9)
     for (modality, seed), c in curves.groupby(["modality", "seed"]):
         axes[2].plot(np.arange(1, len(c) + 1), c.sort_values("step")["val_map"], marker=".",
                      color="C0" if modality == "rgb" else "C1", label=f"{modality} seed {seed}")
@@ -264,6 +289,16 @@ def plot(result: dict):
     fig.suptitle(f"Diagnosis: {result['table'].title}", fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def masks_figure(showcase: dict[str, dict]):
+    """SMoE Fig. 6: the first test frame of each condition group, ground truth and every row's masks (seed 0)."""
+    first = next(iter(showcase.values()))
+    groups = [g for g in CONDITION_GROUPS if g in first] + [g for g in first if g not in CONDITION_GROUPS]
+    images = torch.stack([first[g][0] for g in groups])
+    targets = [first[g][1] for g in groups]
+    preds = {name: [frames[g][2] for g in groups] for name, frames in showcase.items()}
+    return draw_rows(images, targets, preds, groups)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -279,11 +314,14 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(exist_ok=True)
     md, png = out / f"{result['table'].name}_diagnosis.md", out / f"{result['table'].name}_diagnosis.png"
     md.write_text(to_markdown(result))
-    fig = plot(result)
-    fig.savefig(png, dpi=100, metadata={"Software": None})
-    plt.close(fig)
+    figures = {png: plot(result), out / f"{result['table'].name}_masks.png": masks_figure(result["showcase"])}
+    if result["gate_figure"] is not None:
+        figures[out / f"{result['table'].name}_gates.png"] = result["gate_figure"]
     print(md)
-    print(png)
+    for path, fig in figures.items():
+        fig.savefig(path, dpi=100, metadata={"Software": None})
+        plt.close(fig)
+        print(path)
     return 0
 
 

@@ -162,11 +162,13 @@ def write_table(cfg: DictConfig, tracker: Tracker, parent_run: str | None = None
     return [md, png]
 
 
-def _compose(overrides: list[str]) -> DictConfig:
-    from hydra import compose, initialize_config_dir
+def compose(overrides: list[str]) -> DictConfig:
+    """The root config of ``python -m ablate`` with ``overrides``, composed outside a Hydra app."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
 
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("config", overrides=overrides)
+        return hydra_compose("config", overrides=overrides)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -176,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     names = named or ["ablate"] + sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
     written = 0
     for name in names:
-        cfg = _compose(rest + ([] if name == "ablate" else [f"experiment={name}"]))
+        cfg = compose(rest + ([] if name == "ablate" else [f"experiment={name}"]))
         tracker = Tracker.from_config(cfg)
         exp = retry(tracker.client.get_experiment_by_name, cfg.table.name)
         if exp is None:
@@ -190,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
             print(path)
         written += 1
     if not written:
-        print(f"No tables written: no runs in {Tracker.from_config(_compose(rest)).uri}", file=sys.stderr)
+        print(f"No tables written: no runs in {Tracker.from_config(compose(rest)).uri}", file=sys.stderr)
     return 0
 
 

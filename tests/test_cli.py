@@ -128,7 +128,7 @@ def test_a_row_shared_with_another_table_is_reused_not_retrained(table2):
     assert len(rows) == 3  # header + ChiNet + ChiNet SIMO
 
 
-def test_smoe_table1_trains_each_expert_once_and_fills_eight_rows(tmp_path):
+def test_smoe_table1_trains_each_expert_once_fills_eight_rows_and_is_diagnosed(tmp_path):
     out = ablate(tmp_path, "-m", "experiment=smoe_table1", *TINY)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     _, experts = runs(tmp_path, "experts", kind="expert")
@@ -141,3 +141,15 @@ def test_smoe_table1_trains_each_expert_once_and_fills_eight_rows(tmp_path):
     rows = [line for line in (tmp_path / "results" / "smoe_table1.md").read_text().splitlines()
             if line.startswith("| ")]
     assert len(rows) == 1 + 8 and "AP (paper)" in rows[0]
+    diag = ablate(tmp_path, "experiment=smoe_table1", *TINY, module="ablate.diagnose")
+    assert diag.returncode == 0, diag.stdout[-3000:] + diag.stderr[-3000:]
+    text = (tmp_path / "results" / "smoe_table1_diagnosis.md").read_text()
+    assert "RGB ∪ DDM" in text and "RGB only" in text and "MoE+Sharpening fusion (SMoE)" in text
+    assert "Mean gate weight" in text and (tmp_path / "results" / "smoe_table1_diagnosis.png").stat().st_size > 0
+
+
+def test_diagnose_without_the_tables_checkpoints_names_the_command_that_makes_them(tmp_path):
+    out = ablate(tmp_path, "experiment=smoe_table2", *TINY, module="ablate.diagnose")
+    assert out.returncode == 1
+    assert "error: no checkpoint for row smoe_early seed 0" in out.stderr
+    assert "python -m ablate -m experiment=smoe_table2" in out.stderr

@@ -12,7 +12,6 @@ from matplotlib.patches import Rectangle  # noqa: E402
 from ablate.tasks.yolact import CLASSES  # noqa: E402
 
 
-
 def _rgb(image: torch.Tensor) -> torch.Tensor:
     """[C, H, W] in 0-1 -> [H, W, 3] for imshow (one channel shown as grey)."""
     img = image.detach().float().cpu().clamp(0, 1).permute(1, 2, 0)
@@ -86,4 +85,25 @@ def draw_gates(images: dict[str, torch.Tensor], gates: list[torch.Tensor], condi
             for ax in axes[i, 2 * k:2 * k + 2]:
                 ax.set_axis_off()
     fig.colorbar(heat, ax=axes.ravel().tolist(), shrink=0.6, label="gate weight")
+    return fig
+
+
+def draw_rows(images: torch.Tensor, targets: list[dict], preds: dict[str, list[dict]], captions: list[str],
+              score: float = 0.5):
+    """SMoE Fig. 6: rows are frames, columns the ground truth and then each method's masks (score >= ``score``)
+    on the same frames; ``preds[name][i]`` is method ``name``'s prediction on frame ``i``."""
+    n, names = images.shape[0], list(preds)
+    fig, axes = plt.subplots(n, 1 + len(names), figsize=_size(n, 1 + len(names), images.shape[-2:], panel=2.6),
+                             squeeze=False)
+    for i in range(n):
+        img = _rgb(images[i])
+        gt = targets[i]
+        _overlay(axes[i, 0], img, gt["masks"].cpu(), gt["boxes"].cpu().reshape(-1, 4), [""] * len(gt["labels"]))
+        axes[i, 0].set_title(f"ground truth ({captions[i]})", fontsize=7)
+        for j, name in enumerate(names, start=1):
+            p = preds[name][i]
+            keep = p["scores"] >= score
+            _overlay(axes[i, j], img, p["masks"][keep].cpu(), p["boxes"][keep].cpu(), [""] * int(keep.sum()))
+            axes[i, j].set_title(name, fontsize=7)
+    fig.tight_layout()
     return fig
