@@ -96,3 +96,21 @@ def test_paper_numbers_match_the_paper_text(table, title):
     rows = OmegaConf.load(CONF / "experiment" / f"{table}.yaml").table.rows
     ours = [(r.paper.map, r.paper.map_50, r.paper.map_75) for r in rows]
     assert ours == paper_table(title)
+
+
+def test_followup_rows_change_only_epochs_or_freezing_and_share_their_experts():
+    from ablate.experts import expert_config
+    from ablate.tracking import config_hash
+
+    rows = table_rows("smoe_table1_followup")
+    cfgs = {r: compose_row("smoe_table1_followup", r, "scale=cpu") for r in rows}
+    assert {r: cfgs[r].trainer.max_epochs for r in rows} == {
+        "smoe_rgb": 8, "smoe_rgb_long": 16, "smoe_ddm": 8, "smoe_ddm_long": 16, "smoe_fpn": 8, "smoe_fpn_long": 16,
+        "smoe_fpn_finetuned": 8}
+    assert cfgs["smoe_fpn_finetuned"].experts.freeze is False and cfgs["smoe_fpn_long"].experts.freeze is True
+    # the long fused row stands on the long experts, so they are trained once, not twice
+    for modality, single in (("rgb", "smoe_rgb_long"), ("ddm_jet", "smoe_ddm_long")):
+        assert config_hash(expert_config(cfgs["smoe_fpn_long"], modality)) == \
+            config_hash(expert_config(cfgs[single], modality))
+    # rows shared with Table 1 have Table 1's config hash, so they are reused
+    assert config_hash(cfgs["smoe_fpn"]) == config_hash(compose_row("smoe_table1", "smoe_fpn", "scale=cpu"))
