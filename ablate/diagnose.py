@@ -37,6 +37,7 @@ from omegaconf import DictConfig  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from ablate.experts import EXPERTS_TABLE, expert_config, load_model  # noqa: E402
+from ablate.metrics.coco import counted  # noqa: E402
 from ablate.report import compose  # noqa: E402
 from ablate.tasks.yolact.figures import draw_rows  # noqa: E402
 from ablate.tasks.yolact.nms import decode  # noqa: E402
@@ -44,7 +45,6 @@ from ablate.tasks.yolact.task import CONDITION_GROUPS, condition_group  # noqa: 
 from ablate.tracking import Tracker, config_hash, retry  # noqa: E402
 
 IOU = 0.5
-MIN_HEIGHT, REFERENCE_HEIGHT = 25.0, 375.0  # as MaskAP's defaults
 
 
 class MissingCheckpoint(FileNotFoundError):
@@ -73,11 +73,11 @@ def found_objects(pred: dict, target: dict, height: int) -> tuple[np.ndarray, np
     same-class detection with mask IoU >= 0.5."""
     gt, labels = target["masks"].bool(), target["labels"]
     if "boxes" in target:
-        tall = (target["boxes"][:, 3] - target["boxes"][:, 1]).cpu().numpy()
-    else:
+        tall = (target["boxes"][:, 3] - target["boxes"][:, 1]).cpu()
+    else:  # the tight box of the mask, as MaskAP
         rows = gt.any(2)
-        tall = np.array([(r.nonzero().max() - r.nonzero().min() + 1).item() if r.any() else 0 for r in rows])
-    counted = tall >= MIN_HEIGHT * height / REFERENCE_HEIGHT
+        tall = torch.tensor([(r.nonzero().max() - r.nonzero().min() + 1).item() if r.any() else 0 for r in rows])
+    is_counted = counted(tall.double(), height).numpy()
     found = np.zeros(len(gt), dtype=bool)
     if len(gt) and len(pred["masks"]):
         g = gt.flatten(1).float()
@@ -87,7 +87,7 @@ def found_objects(pred: dict, target: dict, height: int) -> tuple[np.ndarray, np
         iou = inter / union.clamp(min=1)
         same = labels.view(-1, 1).to(pred["labels"].device) == pred["labels"].view(1, -1)
         found = ((iou * same.to(iou.device)) >= IOU).any(1).cpu().numpy()
-    return counted, found
+    return is_counted, found
 
 
 @dataclass
@@ -122,9 +122,9 @@ def evaluate(cfg: DictConfig, ckpt: Path, datamodule) -> Evaluation:
                 gate_batch = batch  # the first holding a night and a glare frame, else the first
             for b, (pred, target) in enumerate(zip(preds, task.targets(batch))):
                 group = condition_group(conditions[b]) or conditions[b]
-                counted, found = found_objects(pred, target, size[0])
+                is_counted, found = found_objects(pred, target, size[0])
                 objects += [{"image": image + b, "object": i, "group": group, "found": bool(f)}
-                            for i, (c, f) in enumerate(zip(counted, found)) if c]
+                            for i, (c, f) in enumerate(zip(is_counted, found)) if c]
                 for level, op in enumerate(ops):
                     for m, gate in zip(names, op.last_gates or []):
                         gates.append({"image": image + b, "group": group, "point": level, "modality": m,

@@ -60,6 +60,17 @@ def _xyxy_to_xywh(boxes: Tensor) -> Tensor:
     return torch.cat([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]], dim=1)
 
 
+#: SMoE §5 / KITTI moderate: objects at least this many px tall at ``REFERENCE_HEIGHT`` count.
+MIN_HEIGHT, REFERENCE_HEIGHT = 25.0, 375.0
+
+
+def counted(heights: Tensor, image_height: int, min_height: float = MIN_HEIGHT,
+            reference_height: float = REFERENCE_HEIGHT) -> Tensor:
+    """Which ground truths of box heights ``heights`` (px) count in an image ``image_height`` px tall: the
+    threshold ``min_height`` scales with ``image_height / reference_height``."""
+    return heights >= min_height * image_height / reference_height
+
+
 class MaskAP(Metric):
     """Mask AP and box AP of instance segmentation, COCO definition (IoU 0.50:0.05:0.95, 101-point PR curve).
 
@@ -75,7 +86,8 @@ class MaskAP(Metric):
     is_differentiable = False
     higher_is_better = True
 
-    def __init__(self, min_height: float = 25.0, reference_height: float = 375.0, ignore_overlap: float = 0.5,
+    def __init__(self, min_height: float = MIN_HEIGHT, reference_height: float = REFERENCE_HEIGHT,
+                 ignore_overlap: float = 0.5,
                  max_detections: int = 100, class_metrics: bool = False, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         if reference_height <= 0 or min_height < 0:
@@ -117,7 +129,7 @@ class MaskAP(Metric):
         gt_rles, gt_rle, gt_rle_len = _encode(gt_masks)
         gt_boxes = (_xyxy_to_xywh(target["boxes"]) if "boxes" in target
                     else torch.as_tensor(mask_utils.toBbox(gt_rles) if gt_rles else np.zeros((0, 4))).double())
-        crowd = gt_boxes[:, 3] < self.min_height * h / self.reference_height
+        crowd = ~counted(gt_boxes[:, 3], h, self.min_height, self.reference_height)
         self.img_sizes.append(torch.tensor([h, w], dtype=torch.long, device=self.device))
         self.pred_counts.append(torch.tensor([len(rles)], dtype=torch.long, device=self.device))
         self.gt_counts.append(torch.tensor([len(gt_rles)], dtype=torch.long, device=self.device))
