@@ -40,7 +40,6 @@ from ablate.experts import EXPERTS_TABLE, expert_config, load_model  # noqa: E40
 from ablate.metrics.coco import counted  # noqa: E402
 from ablate.report import compose  # noqa: E402
 from ablate.tasks.yolact.figures import draw_rows  # noqa: E402
-from ablate.tasks.yolact.nms import decode  # noqa: E402
 from ablate.tasks.yolact.task import CONDITION_GROUPS, condition_group  # noqa: E402
 from ablate.tracking import Tracker, config_hash, retry  # noqa: E402
 
@@ -115,7 +114,7 @@ def evaluate(cfg: DictConfig, ckpt: Path, datamodule) -> Evaluation:
             inputs = {k: v for k, v in batch.items() if torch.is_tensor(v) and k in names}
             outputs = model(inputs)
             size = task.image_size(batch)
-            preds = decode(outputs, size, anchors=task.anchors, **task.decode_options)
+            preds = task.predict(outputs, size)
             conditions = batch.get("condition") or ["?"] * len(preds)
             if gate_batch is None or (not {"night", "glare"} <= set(gate_batch["condition"] or [])
                                       and {"night", "glare"} <= set(conditions)):

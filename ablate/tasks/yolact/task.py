@@ -117,6 +117,11 @@ class InstanceTask(FusionTask):
                 t["ignore"] = ignore
         return out
 
+    def predict(self, outputs: dict, image_size: tuple[int, int]) -> list[dict[str, torch.Tensor]]:
+        """Per image ``masks``, ``scores``, ``labels``, ``boxes`` from the model's raw outputs (FastNMS with this
+        task's anchors and ``decode`` options)."""
+        return decode(outputs, image_size, anchors=self.anchors, **self.decode_options)
+
     # -- loops ----------------------------------------------------------------------------------------------
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         losses = self.criterion(self(batch), self.targets(batch), self.image_size(batch))
@@ -130,7 +135,7 @@ class InstanceTask(FusionTask):
     def _eval_step(self, batch: dict, stage: str) -> None:
         outputs, targets, size = self(batch), self.targets(batch), self.image_size(batch)
         self.log(f"{stage}/loss", self.criterion(outputs, targets, size)["total"], batch_size=len(targets))
-        preds = decode(outputs, size, anchors=self.anchors, **self.decode_options)
+        preds = self.predict(outputs, size)
         getattr(self, f"{stage}_map").update(preds, targets)
         if stage == "test":
             for pred, target, condition in zip(preds, targets, batch.get("condition") or [None] * len(preds)):
@@ -170,7 +175,7 @@ class InstanceTask(FusionTask):
         """Ground truth and predicted masks (score >= ``score``) over the RGB of the first frames, as SMoE Fig. 6."""
         n = min(self.figure_frames, len(batch["instances"]))
         sub, outputs = self._forward_frames(batch, list(range(n)))
-        preds = decode(outputs, self.image_size(sub), anchors=self.anchors, **self.decode_options)
+        preds = self.predict(outputs, self.image_size(sub))
         return draw_instances(_display_image(sub, self.model), sub["instances"],
                               [{k: v.cpu() for k, v in p.items()} for p in preds], sub.get("condition"), score)
 
