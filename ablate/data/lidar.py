@@ -48,7 +48,7 @@ def sparse_depth(points: np.ndarray, calib: Calibration, shape: tuple[int, int])
 def _nearest_fill(seeds: np.ndarray, lut: np.ndarray, dist: np.ndarray, labels: np.ndarray, out: np.ndarray) -> None:
     """out = lut[label of the nearest seed (zero pixel of `seeds`)], labels numbering the seeds row-major from 1."""
     cv2.distanceTransformWithLabels(seeds, cv2.DIST_L2, 5, dst=dist, labels=labels, labelType=cv2.DIST_LABEL_PIXEL)
-    np.take(lut, labels.ravel(), out=out)
+    np.take(lut, labels.ravel(), out=out, mode="wrap")  # labels are in range; "wrap" skips a buffered copy
 
 
 def dense_depth(sparse: np.ndarray) -> np.ndarray:
@@ -66,37 +66,39 @@ def dense_depth(sparse: np.ndarray) -> np.ndarray:
     sparse = np.asarray(sparse, np.float32)
     h, w = sparse.shape
     if max(h, w) >= KEY:
-        raise DataError(f"dense_depth: image {w}x{h} too large (each side must be < {int(KEY)})")
-    lin_seed = np.flatnonzero(np.greater(sparse, 0, out=scratch("dense.mask", (h, w), bool)))
-    ys, xs = np.divmod(lin_seed, w)
-    if len(ys) == 0:
-        raise DataError("dense_depth: the sparse depth map has no LiDAR return (all zeros)")
-    depth = sparse[ys, xs]
+        raise DataError(f"dense_depth: image {w}x{h} too large (each side must be < {KEY})")
+    flat = sparse.ravel()
     seeds = scratch("dense.seeds", (h, w), np.uint8)
-    seeds.fill(1)
-    seeds[ys, xs] = 0
+    lidar = np.greater(sparse, 0, out=seeds.view(bool))
+    lin_seed = np.flatnonzero(lidar)
+    if len(lin_seed) == 0:
+        raise DataError("dense_depth: the sparse depth map has no LiDAR return (all zeros)")
+    np.logical_not(lidar, out=lidar)  # seeds: 0 at the LiDAR pixels, 1 elsewhere
+    ys, xs = np.divmod(lin_seed, w)
+    depth = flat[lin_seed]
     lut = np.concatenate([[0], depth]).astype(np.float32)
     out = np.empty(h * w, np.float32)
     fill = threading.Thread(target=_nearest_fill, args=(seeds, lut, scratch("dense.dist", (h, w), np.float32),
                                                          scratch("dense.labels", (h, w), np.int32), out))
     fill.start()
     try:
-        lin = z = None
+        tri = None
         if len(ys) >= 3:
             sub = cv2.Subdiv2D((-1, -1, w + 2, h + 2))
             order = np.argsort(xs.astype(np.uint16), kind="stable")  # column-major insertion keeps OpenCV's
             # point location walk short
             sub.insert(np.stack([xs[order], ys[order]], 1).astype(np.float32))
             tri = np.asarray(sub.getTriangleList(), np.float32).reshape(-1, 3, 2)  # () when all collinear
-            real = np.ones(len(tri), bool)  # drop the triangles on Subdiv2D's outer virtual vertices
-            for k in range(3):
-                real &= (tri[:, k, 0] >= 0) & (tri[:, k, 0] < w) & (tri[:, k, 1] >= 0) & (tri[:, k, 1] < h)
-            tri = tri[real]
-            lin, z = raster_triangles(tri, sparse.ravel(), w)
+            if len(tri) and tri.min() < 0:  # drop the triangles on Subdiv2D's outer virtual vertices (each has a
+                # coordinate < 0); getTriangleList of OpenCV 4 leaves them out already
+                real = np.ones(len(tri), bool)
+                for k in range(3):
+                    real &= (tri[:, k, 0] >= 0) & (tri[:, k, 0] < w) & (tri[:, k, 1] >= 0) & (tri[:, k, 1] < h)
+                tri = tri[real]
     finally:
         fill.join()
-    if lin is not None:
-        out[lin] = z  # the triangles overwrite the nearest fill inside the hull
+    if tri is not None:
+        raster_triangles(tri, flat, w, out)  # the triangles overwrite the nearest fill inside the hull
     out[lin_seed] = depth
     out = out.reshape(h, w)
     np.maximum(out, depth.min(), out=out)  # interpolation cannot leave the range of its vertices

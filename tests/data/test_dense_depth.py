@@ -1,11 +1,15 @@
-"""Triangle rasteriser of the dense depth map (SMoE §3.2) against SciPy's linear interpolation, and the
-independence of results computed with reused work buffers."""
+"""Triangle rasteriser of the dense depth map (SMoE §3.2) against SciPy's linear interpolation, the
+independence of results computed with reused work buffers, and the memory those buffers hold."""
+import threading
+
 import numpy as np
 import pytest
 from scipy.interpolate import LinearNDInterpolator
 from scipy.spatial import Delaunay
 
-from ablate.data.lidar import dense_depth
+from ablate.data import triangles
+from ablate.data.kitti import Calibration, read_image, read_velodyne
+from ablate.data.lidar import dense_depth, sparse_depth
 from ablate.data.triangles import raster_triangles
 
 
@@ -24,12 +28,13 @@ def test_raster_matches_scipy_on_its_own_triangles(seed):
     ys, xs = np.nonzero(sp)
     pts = np.stack([xs, ys], 1).astype(np.float64)
     tri = Delaunay(pts)
-    lin, z = raster_triangles(pts[tri.simplices].astype(np.float32), sp.ravel(), w)
-    lin, z = lin.copy(), z.copy()
-    assert len(np.unique(lin)) == len(lin)  # a pixel on a shared edge is drawn once
+    out = np.full(h * w, np.nan)
+    count = raster_triangles(pts[tri.simplices].astype(np.float32), sp.ravel(), w, out)
+    lin = np.flatnonzero(~np.isnan(out))
+    assert count == len(lin)  # a pixel on a shared edge is drawn once
     gy, gx = np.divmod(lin, w)
     ref = LinearNDInterpolator(tri, sp[ys, xs].astype(np.float64))(np.stack([gx, gy], 1))
-    np.testing.assert_allclose(z, ref, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out[lin], ref, rtol=0, atol=1e-9)
     # Every pixel centre strictly inside the hull is drawn (boundary pixels may or may not be).
     all_y, all_x = np.mgrid[:h, :w]
     q = np.stack([all_x.ravel(), all_y.ravel()], 1).astype(np.float64)
@@ -62,3 +67,36 @@ def test_tiny_and_collinear_inputs():
     sp = np.zeros((3, 3), np.float32)
     sp[0, 0] = 7.0
     assert (dense_depth(sp) == 7.0).all()
+
+
+def test_blocks_do_not_change_results(monkeypatch):
+    """Rasterising in blocks of a few spans, pixels and triangles gives the same bits as in one block."""
+    sp = random_sparse(5, shape=(60, 90), n=400)
+    sp[3, 2], sp[57, 88], sp[1, 85] = 5.0, 9.0, 70.0  # a few long spans and tall triangles
+    whole = dense_depth(sp)
+    for name, size in (("SPANS", 7), ("PIXELS", 5), ("TRIANGLES", 3)):
+        monkeypatch.setattr(triangles, name, size)
+    np.testing.assert_array_equal(dense_depth(sp), whole)
+
+
+def test_buffers_after_full_resolution_frames(kitti_root):
+    """A worker's reused buffers stay under 20 MB after full-resolution KITTI frames (a fresh thread holds only
+    what dense_depth kept)."""
+    obj = kitti_root / "object" / "training"
+    frames = []
+    for frame in ("000000", "000001", "000006"):
+        shape = read_image(obj / "image_2" / f"{frame}.png").shape[:2]
+        assert shape[1] >= 1224 and shape[0] >= 370
+        frames.append(sparse_depth(read_velodyne(obj / "velodyne" / f"{frame}.bin"),
+                                   Calibration.from_file(obj / "calib" / f"{frame}.txt"), shape))
+    held = []
+
+    def worker():
+        for sp in frames:
+            dense_depth(sp)
+            held.append(triangles.scratch.nbytes())
+
+    t = threading.Thread(target=worker)
+    t.start()
+    t.join()
+    assert len(held) == 3 and max(held) < 20e6, held
