@@ -9,7 +9,8 @@ reuses it; a file lock keeps two parallel jobs from training the same expert twi
 Stage 2 copies the experts into the fusion model (``FusionModel.load_expert``: encoders, plus FPNs at stage fpn,
 plus heads at stage late), freezes them (``experts.freeze``) and trains the rest: gates, fusion operators, and the
 parts after the fusion point. Stage ``early`` has no per-modality part and trains end to end. A single-modal job
-is itself an expert: it is tested from the expert's checkpoint and not trained again.
+is itself an expert: it is tested from the expert's checkpoint and not trained again. With frozen experts, stage 2
+computes each frame's expert features once and reuses them (:class:`FeatureCache`, ``experts.cache_features``).
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import fcntl
 import logging
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import torch
 from hydra.utils import instantiate
@@ -35,7 +36,10 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
     if modality not in cfg.modalities:
         raise KeyError(f"no modality {modality!r} to train an expert on; modalities are {list(cfg.modalities)}")
     ecfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+    epochs = (cfg.get("experts") or {}).get("max_epochs")
     with open_dict(ecfg):
+        if epochs is not None:  # the experts' own epochs (stage 1), where the recipe sets them
+            ecfg.trainer.max_epochs = int(epochs)
         ecfg.stage = {"name": "single", "modality": modality}
         ecfg.fusion = None
         ecfg.experts = None
@@ -106,3 +110,91 @@ def attach(cfg: DictConfig, model: torch.nn.Module, experts: dict[str, tuple[Pat
         model.load_expert(modality, load_model(expert_config(cfg, modality), best), freeze=freeze)
         log.info("Loaded expert %s from %s%s", modality, best, " (frozen)" if freeze else "")
     return None
+
+
+class FeatureCache:
+    """The frozen experts' features per frame, in memory for one stage-2 fit, keyed by frame id.
+
+    Valid because SMoE §4.3 fine-tunes the fusion network "with fixed weights of each expert network": the experts'
+    weights are frozen and their BatchNorm stays in eval mode
+    (:meth:`~ablate.fusion.stages.FusionModel.load_expert`), and the data module gives each frame a fixed input (one
+    condition per frame, a per-frame seeded rng for conditions and corruptions, no random augmentation), so an
+    expert's output for a frame (:meth:`~ablate.fusion.stages.FusionModel.frozen_features`) is a constant. It is
+    computed on the frame's first batch (the first epoch; validation frames in the sanity check) and read back
+    afterwards, so the experts no longer run. Frame ids are unique across the splits of one data module; the cache
+    holds one model's experts and one data module's frames, so each job builds its own (:func:`feature_cache`).
+
+    Features are stored per frame on the CPU in ``dtype`` (float32: the result is that of running the experts) and
+    handed to the model as float32 on its device. ``max_bytes`` caps the memory: frames beyond it are not stored,
+    and each step runs the experts on its frames that are not in the cache only (eval-mode BatchNorm treats each
+    frame on its own, so a frame's features do not depend on its batch).
+    """
+
+    def __init__(self, max_bytes: float = float("inf"), dtype: torch.dtype = torch.float32) -> None:
+        self.max_bytes, self.dtype = max_bytes, dtype
+        self.frames: dict[str, Any] = {}
+        self.nbytes = 0  # bytes held by the cached features
+        self.hits = self.misses = 0
+
+    def __call__(self, model: torch.nn.Module, batch: dict) -> dict:
+        """``model.frozen_features(batch)``, its frames in the cache read from it, the others computed (and stored
+        while the cache has room)."""
+        if "frame" not in batch:
+            raise KeyError(f"FeatureCache needs batch['frame'] (frame ids) to key the features; got {sorted(batch)}")
+        frames = list(batch["frame"])
+        missing = [i for i, f in enumerate(frames) if f not in self.frames]
+        self.hits, self.misses = self.hits + len(frames) - len(missing), self.misses + len(missing)
+        fresh = None
+        if missing:
+            sub = batch if len(missing) == len(frames) else {m: batch[m][missing] for m in model.modalities}
+            fresh = model.frozen_features(sub)
+            size = sum(t[0].numel() for t in _leaves(fresh)) * self.dtype.itemsize  # one frame's features
+            for j, i in enumerate(missing):
+                if self.nbytes + size <= self.max_bytes:
+                    self.frames[frames[i]] = _map(lambda t: t[j].to(device="cpu", dtype=self.dtype, copy=True), fresh)
+                    self.nbytes += size
+            if len(missing) == len(frames):
+                return fresh
+        per_frame = {i: self.frames[f] for i, f in enumerate(frames) if i not in missing}
+        per_frame.update({i: _map(lambda t: t[j], fresh) for j, i in enumerate(missing)})
+        return _stack([per_frame[i] for i in range(len(frames))], next(model.parameters()).device)
+
+
+def _map(fn, tree):
+    """``fn`` applied to every tensor of nested dicts and lists."""
+    if torch.is_tensor(tree):
+        return fn(tree)
+    if isinstance(tree, dict):
+        return {k: _map(fn, v) for k, v in tree.items()}
+    return [_map(fn, v) for v in tree]
+
+
+def _leaves(tree) -> Iterator[torch.Tensor]:
+    """The tensors of nested dicts and lists."""
+    if torch.is_tensor(tree):
+        yield tree
+        return
+    for value in tree.values() if isinstance(tree, dict) else tree:
+        yield from _leaves(value)
+
+
+def _stack(trees: list, device: torch.device):
+    """Per-frame trees of one structure -> one tree of float32 batches on ``device``."""
+    first = trees[0]
+    if torch.is_tensor(first):
+        return torch.stack([t.to(device=device, dtype=torch.float32) for t in trees])
+    if isinstance(first, dict):
+        return {k: _stack([t[k] for t in trees], device) for k in first}
+    return [_stack([t[i] for t in trees], device) for i in range(len(first))]
+
+
+def feature_cache(cfg: DictConfig, model: torch.nn.Module) -> FeatureCache | None:
+    """A :class:`FeatureCache` of at most ``experts.cache_max_gb`` GiB (default unbounded) for stage 2 when
+    ``experts.cache_features`` is on and every per-modality part of ``model`` is a frozen expert (stages backbone,
+    fpn, late with ``experts.freeze``), else None: fine-tuned experts (``freeze: false``) change every step, and
+    stages early and single have no frozen part."""
+    experts = cfg.get("experts") or {}
+    if not experts.get("cache_features", False) or not getattr(model, "cacheable", False):
+        return None
+    max_gb = experts.get("cache_max_gb")
+    return FeatureCache(float("inf") if max_gb is None else float(max_gb) * 2**30)

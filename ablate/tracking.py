@@ -28,8 +28,10 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 #: Config keys that do not change a result, so they are left out of the config hash (``table`` holds only
-#: the paper's numbers and row names; the experiment a run lands in already separates tables).
-UNHASHED = ("force", "logger", "hydra", "table", "trainer.enable_progress_bar", "data.num_workers")
+#: the paper's numbers and row names; the experiment a run lands in already separates tables; the float32 feature
+#: cache of frozen experts, ablate.experts.FeatureCache, changes the speed only).
+UNHASHED = ("force", "logger", "hydra", "table", "trainer.enable_progress_bar", "data.num_workers",
+            "experts.cache_features", "experts.cache_max_gb")
 #: Tags every job run carries; the report reads them.
 KIND_JOB, KIND_SWEEP = "job", "sweep"
 

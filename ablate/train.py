@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from ablate.experts import attach as attach_experts
+from ablate.experts import feature_cache
 from ablate.experts import prepare as prepare_experts
 from ablate.metrics.timing import forward_time_ms
 from ablate.sweep import parent_run_id, record_failure, swept_keys, sweep_dir
@@ -115,8 +116,9 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
 def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path) -> dict[str, float]:
     """Train with Lightning, test the best checkpoint, and log metrics, checkpoint and figures to ``run_id``.
 
-    With ``experts`` set (SMoE §4.3), a fused model first gets its frozen single-modal experts, and a
-    single-modal job *is* the expert: it is tested from the expert's checkpoint, never trained twice.
+    With ``experts`` set (SMoE §4.3), a fused model first gets its frozen single-modal experts (whose features
+    per frame are computed once and cached for the fit with ``experts.cache_features``), and a single-modal job
+    *is* the expert: it is tested from the expert's checkpoint, never trained twice.
     """
     experts = prepare_experts(cfg) if cfg.get("experts") else {}
     L.seed_everything(cfg.seed, workers=True)
@@ -134,7 +136,12 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
             shutil.rmtree(ckpt_dir)
         if last.exists():
             log.info("Resuming from %s", last)
+        task.feature_cache = feature_cache(cfg, model)
         trainer.fit(task, datamodule=datamodule, ckpt_path=str(last) if last.exists() else None)
+        if task.feature_cache is not None:
+            log.info("Expert feature cache: %d frames, %.0f MiB", len(task.feature_cache.frames),
+                     task.feature_cache.nbytes / 2**20)
+            task.feature_cache = None  # testing runs the whole model, whatever its data
         best = checkpoint.best_model_path or None
     results = trainer.test(task, datamodule=datamodule, ckpt_path=best, verbose=False)[0]
     metrics = {k.split("/", 1)[-1]: float(v) for k, v in results.items() if k.startswith("test/")}

@@ -19,6 +19,8 @@ def test_hash_ignores_keys_that_do_not_change_results():
     assert h == config_hash(_cfg(force=True, logger={"tracking_uri": "sqlite:///b.db"}))
     assert h == config_hash(_cfg(trainer={"enable_progress_bar": False}, data={"num_workers": 4}))
     assert h == config_hash(_cfg(table={"name": "t", "rows": [{"row": "x"}]}))
+    frozen = config_hash(_cfg(experts={"freeze": True}))
+    assert frozen == config_hash(_cfg(experts={"freeze": True, "cache_features": True})) != h
 
 
 def test_hash_changes_with_results_relevant_keys():

@@ -103,7 +103,25 @@ class FusionModel(nn.Module):
         """The head's ``out_channels``: the keys and channels of ``forward``'s output."""
         return (next(iter(self.heads.values())) if self.stage == "late" else self.head).out_channels
 
-    def forward(self, inputs: dict[str, Tensor]) -> dict[str, Tensor | list[Tensor]]:
+    def forward(self, inputs: dict[str, Tensor], features: dict | None = None) -> dict[str, Tensor | list[Tensor]]:
+        """The head's outputs for ``inputs``. ``features``: :meth:`frozen_features` of these inputs, computed
+        before (a cache of them, :class:`ablate.experts.FeatureCache`); the per-modality parts are then not run."""
+        if features is None:
+            x = self._inputs(inputs)
+            if self.stage == "early":
+                return self.head(self.fpn(self.encoder(torch.cat(list(x.values()), 1))[1:]))
+            features = {m: self._branch(m, t) for m, t in x.items()}
+        if self.stage == "single":
+            return self.head(self.fpn(features[self.single]))
+        mods = list(self.modalities)
+        if self.stage == "backbone":
+            return self.head(self.fpn([op([features[m][k] for m in mods]) for k, op in enumerate(self.fuse)]))
+        if self.stage == "fpn":
+            return self.head([op([features[m][k] for m in mods]) for k, op in enumerate(self.fuse)])
+        return {key: self._fuse_late(key, ops, [features[m][key] for m in mods])
+                for key, ops in zip(self.late_keys, self.fuse)}
+
+    def _inputs(self, inputs: dict[str, Tensor]) -> dict[str, Tensor]:
         missing = [m for m in self.modalities if m not in inputs]
         if missing:
             raise KeyError(f"fusion model needs inputs {list(self.modalities)}; missing {missing}, got {list(inputs)}")
@@ -111,19 +129,38 @@ class FusionModel(nn.Module):
         sizes = {m: tuple(t.shape[-2:]) for m, t in x.items()}
         if len(set(sizes.values())) > 1:
             raise ValueError(f"stage {self.stage!r} needs every modality at one H, W; got {sizes}")
-        if self.stage == "early":
-            return self.head(self.fpn(self.encoder(torch.cat(list(x.values()), 1))[1:]))
-        feats = {m: self.encoders[m](t) for m, t in x.items()}
-        if self.stage == "single":
-            return self.head(self.fpn(feats[self.single][1:]))
-        if self.stage == "backbone":
-            return self.head(self.fpn([op([feats[m][k + 1] for m in x]) for k, op in enumerate(self.fuse)]))
-        pyramids = {m: self.fpns[m](f[1:]) for m, f in feats.items()}
-        if self.stage == "fpn":
-            return self.head([op([pyramids[m][k] for m in x]) for k, op in enumerate(self.fuse)])
-        outs = {m: self.heads[m](p) for m, p in pyramids.items()}
-        return {key: self._fuse_late(key, ops, [outs[m][key] for m in x])
-                for key, ops in zip(self.late_keys, self.fuse)}
+        return x
+
+    def _branch_parts(self, modality: str) -> list[nn.Module]:
+        """The parts of ``modality`` before the fusion point, in order: encoder, then FPN (fpn, late), head (late)."""
+        return [self.encoders[modality], *([self.fpns[modality]] if self.stage in ("fpn", "late") else []),
+                *([self.heads[modality]] if self.stage == "late" else [])]
+
+    def _branch(self, modality: str, x: Tensor) -> list[Tensor] | dict:
+        """``modality``'s features at the fusion point: C3..C5 (backbone, single), P3..P7 (fpn), head outputs (late)."""
+        out = self.encoders[modality](x)[1:]
+        for part in self._branch_parts(modality)[1:]:
+            out = part(out)
+        return out
+
+    @property
+    def cacheable(self) -> bool:
+        """Whether every modality's parts before the fusion point are frozen experts (:meth:`load_expert` with
+        ``freeze``), so that :meth:`frozen_features` of an input is a constant (SMoE §4.3)."""
+        frozen = {id(part) for part in self._frozen}
+        return self.stage in ("backbone", "fpn", "late") and all(
+            id(part) in frozen for m in self.modalities for part in self._branch_parts(m))
+
+    @torch.no_grad()
+    def frozen_features(self, inputs: dict[str, Tensor]) -> dict[str, list[Tensor] | dict]:
+        """Per modality, the output of its frozen expert at the fusion point: C3..C5 (stage backbone), P3..P7
+        (fpn), the expert head's output dict (late). ``forward(inputs, features=frozen_features(inputs))`` equals
+        ``forward(inputs)``. Only for a :attr:`cacheable` model (else gradients would be lost)."""
+        if not self.cacheable:
+            raise ValueError(f"frozen_features needs every per-modality part frozen (load_expert(freeze=True)) at "
+                             f"stage backbone, fpn or late; this model is stage {self.stage!r} with "
+                             f"{len(self._frozen)} frozen part(s)")
+        return {m: self._branch(m, t) for m, t in self._inputs(inputs).items()}
 
     def _fuse_late(self, key: str, ops: nn.ModuleList, maps: list) -> Tensor | list[Tensor]:
         if isinstance(maps[0], (list, tuple)):
@@ -168,12 +205,7 @@ class FusionModel(nn.Module):
         if expert.stage != "single" or expert.single != modality:
             raise ValueError(f"expert for {modality!r} must be a stage 'single' model of that modality, "
                              f"got stage {expert.stage!r} of {expert.single!r}")
-        pairs = [(self.encoders[modality], expert.encoders[modality])]
-        if self.stage in ("fpn", "late"):
-            pairs.append((self.fpns[modality], expert.fpn))
-        if self.stage == "late":
-            pairs.append((self.heads[modality], expert.head))
-        for mine, theirs in pairs:
+        for mine, theirs in zip(self._branch_parts(modality), (expert.encoders[modality], expert.fpn, expert.head)):
             mine.load_state_dict(theirs.state_dict())
             if freeze:
                 mine.requires_grad_(False)

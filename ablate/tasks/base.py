@@ -36,6 +36,8 @@ class FusionTask(L.LightningModule):
 
     ``optimizer`` is a partial taking ``params``; ``scheduler`` a partial taking ``optimizer`` (and
     ``total_steps`` when its signature has it, as :func:`poly_lr` does), stepped every optimisation step.
+    ``feature_cache``: when set (:func:`ablate.experts.feature_cache`, for the fit of a model on frozen experts),
+    ``forward`` takes the experts' features from it instead of running them.
     """
 
     def __init__(self, model: nn.Module, optimizer: Callable[..., torch.optim.Optimizer],
@@ -45,8 +47,11 @@ class FusionTask(L.LightningModule):
         self.optimizer_factory = optimizer
         self.scheduler_factory = scheduler
         self.monitor = monitor
+        self.feature_cache = None
 
     def forward(self, batch: dict) -> dict:
+        if self.feature_cache is not None:
+            return self.model(batch, features=self.feature_cache(self.model, batch))
         return self.model(batch)
 
     def check_finite(self, loss: torch.Tensor) -> torch.Tensor:
