@@ -12,7 +12,16 @@ trained checkpoints on the test split:
   room fusion has over the better expert), and for every fused row;
 * the mean gate weight on each modality per condition group and fusion point (rows with a gated operator;
   SMoE eq. 2-3: W on f_i = RGB, 1 - W on f_j = DDM), averaged over channels and positions;
-* the validation AP per epoch of each expert, from MLflow: whether an expert was still learning when it stopped.
+* the validation AP per epoch of each expert, from MLflow: whether an expert was still learning when it stopped;
+* the experts' mask AP in clear weather, at night and in glare on the *same* test frames (each condition applied
+  to all of them, so the columns differ by the condition only, not by which frames drew it), and the checks a
+  dataset must pass before fused rows mean anything (:data:`CHECKS`): RGB in clear weather at least 0.6x DDM;
+  objects found by RGB only and by DDM only each >= 10 %; the union >= 10 points above the better expert; night
+  and glare lower the RGB expert's AP clearly (by >= 20 %) while the DDM expert's stays within 10 % of its
+  clear-weather AP.
+
+``experts_only=true`` evaluates the single-modal rows only: the data check, before any fused row is trained
+(written to ``results/<table>_experts.md`` / ``.png``).
 
 Writes ``results/<table>_diagnosis.md`` and ``.png``, and two figures of seed 0: ``<table>_masks.png`` (SMoE Fig.
 6: ground truth and every row's masks on the busiest frame of each condition) and ``<table>_gates.png`` (the gate
@@ -37,7 +46,7 @@ from omegaconf import DictConfig  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from ablate.experts import EXPERTS_TABLE, expert_config, load_model  # noqa: E402
-from ablate.metrics.coco import counted  # noqa: E402
+from ablate.metrics.coco import MaskAP, counted  # noqa: E402
 from ablate.report import compose  # noqa: E402
 from ablate.tasks.yolact.figures import draw_rows  # noqa: E402
 from ablate.tasks.yolact.task import CONDITION_GROUPS, condition_group  # noqa: E402
@@ -149,23 +158,51 @@ def expert_curves(cfg: DictConfig, experts: dict[str, DictConfig]) -> pd.DataFra
     return pd.DataFrame(out, columns=["seed", "modality", "step", "val_map"])
 
 
-def diagnose(overrides: list[str]) -> dict:
-    """Evaluate every row of the table for every seed; returns the per-object and gate frames and the curves."""
+#: The conditions the data checks compare (each applied to the whole test split in turn).
+CHECKED_CONDITIONS = ("clear", "night", "glare")
+
+
+def ap_per_condition(cfg: DictConfig, ckpt: Path) -> dict[str, float]:
+    """Mask AP (%) of a checkpoint on the whole test split under each of :data:`CHECKED_CONDITIONS` in turn."""
+    model = load_model(cfg, ckpt).eval()
+    task = instantiate(cfg.task, model=model)
+    names = list(model.modalities)
+    out = {}
+    for condition in CHECKED_CONDITIONS:
+        datamodule = instantiate(cfg.data, conditions=[condition])
+        datamodule.setup("test")
+        metric = MaskAP()
+        with torch.no_grad():
+            for batch in datamodule.test_dataloader():
+                outputs = model({k: v for k, v in batch.items() if torch.is_tensor(v) and k in names})
+                metric.update(task.predict(outputs, task.image_size(batch)), task.targets(batch))
+        out[condition] = float(metric.compute()["map"]) * 100
+    return out
+
+
+def diagnose(overrides: list[str], experts_only: bool = False) -> dict:
+    """Evaluate every row of the table (only its single-modal rows with ``experts_only``) for every seed; returns
+    the per-object and gate frames, the experts' curves and their AP per condition."""
     base = compose(overrides)
     table = base.table
     if not base.get("experts"):
         raise ValueError(f"{table.name}: not a two-stage table (experts: null); nothing to compare fusion with")
-    objects, gates, experts, showcase, gate_figure = [], [], {}, {}, None
+    objects, gates, experts, showcase, gate_figure, conditions = [], [], {}, {}, None, []
     jobs = [(seed, spec) for seed in range(int(base.scale.seeds)) for spec in table.rows]
     for seed, spec in tqdm(jobs, desc=f"diagnose {table.name}", unit="job"):
         cfg = compose(overrides + [f"row={spec.row}", f"seed={seed}"])
         if cfg.stage.name == "single":
             experts[(seed, cfg.stage.modality)] = expert_config(cfg, cfg.stage.modality)
+        elif experts_only:
+            continue
         ckpt = checkpoint(cfg, table.name, spec.row)
         datamodule = instantiate(cfg.data)
         datamodule.prepare_data()
         datamodule.setup("test")
         ev = evaluate(cfg, ckpt, datamodule)
+        if cfg.stage.name == "single":
+            conditions += [{"seed": seed, "modality": cfg.stage.modality, "condition": c, "map": v}
+                           for c, v in ap_per_condition(cfg, ckpt).items()]
         for frame, into in ((ev.objects, objects), (ev.gates, gates)):
             if len(frame):
                 into.append(frame.assign(seed=seed, row=spec.row, name=spec.get("name", spec.row),
@@ -178,7 +215,9 @@ def diagnose(overrides: list[str]) -> dict:
                 gate_figure = ev.task.gate_figure(ev.gate_batch)
     return {"table": table, "objects": pd.concat(objects, ignore_index=True) if objects else pd.DataFrame(),
             "gates": pd.concat(gates, ignore_index=True) if gates else pd.DataFrame(),
-            "curves": expert_curves(base, experts), "showcase": showcase, "gate_figure": gate_figure}
+            "curves": expert_curves(base, experts), "showcase": showcase, "gate_figure": gate_figure,
+            "conditions": pd.DataFrame(conditions, columns=["seed", "modality", "condition", "map"]),
+            "experts_only": experts_only}
 
 
 def recall_table(objects: pd.DataFrame) -> pd.DataFrame:
@@ -192,6 +231,7 @@ def recall_table(objects: pd.DataFrame) -> pd.DataFrame:
         rgb, ddm = found[by_modality["rgb"]].astype(bool), found[by_modality["ddm_jet"]].astype(bool)
         found["RGB ∪ DDM"] = rgb | ddm
         found["RGB only"] = rgb & ~ddm
+        found["DDM only"] = ddm & ~rgb
     per = found.astype(float).groupby(level=["seed", "group"]).mean() * 100
     overall = found.astype(float).groupby(level="seed").mean() * 100
     overall["group"] = "all"
@@ -212,6 +252,52 @@ def gate_table(gates: pd.DataFrame) -> pd.DataFrame:
     return g[[c for c in [*CONDITION_GROUPS, "all"] if c in g.columns]]
 
 
+#: The data checks (issue: data where each sensor sees what the other misses): name -> threshold.
+CHECKS = {"RGB AP in clear weather / DDM AP in clear weather": 0.6, "found by RGB only (%)": 10.0,
+          "found by DDM only (%)": 10.0, "union minus the better expert (recall points)": 10.0,
+          "RGB AP drop at night (%)": 20.0, "RGB AP drop in glare (%)": 20.0,
+          "DDM AP change at night or in glare (%, at most)": 10.0}
+
+
+def checks(result: dict) -> pd.DataFrame:
+    """The :data:`CHECKS` on the experts: value (mean over seeds) and whether it passes."""
+    ap = result["conditions"].groupby(["modality", "condition"])["map"].mean()
+    rec = recall_table(result["objects"])
+    single = result["objects"].drop_duplicates("row").set_index("row")["modality_row"].dropna()
+    row = {m: r for r, m in single.items()}
+    if ap.empty or not {"rgb", "ddm_jet"} <= set(row):
+        return pd.DataFrame(columns=["check", "value", "threshold", "passes"])
+    rgb, ddm = ap["rgb"], ap["ddm_jet"]
+    overall = rec.loc["all"]
+    values = [rgb["clear"] / ddm["clear"], overall[("RGB only", "mean")], overall[("DDM only", "mean")],
+              overall[("RGB ∪ DDM", "mean")] - max(overall[(row["rgb"], "mean")], overall[(row["ddm_jet"], "mean")]),
+              100 * (1 - rgb["night"] / rgb["clear"]), 100 * (1 - rgb["glare"] / rgb["clear"]),
+              100 * max(abs(ddm["night"] / ddm["clear"] - 1), abs(ddm["glare"] / ddm["clear"] - 1))]
+    at_most = [name.endswith("at most)") for name in CHECKS]
+    return pd.DataFrame({"check": list(CHECKS), "value": values, "threshold": list(CHECKS.values()),
+                         "passes": [v <= t if m else v >= t for v, t, m in zip(values, CHECKS.values(), at_most)]})
+
+
+def conditions_markdown(result: dict) -> list[str]:
+    """The experts' AP per condition on the same frames, and the data checks."""
+    cond = result["conditions"]
+    if cond.empty:
+        return []
+    stats = cond.groupby(["modality", "condition"])["map"].agg(["mean", "std"])
+    order = list(dict.fromkeys(cond["condition"]))
+    table = pd.DataFrame({c: [f"{stats.loc[(m, c), 'mean']:.2f} ± {stats.loc[(m, c), 'std']:.2f}"
+                              if (m, c) in stats.index else "" for m in cond["modality"].unique()] for c in order},
+                         index=cond["modality"].unique())
+    chk = checks(result)
+    chk["value"] = [f"{v:.2f}" for v in chk["value"]]
+    chk["passes"] = ["yes" if p else "**no**" for p in chk["passes"]]
+    return ["", "Experts' mask AP (%) on the whole test split under each condition (the same frames in every "
+            f"column), mean ± std over {cond['seed'].nunique()} seed(s):", "",
+            table.reset_index(names="expert").to_markdown(index=False, disable_numparse=True), "",
+            "Checks of the data on the experts alone (means over seeds; drops are relative to clear weather):", "",
+            chk.to_markdown(index=False, disable_numparse=True)]
+
+
 def to_markdown(result: dict) -> str:
     table, objects = result["table"], result["objects"]
     rec = recall_table(objects)
@@ -222,12 +308,13 @@ def to_markdown(result: dict) -> str:
         mean, std = rec[(c, "mean")], rec[(c, "std")]
         out[names.get(c, c)] = [f"{m:.1f}" + ("" if np.isnan(s) else f" ± {s:.1f}") for m, s in zip(mean, std)]
     seeds = objects["seed"].nunique()
-    lines = [f"# Diagnosis of {table.title}", "",
+    heading = "Data check on the experts of" if result.get("experts_only") else "Diagnosis of"
+    lines = [f"# {heading} {table.title}", "",
              f"Recall (%) of the counted test objects (mask IoU >= {IOU} with a detection of their class, among all "
              f"detections the AP sees), mean ± std over {seeds} seed(s). *RGB ∪ DDM*: found by either expert; "
              "*RGB only*: found by the RGB expert and missed by the DDM expert, the most a fusion of the two "
              "experts could add to the DDM expert's recall without learning anything new.", "",
-             out.to_markdown(index=False, disable_numparse=True)]
+             out.to_markdown(index=False, disable_numparse=True)] + conditions_markdown(result)
     gates = result["gates"]
     if len(gates) and "rgb" in set(gates["modality"]):
         gates = gates[gates["modality"] == "rgb"]
@@ -257,7 +344,7 @@ def plot(result: dict):
     objects, gates, curves = result["objects"], result["gates"], result["curves"]
     rec = recall_table(objects)
     names = objects.drop_duplicates("row").set_index("row")["name"].to_dict()
-    cols = [c for c in rec.columns.get_level_values(0).unique() if c not in ("objects", "RGB only")]
+    cols = [c for c in rec.columns.get_level_values(0).unique() if c not in ("objects", "RGB only", "DDM only")]
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), gridspec_kw={"width_ratios": [2.2, 1, 1]})
     x, width = np.arange(len(rec)), 0.8 / max(len(cols), 1)
     for k, c in enumerate(cols):
@@ -306,16 +393,22 @@ def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     if not any(a.startswith("experiment=") for a in args):
         args.append("experiment=smoe_table1")
+    only = [a for a in args if a.startswith("experts_only=")]
+    args = [a for a in args if a not in only]
+    experts_only = bool(only) and only[-1].split("=", 1)[1].lower() in ("true", "1", "yes")
     try:
-        result = diagnose(args)
+        result = diagnose(args, experts_only)
     except (MissingCheckpoint, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
     out = Path("results")
     out.mkdir(exist_ok=True)
-    md, png = out / f"{result['table'].name}_diagnosis.md", out / f"{result['table'].name}_diagnosis.png"
+    stem = out / f"{result['table'].name}_{'experts' if experts_only else 'diagnosis'}"
+    md, png = stem.with_suffix(".md"), stem.with_suffix(".png")
     md.write_text(to_markdown(result))
-    figures = {png: plot(result), out / f"{result['table'].name}_masks.png": masks_figure(result["showcase"])}
+    figures = {png: plot(result)}
+    if not experts_only:
+        figures[out / f"{result['table'].name}_masks.png"] = masks_figure(result["showcase"])
     if result["gate_figure"] is not None:
         figures[out / f"{result['table'].name}_gates.png"] = result["gate_figure"]
     print(md)

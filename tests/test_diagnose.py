@@ -4,7 +4,7 @@ import pandas as pd
 import pytest
 import torch
 
-from ablate.diagnose import found_objects, recall_table
+from ablate.diagnose import checks, found_objects, recall_table
 
 
 def _mask(h, w, y0, y1, x0, x1):
@@ -62,3 +62,26 @@ def test_recall_table_has_experts_union_and_rgb_only_per_condition():
     assert table.loc["all", ("smoe_fpn", "mean")] == pytest.approx(75)
     assert table.loc["all", ("RGB ∪ DDM", "mean")] == pytest.approx(100)
     assert np.isnan(table.loc["all", ("smoe_fpn", "std")])  # one seed: no spread
+    assert night[("DDM only", "mean")] == pytest.approx(200 / 3)  # objects 1 and 2
+
+
+def test_data_checks_on_hand_made_experts():
+    objects = []
+    # 10 objects, one seed: RGB finds 0-5, DDM finds 4-9 -> RGB only 40 %, DDM only 40 %, union 100 vs 60
+    for obj in range(10):
+        for row, modality, found in (("smoe_rgb", "rgb", obj < 6), ("smoe_ddm", "ddm_jet", obj >= 4)):
+            objects.append({"seed": 0, "group": "clear", "image": obj, "object": 0, "found": found, "row": row,
+                            "name": row, "modality_row": modality})
+    ap = {"rgb": {"clear": 18.0, "night": 9.0, "glare": 16.0}, "ddm_jet": {"clear": 30.0, "night": 30.0, "glare": 30.0}}
+    conditions = pd.DataFrame([{"seed": 0, "modality": m, "condition": c, "map": v}
+                               for m, per in ap.items() for c, v in per.items()])
+    got = checks({"objects": pd.DataFrame(objects), "conditions": conditions}).set_index("check")
+    assert got.loc["RGB AP in clear weather / DDM AP in clear weather", "value"] == pytest.approx(0.6)
+    assert got.loc["found by RGB only (%)", "value"] == pytest.approx(40)
+    assert got.loc["found by DDM only (%)", "value"] == pytest.approx(40)
+    assert got.loc["union minus the better expert (recall points)", "value"] == pytest.approx(40)
+    assert got.loc["RGB AP drop at night (%)", "value"] == pytest.approx(50)
+    glare = got.loc["RGB AP drop in glare (%)"]
+    assert glare["value"] == pytest.approx(100 / 9) and not glare["passes"]  # 11 % < 20 %: not a clear drop
+    assert got.loc["DDM AP change at night or in glare (%, at most)", "passes"]
+    assert got["passes"].sum() == 6

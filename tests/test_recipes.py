@@ -24,8 +24,8 @@ def test_the_default_job_is_smoes_fpn_fusion_with_two_stage_training():
     assert cfg.experts.freeze is True
 
 
-@pytest.mark.parametrize("scale,epochs", [("smoke", 1), ("cpu", 8), ("paper", 50)])
-def test_instance_recipe_is_smoes_sgd_at_paper_scale_and_adam_below(scale, epochs):
+@pytest.mark.parametrize("scale,epochs,expert_epochs", [("smoke", 1, None), ("cpu", 4, 10), ("paper", 50, None)])
+def test_instance_recipe_is_smoes_sgd_at_paper_scale_and_adam_below(scale, epochs, expert_epochs):
     cfg = compose_with(f"scale={scale}")
     opt = cfg.task.optimizer
     if scale == "paper":  # SMoE §4.3
@@ -33,9 +33,10 @@ def test_instance_recipe_is_smoes_sgd_at_paper_scale_and_adam_below(scale, epoch
     else:
         assert opt._target_ == "torch.optim.Adam" and opt.lr == 0.001 and "momentum" not in opt
     assert cfg.task.scheduler.power == 0.9 and cfg.trainer.max_epochs == epochs
+    assert cfg.experts.get("max_epochs") == expert_epochs  # None: the experts train as long as stage 2
 
 
-@pytest.mark.parametrize("scale,lr,epochs", [("smoke", 0.001, 1), ("cpu", 0.001, 4), ("paper", 0.01, 50)])
+@pytest.mark.parametrize("scale,lr,epochs", [("smoke", 0.001, 1), ("cpu", 0.001, 2), ("paper", 0.01, 50)])
 def test_chinet_tables_keep_chinets_adam(scale, lr, epochs):
     cfg = compose_with("experiment=chinet_table2", f"scale={scale}")
     opt = cfg.task.optimizer

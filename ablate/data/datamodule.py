@@ -8,7 +8,8 @@ Sample dict (a batch after :func:`collate` holds the same keys):
   2 road object); ``instances`` dict(masks [N,H,W] bool, labels [N] 0 car 1 pedestrian, boxes [N,4] xyxy);
   ``boxes2d`` dict(boxes, labels 0 car 1 pedestrian 2 cyclist, difficulty 0/1/2/-1); ``ignore`` [H,W] bool
   (DontCare boxes); ``road_bev`` [1,Hb,Wb] {0,1};
-- ``frame`` (id) and ``condition`` (name); lists in a batch, as are ``instances`` and ``boxes2d``.
+- ``frame`` (id) and ``condition`` (name), ``lidar_condition`` (name, only with ``lidar_weather``); lists in a
+  batch, as are ``instances`` and ``boxes2d``.
 
 Splits (fixed, independent of ``seed``): a folder's ``ImageSets/{train,val,test}.txt`` when present (the
 generated dataset writes a seeded 60/20/20 split there); otherwise a permutation of the sorted frames with seed 0
@@ -26,15 +27,15 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from ablate.data import DEFAULT_SYNTH, DataError, kitti
+from ablate.data import DEFAULT_SYNTH, GENERATOR_VERSION, DataError, kitti
 from ablate.data.dataset import LIDAR_DERIVED, MODALITIES, KittiDataset
 from ablate.data.generate import generate, split_frames
 
-LIST_KEYS = ("frame", "condition", "instances", "boxes2d")
+LIST_KEYS = ("frame", "condition", "lidar_condition", "instances", "boxes2d")
 
 
 def collate(samples: list[dict]) -> dict:
-    """Stack tensors; keep ``frame``, ``condition``, ``instances`` and ``boxes2d`` as lists."""
+    """Stack tensors; keep the ``LIST_KEYS`` as lists."""
     return {k: [s[k] for s in samples] if k in LIST_KEYS else torch.stack([s[k] for s in samples])
             for k in samples[0]}
 
@@ -48,6 +49,9 @@ def synth_dir(data_dir: str | Path, params: dict) -> Path:
 def ensure_synth(data_dir: str | Path, params: dict | None) -> Path:
     """The generated dataset for ``params``, generated on first use."""
     params = {**DEFAULT_SYNTH, **(params or {})}
+    if params["version"] != GENERATOR_VERSION:
+        raise DataError(f"data.synth.version={params['version']}: this ablate generates version {GENERATOR_VERSION} "
+                        "only (check out an older ablate for older generated data)")
     out = synth_dir(data_dir, params)
     if not (out / "synth.json").is_file():  # written last, so its presence means a complete dataset
         generate(out, params["frames"], params["seed"], params["height"], params["width"],
@@ -82,7 +86,7 @@ class KittiDataModule(L.LightningDataModule):
                  conditions: list[str] = ("clear",), severity: float = 1.0, corruption: dict | None = None,
                  batch_size: int = 4, num_workers: int = 0, seed: int = 0, max_depth: float = 80.0,
                  limit_frames: dict | None = None, bev: dict | None = None, cache: bool = True,
-                 image_size: list[int] | None = None) -> None:
+                 image_size: list[int] | None = None, lidar_weather: list[str] | None = None) -> None:
         super().__init__()
         for m in modalities:
             if m not in MODALITIES:
@@ -92,6 +96,7 @@ class KittiDataModule(L.LightningDataModule):
         self.severity, self.corruption, self.batch_size = severity, corruption, batch_size
         self.num_workers, self.seed, self.max_depth = num_workers, seed, max_depth
         self.limit_frames, self.bev, self.cache = dict(limit_frames or {}), bev, cache
+        self.lidar_weather = list(lidar_weather) if lidar_weather else None
         # Real KITTI images range from 1224x370 to 1242x375: crop to the smallest unless told otherwise.
         self.image_size = image_size if image_size or root is None else [370, 1224]
         self.datasets: dict[str, KittiDataset] = {}
@@ -119,7 +124,7 @@ class KittiDataModule(L.LightningDataModule):
             self.datasets[name] = KittiDataset(
                 split_dir, frames[:cap] if cap is not None else frames, self.modalities, self.targets,
                 self.conditions, self.severity, self.corruption, self.seed, self.max_depth,
-                Path(self.data_dir) / "cache" if self.cache else None, self.bev, self.image_size)
+                Path(self.data_dir) / "cache" if self.cache else None, self.bev, self.image_size, self.lidar_weather)
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         self.setup()

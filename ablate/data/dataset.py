@@ -13,13 +13,15 @@ import torch
 from torch.utils.data import Dataset
 
 from ablate.data import DataError
-from ablate.data import kitti, lidar
+from ablate.data import kitti, lidar, masks
 from ablate.data.conditions import apply_condition, apply_corruption
+from ablate.data.lidar_weather import LIDAR_WEATHER, apply_lidar_weather
 
 MODALITIES = {"rgb": 3, "intensity": 1, "sparse_depth": 1, "dense_depth": 1, "ddm_jet": 3, "dhi": 3, "bev": 6}
 TARGETS = ("free_space", "road_objects", "semantic", "instances", "boxes2d", "road_bev")
 CLASSES = ("Car", "Pedestrian", "Cyclist")  # label ids 0, 1, 2
 LIDAR_DERIVED = {"sparse_depth", "dense_depth", "ddm_jet", "dhi", "bev"}
+NO_MASKS = "no instance masks: no instance_2/ folder, nor velodyne/ and label_2/ to derive them from"
 
 
 def _key(obj) -> str:
@@ -32,7 +34,7 @@ class KittiDataset(Dataset):
     def __init__(self, split_dir: Path, frames: list[str], modalities: list[str], targets: list[str],
                  conditions: list[str], severity: float = 1.0, corruption: dict | None = None, seed: int = 0,
                  max_depth: float = 80.0, cache_dir: str | Path | None = None, bev: dict | None = None,
-                 image_size: tuple[int, int] | None = None) -> None:
+                 image_size: tuple[int, int] | None = None, lidar_weather: list[str] | None = None) -> None:
         for m in modalities:
             if m not in MODALITIES:
                 raise KeyError(f"unknown modality {m!r}; valid: {', '.join(MODALITIES)}")
@@ -49,20 +51,28 @@ class KittiDataset(Dataset):
         self._check_available()
         order = np.random.default_rng([seed, len(self.frames)]).permutation(len(self.frames))
         self.condition = {f: conditions[i % len(conditions)] for f, i in zip(self.frames, np.argsort(order))}
+        # Optional LiDAR weather (ablate.data.lidar_weather), spread over the frames by its own permutation.
+        for w in lidar_weather or ():
+            if w not in LIDAR_WEATHER:
+                raise KeyError(f"unknown LiDAR weather {w!r}; valid: {', '.join(LIDAR_WEATHER)}")
+        order = np.random.default_rng([seed, len(self.frames), 1]).permutation(len(self.frames))
+        self.lidar_condition = {f: lidar_weather[i % len(lidar_weather)] for f, i in
+                                zip(self.frames, np.argsort(order))} if lidar_weather else {}
 
     def _check_available(self) -> None:
         d = self.split_dir
         has = {"velodyne": (d / "velodyne").is_dir(), "labels": (d / "label_2").is_dir(),
-               "instances": (d / "instance_2").is_dir(), "road": (d / "gt_image_2").is_dir()}
+               "instances": (d / "instance_2").is_dir() or (d / "velodyne").is_dir() and (d / "label_2").is_dir(),
+               "road": (d / "gt_image_2").is_dir()}  # instance masks: instance_2/, else derived from LiDAR + boxes
         need = {"free_space": "road", "semantic": "road", "road_bev": "road", "road_objects": "instances",
                 "instances": "instances", "boxes2d": "labels"}
         for name in [m for m in self.modalities if m in LIDAR_DERIVED] + self.targets:
             src = "velodyne" if name in LIDAR_DERIVED else need[name]
             if not has[src]:
                 raise DataError(f"{d}: cannot provide {name!r}: this data has no {src} "
-                                f"({'instance masks' if src == 'instances' else src} folder missing)")
+                                f"({NO_MASKS if src == 'instances' else src + ' folder missing'})")
         if "semantic" in self.targets and not has["instances"]:
-            raise DataError(f"{d}: cannot provide 'semantic': this data has no instance masks (instance_2/)")
+            raise DataError(f"{d}: cannot provide 'semantic': this data has {NO_MASKS}")
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -87,15 +97,34 @@ class KittiDataset(Dataset):
         """A derived LiDAR modality in its raw units (metres, uint8 DHI, BEV), from the cache when present."""
         paths = kitti.frame_paths(self.split_dir, frame)
         calib = lambda: kitti.Calibration.from_file(paths["calib"])  # noqa: E731
-        points = lambda: kitti.read_velodyne(paths["velodyne"])  # noqa: E731
+        weather = self.lidar_condition.get(frame, "clear")
+        key = {"weather": weather, "severity": self.severity} if weather != "clear" else {}
+
+        def points():
+            pts = kitti.read_velodyne(paths["velodyne"])
+            if weather == "clear":
+                return pts
+            rng = np.random.default_rng([self.seed, zlib.crc32(frame.encode()), 1])
+            return apply_lidar_weather(weather, pts, rng, self.severity)
+
         if name == "sparse_depth":
-            return self._cached(frame, name, {"shape": shape}, lambda: lidar.sparse_depth(points(), calib(), shape))
+            return self._cached(frame, name, {"shape": shape, **key},
+                                lambda: lidar.sparse_depth(points(), calib(), shape))
         if name == "dense_depth":
-            return self._cached(frame, name, {"shape": shape},
+            return self._cached(frame, name, {"shape": shape, **key},
                                 lambda: lidar.dense_depth(self.lidar(frame, "sparse_depth", shape)))
         if name == "dhi":
-            return self._cached(frame, name, {"shape": shape}, lambda: lidar.dhi_image(points(), calib(), shape))
-        return self._cached(frame, name, self.bev, lambda: lidar.bev_image(points(), **self.bev))
+            return self._cached(frame, name, {"shape": shape, **key}, lambda: lidar.dhi_image(points(), calib(), shape))
+        return self._cached(frame, name, {**self.bev, **key}, lambda: lidar.bev_image(points(), **self.bev))
+
+    def lidar_instances(self, frame: str, labels: list, shape: tuple[int, int]) -> np.ndarray:
+        """(H,W) uint16 instance map in instance_2's encoding from ``ablate.data.masks.from_lidar`` of the clean
+        scan (never the LiDAR weather of the frame), cached."""
+        paths = kitti.frame_paths(self.split_dir, frame)
+        return self._cached(frame, "instances", {"shape": shape, "margin": masks.MARGIN, "ground": masks.GROUND},
+                            lambda: masks.instance_map(masks.from_lidar(
+                                kitti.read_velodyne(paths["velodyne"]), kitti.Calibration.from_file(paths["calib"]),
+                                labels, shape)))
 
     def __getitem__(self, i: int) -> dict:
         frame = self.frames[i]
@@ -109,6 +138,8 @@ class KittiDataset(Dataset):
         if corr.get("modality") == "rgb" and rng.random() < corr.get("p", 1.0):
             rgb = apply_corruption(corr["name"], rgb.transpose(2, 0, 1), rng, "rgb", self.severity).transpose(1, 2, 0)
         sample: dict = {"frame": frame, "condition": condition}
+        if self.lidar_condition:
+            sample["lidar_condition"] = self.lidar_condition[frame]
         for m in self.modalities:
             if m == "rgb":
                 x = rgb.transpose(2, 0, 1)
@@ -153,6 +184,9 @@ class KittiDataset(Dataset):
         labels = kitti.read_labels(paths["label"]) if paths["label"].is_file() else []
         road = kitti.read_road_gt(paths["road_gt"])[0] if "road_gt" in paths and paths["road_gt"].is_file() else None
         inst = cv2.imread(str(paths["instance"]), cv2.IMREAD_UNCHANGED) if paths["instance"].is_file() else None
+        if inst is None and not paths["instance"].parent.is_dir() and paths["label"].is_file() \
+                and any(t in self.targets for t in ("road_objects", "semantic", "instances")):
+            inst = self.lidar_instances(paths["image"].stem, labels, shape)
         if any(t in self.targets for t in ("free_space", "semantic", "road_bev")) and road is None:
             raise DataError(f"{paths['image']}: road ground truth {paths.get('road_gt')} is missing")
         if any(t in self.targets for t in ("road_objects", "semantic", "instances")) and inst is None:
@@ -164,7 +198,8 @@ class KittiDataset(Dataset):
         if "semantic" in self.targets:
             out["semantic"] = torch.from_numpy(np.where(inst > 0, 2, road.astype(np.int64)).astype(np.int64))
         if "instances" in self.targets:
-            ids = [k + 1 for k, o in enumerate(labels) if o.type in CLASSES[:2]]
+            present = set(np.unique(inst).tolist())  # a labelled object with no mask pixel is left out
+            ids = [k + 1 for k, o in enumerate(labels) if o.type in CLASSES[:2] and k + 1 in present]
             out["instances"] = {
                 "masks": torch.from_numpy(np.stack([inst == k for k in ids]) if ids else np.zeros((0, h, w), bool)),
                 "labels": torch.tensor([CLASSES.index(labels[k - 1].type) for k in ids], dtype=torch.int64),

@@ -17,9 +17,12 @@ import numpy as np
 from tqdm import tqdm
 
 from ablate.data.kitti import Calibration, Object3D, write_road_gt
+from ablate.data import GENERATOR_VERSION
+from ablate.data import lidar_physics as physics
 from ablate.data.raycast import BORDER, BOX, CAMERA_HEIGHT, ROAD, cast
-from ablate.data.synth import BUILDING, CLASS_NAMES, LIDAR_ORIGIN, camera_matrix, camera_rays, lidar_rays, \
-    sample_scene, shade
+from ablate.data.shade import glass_mask, shade
+from ablate.data.synth import BUILDING, CLASS_NAMES, LIDAR_ORIGIN, beam_directions, camera_matrix, camera_rays, \
+    lidar_angles, sample_scene
 
 TR_VELO_TO_CAM = np.array([[0, -1, 0, 0], [0, 0, -1, LIDAR_ORIGIN[1]], [1, 0, 0, LIDAR_ORIGIN[2]]], np.float64)
 
@@ -46,18 +49,34 @@ def render_frame(seed: int, index: int, height: int = 128, width: int = 416, lid
     image = np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8).reshape(height, width, 3)
     depth = np.where(np.isfinite(hit["t"]), hit["t"], 0).astype(np.float32).reshape(height, width)
     owner = np.where(hit["box"] >= 0, scene["owner"][np.maximum(hit["box"], 0)], -1)
-    # LiDAR: same scene, rays from the velodyne origin, 120 m range, 1 cm range noise.
-    cam_dirs, velo_dirs = lidar_rays(width, lidar_fov)
-    lhit = cast(scene, LIDAR_ORIGIN.astype(np.float32), cam_dirs, max_t=120.0)
-    ok = np.isfinite(lhit["t"])
-    rng_noise = rng.normal(0, 0.01, ok.sum())
-    refl = np.select([lhit["kind"] == ROAD, lhit["kind"] == BORDER, lhit["kind"] == BOX],
-                     [scene["road_refl"], scene["border_refl"], scene["box_refl"][np.maximum(lhit["box"], 0)]], 0.0)
-    refl = np.clip(refl[ok] + rng.normal(0, 0.03, ok.sum()), 0, 1)
-    points = np.hstack([velo_dirs[ok] * (lhit["t"][ok] + rng_noise)[:, None], refl[:, None]]).astype(np.float32)
     labels, instance = _labels(scene, hit, owner, calib, height, width)
-    return {"rgb": image, "depth": depth, "points": points, "labels": labels, "calib": calib,
-            "instance": instance, "road": (hit["kind"] == ROAD).reshape(height, width)}
+    return {"rgb": image, "depth": depth, "points": scan(scene, rng, height, width, lidar_fov), "labels": labels,
+            "calib": calib, "instance": instance, "road": (hit["kind"] == ROAD).reshape(height, width)}
+
+
+def scan(scene: dict, rng: np.random.Generator, height: int, width: int, lidar_fov: float = 45.0) -> np.ndarray:
+    """The LiDAR scan of a scene, (N,4) velodyne x, y, z, reflectance: each beam traced as sub-rays over its
+    footprint, kept where the received power clears the threshold (ablate.data.lidar_physics)."""
+    el, az = lidar_angles(height, width, lidar_fov)
+    origin = LIDAR_ORIGIN.astype(np.float32)
+    sub = physics.footprint_rays(el, az)
+    power, dist, refl = (np.zeros((len(sub), len(el))) for _ in range(3))
+    for k, (e, a) in enumerate(sub):
+        dirs, _ = beam_directions(e, a)
+        h = cast(scene, origin, dirs, max_t=150.0)
+        isbox = h["kind"] == BOX
+        b = np.maximum(h["box"], 0)
+        rho = np.select([h["kind"] == ROAD, h["kind"] == BORDER, isbox],
+                        [scene["road_refl"], scene["border_refl"], scene["box_refl"][b]], 0.0)
+        gloss = np.where(isbox, scene["box_gloss"][b], 0.0)  # ground: angle-independent (see lidar_physics)
+        cos = np.abs(np.sum(h["normal"] * dirs, 1))
+        rho = np.where(glass_mask(scene, h, isbox), 0.0, rho)
+        power[k], dist[k], refl[k] = physics.received_power(rho, cos, h["t"], gloss), h["t"], rho
+    ok, distance, reflectance = physics.combine(power, dist, refl)
+    distance = distance[ok] + rng.normal(0, physics.RANGE_SIGMA, ok.sum())
+    reflectance = np.clip(reflectance[ok] + rng.normal(0, 0.03, ok.sum()), 0, 1)
+    _, velo = beam_directions(el[ok], az[ok])
+    return np.hstack([velo * distance[:, None], reflectance[:, None]]).astype(np.float32)
 
 
 def _labels(scene, hit, owner, calib, height, width) -> tuple[list[Object3D], np.ndarray]:
@@ -135,6 +154,7 @@ def generate(out: str | Path, frames: int, seed: int = 0, height: int = 128, wid
     bar.close()
     for name, ids in split_frames([f"{i:06d}" for i in range(frames)], seed).items():
         (out / "ImageSets" / f"{name}.txt").write_text("".join(f + "\n" for f in ids))
-    params = {"frames": frames, "seed": seed, "height": height, "width": width, "lidar_fov": lidar_fov}
+    params = {"frames": frames, "seed": seed, "height": height, "width": width, "lidar_fov": lidar_fov,
+              "version": GENERATOR_VERSION}
     (out / "synth.json").write_text(json.dumps(params, indent=1) + "\n")
     return out

@@ -174,6 +174,16 @@ class Object3D:
         c, s = np.cos(self.rotation_y), np.sin(self.rotation_y)
         return np.stack([c * x + s * z, y, -s * x + c * z], 1) + np.asarray(self.location)
 
+    def contains(self, rect: np.ndarray, margin: float = 0.0, ground: float = 0.0) -> np.ndarray:
+        """(N,) bool: which rectified-camera points ((N,>=3)) lie in the 3D box, enlarged by ``margin`` metres on
+        its four sides and at its top, with its bottom raised by ``ground`` metres (so the road under it is out)."""
+        h, w, l = self.dimensions
+        c, s = np.cos(self.rotation_y), np.sin(self.rotation_y)
+        d = np.asarray(rect, np.float64)[:, :3] - np.asarray(self.location)
+        x, z = c * d[:, 0] - s * d[:, 2], s * d[:, 0] + c * d[:, 2]  # along the box's length and width
+        return (np.abs(x) <= l / 2 + margin) & (np.abs(z) <= w / 2 + margin) & (d[:, 1] <= -ground) \
+            & (d[:, 1] >= -h - margin)
+
     def to_line(self) -> str:
         vals = [self.truncated, self.occluded, self.alpha, *self.bbox, *self.dimensions, *self.location,
                 self.rotation_y]

@@ -2,7 +2,6 @@
 import pytest
 import torch
 
-from ablate.data import DataError
 from ablate.data.datamodule import KittiDataModule
 
 ALL_MODALITIES = ["rgb", "intensity", "sparse_depth", "dense_depth", "ddm_jet", "dhi", "bev"]
@@ -72,8 +71,16 @@ def test_real_kitti_object(kitti_root, tmp_path):
                          targets=["boxes2d"], batch_size=2, limit_frames={"train": 2})
     b = next(iter(dm.train_dataloader()))
     assert b["rgb"].shape == (2, 3, 370, 1224) and b["dhi"].shape == (2, 3, 370, 1224)
-    with pytest.raises(DataError, match=r"instances.*instance masks") as err:
-        KittiDataModule(root=str(kitti_root / "object"), data_dir=str(tmp_path), targets=["instances"]).setup()
-    assert str(kitti_root / "object") in str(err.value)
+    # Instance masks come from the LiDAR and the 3D boxes there (tests/data/test_masks.py).
+    # LiDAR weather: its own per-frame condition, its own cache entries; fog thins the scan.
+    fog = KittiDataModule(root=str(kitti_root / "object"), data_dir=str(tmp_path), modalities=["sparse_depth"],
+                          batch_size=2, limit_frames={"train": 2}, lidar_weather=["fog"])
+    clear = KittiDataModule(root=str(kitti_root / "object"), data_dir=str(tmp_path), modalities=["sparse_depth"],
+                            batch_size=2, limit_frames={"train": 2})
+    f, c = (next(iter(d.train_dataloader())) for d in (fog, clear))
+    assert f["lidar_condition"] == ["fog", "fog"] and "lidar_condition" not in c
+    assert (f["sparse_depth"] > 0).sum() < 0.9 * (c["sparse_depth"] > 0).sum()
+    with pytest.raises(KeyError, match="unknown LiDAR weather 'snow'"):
+        KittiDataModule(root=str(kitti_root / "object"), data_dir=str(tmp_path), lidar_weather=["snow"]).setup()
     with pytest.raises(KeyError, match="valid: rgb"):
         KittiDataModule(modalities=["lidar"])

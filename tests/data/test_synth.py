@@ -19,9 +19,11 @@ def test_lidar_agrees_with_rendered_depth(frames):
     for f in frames:
         sp = sparse_depth(f["points"], f["calib"], f["depth"].shape)
         both = (sp > 0) & (f["depth"] > 0)
-        assert both.sum() > 1000
+        assert both.sum() > 500  # 11 beams at 64 rows (ablate.data.synth.lidar_angles)
         rel = np.abs(sp[both] - f["depth"][both]) / f["depth"][both]
-        assert np.median(rel) < 0.01 and (rel < 0.03).mean() > 0.85  # misses only at silhouette edges
+        # A 64x208 pixel spans 8 mrad, so a point and its pixel's centre differ by up to 1-2 % on the ground;
+        # misses beyond that only at silhouette edges (mixed pixels, pixel quantisation).
+        assert np.median(rel) < 0.015 and (rel < 0.03).mean() > 0.85
         # Every scan point lies on a surface: none is under the road (velodyne z > -1.73 - noise).
         assert f["points"][:, 2].min() > -1.8
 

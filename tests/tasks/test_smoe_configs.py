@@ -104,9 +104,12 @@ def test_followup_rows_change_only_epochs_or_freezing_and_share_their_experts():
 
     rows = table_rows("smoe_table1_followup")
     cfgs = {r: compose_row("smoe_table1_followup", r, "scale=cpu") for r in rows}
-    assert {r: cfgs[r].trainer.max_epochs for r in rows} == {
-        "smoe_rgb": 8, "smoe_rgb_long": 16, "smoe_ddm": 8, "smoe_ddm_long": 16, "smoe_fpn": 8, "smoe_fpn_long": 16,
-        "smoe_fpn_finetuned": 8}
+    # (stage-2 epochs, the experts' epochs) per row
+    assert {r: (cfgs[r].trainer.max_epochs, cfgs[r].experts.max_epochs) for r in rows} == {
+        "smoe_rgb": (4, 10), "smoe_rgb_long": (4, 20), "smoe_ddm": (4, 10), "smoe_ddm_long": (4, 20),
+        "smoe_fpn": (4, 10), "smoe_fpn_long": (8, 20), "smoe_fpn_finetuned": (4, 10)}
+    assert {r: expert_config(cfgs[r], "rgb").trainer.max_epochs for r in ("smoe_rgb", "smoe_rgb_long")} == {
+        "smoe_rgb": 10, "smoe_rgb_long": 20}
     assert cfgs["smoe_fpn_finetuned"].experts.freeze is False and cfgs["smoe_fpn_long"].experts.freeze is True
     # the long fused row stands on the long experts, so they are trained once, not twice
     for modality, single in (("rgb", "smoe_rgb_long"), ("ddm_jet", "smoe_ddm_long")):
