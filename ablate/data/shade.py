@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from ablate.data.raycast import BORDER, BOX, CAMERA_HEIGHT, ROAD, SKY
-from ablate.data.synth import BODY, BUILDING, CABIN, CAR, FACADE, WHEEL
+from ablate.data.synth import BODY, CABIN, FACADE, WHEEL
 
 AMBIENT, DIRECT = 0.45, 0.75
 SKY_HORIZON, SKY_ZENITH = np.array([0.75, 0.82, 0.9]), np.array([0.35, 0.55, 0.85])
@@ -132,4 +132,3 @@ def shade(scene: dict, hit: dict, dirs: np.ndarray) -> np.ndarray:
     return np.clip(rgb * scene["exposure"], 0, 1)
 
 
-__all__ = ["BUILDING", "CAR", "glass_mask", "ground_shadow", "noise", "shade", "sky_colour"]
