@@ -64,7 +64,7 @@ def _arange(n: int, dtype, name: str) -> np.ndarray:
 
 def _take(a: np.ndarray, idx: np.ndarray, out: np.ndarray) -> np.ndarray:
     """out = a[idx] for indices known to be in range (mode="wrap" spares the buffered bounds check of "raise")."""
-    return np.take(a, idx, out=out, mode="wrap")
+    return a.take(idx, out=out, mode="wrap")
 
 
 def _table(tri: np.ndarray, flat: np.ndarray, w: int, j0: int, j1: int, f64: np.ndarray, i32: np.ndarray) -> None:
