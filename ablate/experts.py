@@ -14,9 +14,7 @@ computes each frame's expert features once and reuses them (:class:`FeatureCache
 """
 from __future__ import annotations
 
-import fcntl
 import logging
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -24,7 +22,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from ablate.tracking import Tracker, config_hash
+from ablate.tracking import Tracker, config_hash, file_lock
 
 log = logging.getLogger(__name__)
 EXPERTS_TABLE = "experts"
@@ -49,24 +47,13 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
     return ecfg
 
 
-@contextmanager
-def _locked(path: Path) -> Iterator[None]:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
-
-
 def ensure_expert(cfg: DictConfig, modality: str) -> tuple[Path, str]:
     """The best checkpoint and MLflow run id of ``modality``'s expert, training it first if there is none."""
     from ablate.train import run
 
     ecfg = expert_config(cfg, modality)
     chash = config_hash(ecfg)
-    with _locked(Path("checkpoints") / EXPERTS_TABLE / f"{chash}.lock"):
+    with file_lock(Path("checkpoints") / EXPERTS_TABLE / f"{chash}.lock"):
         outcome = run(ecfg, kind=KIND_EXPERT, row=f"expert {modality}")
         best = outcome.ckpt_dir / "best.ckpt"
         if not best.exists():  # tracked as FINISHED but the checkpoint is gone: train it again

@@ -2,11 +2,13 @@
 
 The store defaults to ``sqlite:///mlflow.db`` in the working directory, so ``mlflow ui`` in the project root finds
 it; ``MLFLOW_TRACKING_URI`` in the environment wins over the config. Several processes (``hydra/launcher=joblib``)
-write one SQLite file: every write goes through :func:`retry`, which waits out "database is locked", and experiment
-creation tolerates a concurrent creator.
+write one SQLite file: the first use of the store (where MLflow creates and migrates its schema, which two processes
+cannot do at once) is serialised by a file lock beside it, every write goes through :func:`retry`, which waits out
+"database is locked", and experiment creation tolerates a concurrent creator.
 """
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import logging
@@ -14,8 +16,9 @@ import os
 import random
 import subprocess
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Iterator, TypeVar
 
 from lightning.pytorch.loggers.logger import Logger
 from lightning.pytorch.utilities import rank_zero_only
@@ -34,6 +37,19 @@ UNHASHED = ("force", "logger", "hydra", "table", "trainer.enable_progress_bar", 
             "experts.cache_features", "experts.cache_max_gb")
 #: Tags every job run carries; the report reads them.
 KIND_JOB, KIND_SWEEP = "job", "sweep"
+
+
+@contextmanager
+def file_lock(path: Path) -> Iterator[None]:
+    """An exclusive lock on ``path`` (created with its folder) across processes, held for the ``with`` block."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def retry(fn: Callable[..., T], *args: Any, attempts: int = 12, **kwargs: Any) -> T:
@@ -101,7 +117,13 @@ class Tracker:
     def __init__(self, uri: str, artifact_root: str = "mlartifacts") -> None:
         self.uri = uri
         self.artifact_root = Path(artifact_root).resolve()
-        self.client = MlflowClient(tracking_uri=uri)
+        if uri.startswith("sqlite:///"):  # MLflow creates the schema on first use: one process at a time
+            db = Path(uri[len("sqlite:///"):])
+            with file_lock(db.with_name(db.name + "-lock")):
+                self.client = MlflowClient(tracking_uri=uri)
+                retry(self.client.search_experiments, max_results=1)
+        else:
+            self.client = MlflowClient(tracking_uri=uri)
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> "Tracker":

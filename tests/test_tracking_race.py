@@ -1,0 +1,26 @@
+"""A fresh SQLite store survives parallel first use: MLflow creates its schema on first use, which two processes
+cannot do at once, so Tracker serialises it with a file lock beside the database."""
+import multiprocessing as mp
+
+
+def _job(args):
+    uri, k = args
+    from ablate.tracking import Tracker, retry
+
+    tracker = Tracker(uri)
+    run = retry(tracker.client.create_run, tracker.experiment_id("race"), tags={"k": str(k)})
+    retry(tracker.client.set_terminated, run.info.run_id, "FINISHED")
+    return run.info.run_id
+
+
+def test_four_processes_on_a_fresh_sqlite_store_lose_no_run(tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    with mp.get_context("spawn").Pool(4) as pool:  # without the lock: "duplicate column name: step" and kin
+        ids = pool.map(_job, [(uri, k) for k in range(4)], chunksize=1)
+    from ablate.tracking import Tracker
+
+    tracker = Tracker(uri)
+    runs = tracker.client.search_runs([tracker.experiment_id("race")])
+    assert sorted(r.info.run_id for r in runs) == sorted(ids)
+    assert {r.info.status for r in runs} == {"FINISHED"} and {r.data.tags["k"] for r in runs} == {"0", "1", "2", "3"}
+    assert (tmp_path / "mlflow.db-lock").exists()
