@@ -24,6 +24,12 @@ LIDAR_DERIVED = {"sparse_depth", "dense_depth", "ddm_jet", "dhi", "bev"}
 NO_MASKS = "no instance masks: no instance_2/ folder, nor velodyne/ and label_2/ to derive them from"
 
 
+def spread(frames: list[str], names: list[str], seed: int, *salt: int) -> dict[str, str]:
+    """Each frame's condition: ``names`` in turn over a seeded permutation of the frames (equal shares)."""
+    order = np.random.default_rng([seed, len(frames), *salt]).permutation(len(frames))
+    return {f: names[i % len(names)] for f, i in zip(frames, np.argsort(order))}
+
+
 def _key(obj) -> str:
     return hashlib.sha1(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:10]
 
@@ -49,15 +55,12 @@ class KittiDataset(Dataset):
         self.cache_hits = self.cache_misses = 0
         self.image_size = tuple(image_size) if image_size else None  # bottom-centre crop (KITTI sizes vary)
         self._check_available()
-        order = np.random.default_rng([seed, len(self.frames)]).permutation(len(self.frames))
-        self.condition = {f: conditions[i % len(conditions)] for f, i in zip(self.frames, np.argsort(order))}
+        self.condition = spread(self.frames, conditions, seed)
         # Optional LiDAR weather (ablate.data.lidar_weather), spread over the frames by its own permutation.
         for w in lidar_weather or ():
             if w not in LIDAR_WEATHER:
                 raise KeyError(f"unknown LiDAR weather {w!r}; valid: {', '.join(LIDAR_WEATHER)}")
-        order = np.random.default_rng([seed, len(self.frames), 1]).permutation(len(self.frames))
-        self.lidar_condition = {f: lidar_weather[i % len(lidar_weather)] for f, i in
-                                zip(self.frames, np.argsort(order))} if lidar_weather else {}
+        self.lidar_condition = spread(self.frames, lidar_weather, seed, 1) if lidar_weather else {}
 
     def _check_available(self) -> None:
         d = self.split_dir

@@ -84,3 +84,12 @@ def test_real_kitti_object(kitti_root, tmp_path):
         KittiDataModule(root=str(kitti_root / "object"), data_dir=str(tmp_path), lidar_weather=["snow"]).setup()
     with pytest.raises(KeyError, match="valid: rgb"):
         KittiDataModule(modalities=["lidar"])
+
+
+def test_unknown_generator_version_is_one_clear_error(tmp_path):
+    from ablate.data import DataError
+    from ablate.data.datamodule import ensure_synth
+
+    with pytest.raises(DataError, match=r"data.synth.version=1: this ablate generates version 2"):
+        ensure_synth(tmp_path, {"frames": 2, "version": 1})
+    assert not any(tmp_path.iterdir())  # nothing generated
