@@ -21,6 +21,8 @@ import pandas as pd  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from scipy.stats import kendalltau  # noqa: E402
 
+from ablate.significance import BOOTSTRAP_FROM, COLLAPSE_RATIO, RESAMPLES, difference, disagreeing_seeds, \
+    mean_ci  # noqa: E402
 from ablate.tracking import KIND_JOB, KIND_SWEEP, Tracker, retry  # noqa: E402
 
 CONF = Path(__file__).resolve().parent.parent / "conf"
@@ -39,7 +41,7 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     runs = tracker.runs(exp.experiment_id, f"attributes.status = 'FINISHED' and tags.kind = '{KIND_JOB}'")
     records = [{"row": r.data.tags.get("row", "?"), "seed": r.data.tags.get("seed", "?"),
                 "scale": r.data.tags.get("scale", "?"), "config_hash": r.data.tags.get("config_hash", r.info.run_id),
-                "start": r.info.start_time, **r.data.metrics} for r in runs]
+                "git_commit": r.data.tags.get("git_commit", "unknown"), "start": r.info.start_time, **r.data.metrics} for r in runs]
     if not records:
         return pd.DataFrame()
     df = pd.DataFrame.from_records(records).sort_values(["start", "config_hash"], kind="stable")
@@ -48,7 +50,8 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
 
 
 def summarise(runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
-    """Per table row (in the paper's order): mean, std and n of each metric over seeds, and the paper's value."""
+    """Per table row (in the paper's order): mean, std, n and 95 % CI (``ablate.significance.mean_ci``) of each
+    metric over seeds, and the paper's value."""
     rows = list(table.rows) or [{"row": r, "name": r, "paper": {}} for r in sorted(runs["row"].unique())]
     out = []
     for spec in rows:
@@ -60,6 +63,8 @@ def summarise(runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
             values = sel[key].dropna() if key in sel else pd.Series(dtype=float)
             rec[f"{key}_mean"] = values.mean() if len(values) else np.nan
             rec[f"{key}_std"] = values.std(ddof=1) if len(values) > 1 else np.nan
+            ci = mean_ci(values)
+            rec[f"{key}_lo"], rec[f"{key}_hi"] = ci.lo, ci.hi
             rec[f"{key}_paper"] = (spec.get("paper") or {}).get(key, np.nan)
         out.append(rec)
     return pd.DataFrame.from_records(out)
@@ -87,8 +92,92 @@ def kendall(summary: pd.DataFrame, key: str) -> tuple[float, int]:
     return float(kendalltau(both.iloc[:, 0], both.iloc[:, 1]).statistic), len(both)
 
 
+def reference(summary: pd.DataFrame, table: DictConfig) -> str | None:
+    """The row the others are compared with: ``table.reference`` (a row, or a list of rows of which the best on
+    the primary metric is taken, e.g. SMoE Table 1's better single-modal expert); the first row by default."""
+    if not len(summary):
+        return None
+    ref = table.get("reference")
+    candidates = [ref] if isinstance(ref, str) else list(ref or [summary["row"].iloc[0]])
+    sel = summary[summary["row"].isin(candidates)]
+    if sel.empty:
+        return None
+    means = sel[f"{table.primary}_mean"]
+    best = _best(means, table.primary)
+    return str(sel["row"][means == best].iloc[0]) if not np.isnan(best) else str(sel["row"].iloc[0])
+
+
+def _per_seed(runs: pd.DataFrame, row: str, key: str) -> pd.Series:
+    sel = runs[runs["row"] == row] if key in runs else runs.iloc[0:0]
+    return (sel.set_index("seed")[key] if len(sel) else pd.Series(dtype=float)).dropna()
+
+
+def _signed(x: float) -> str:
+    return f"{x:+.2f}".replace("-", "−")
+
+
+def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> tuple[dict, list[str]]:
+    """The primary metric's CI column and difference-from-reference column, and the footer lines that explain
+    them: the test used, whether the top row is ahead of the second beyond seed noise, and disagreeing seeds."""
+    key, label = table.primary, table.metrics.get(table.primary, table.primary)
+    ref = reference(summary, table)
+    if ref is None:
+        return {}, []
+    ref_name = str(summary.loc[summary["row"] == ref, "name"].iloc[0])
+    ref_values = _per_seed(runs, ref, key)
+    cis, deltas, tests = [], [], set()
+    for row, lo, hi in zip(summary["row"], summary[f"{key}_lo"], summary[f"{key}_hi"]):
+        cis.append("—" if np.isnan(lo) else f"[{lo:.2f}, {hi:.2f}]")
+        if row == ref:
+            deltas.append("reference")
+            continue
+        d = difference(_per_seed(runs, row, key), ref_values)
+        if np.isnan(d.ci.lo):
+            deltas.append("—" if np.isnan(d.delta) else _signed(d.delta))
+            continue
+        tests.add(d.test)
+        deltas.append(f"{_signed(d.delta)} [{_signed(d.ci.lo)}, {_signed(d.ci.hi)}]" + (" *" if d.significant else ""))
+    columns = {f"{label} 95% CI": cis, f"Δ {label} vs {ref_name} [95% CI]": deltas}
+    lines = [f"95% CI: of the mean over seeds, Student's t for n < {BOOTSTRAP_FROM}, a percentile bootstrap over "
+             f"seeds ({RESAMPLES} resamples) from n = {BOOTSTRAP_FROM}. Δ: difference from {ref_name} on {label} "
+             f"({', '.join(sorted(tests)) or 'no test: too few seeds'}; paired over the seeds two rows share); "
+             "*: its 95% CI excludes 0."]
+    ranked = summary.dropna(subset=[f"{key}_mean"]).sort_values(f"{key}_mean", ascending=key in LOWER_IS_BETTER,
+                                                                kind="stable")
+    if len(ranked) >= 2:
+        (top, top_name), (second, second_name) = [tuple(r) for r in ranked[["row", "name"]].iloc[:2].to_numpy()]
+        d = difference(_per_seed(runs, top, key), _per_seed(runs, second, key))
+        verdict = ("n/a (too few seeds)" if np.isnan(d.ci.lo) else
+                   f"{_signed(d.delta)} [{_signed(d.ci.lo)}, {_signed(d.ci.hi)}], {d.test}, p = {d.p:.3f}: "
+                   + ("ahead beyond seed noise" if d.significant else "not separable from seed noise"))
+        lines.append(f"Top row {top_name} against the second, {second_name}, on {label}: {verdict}.")
+    for row, name in zip(summary["row"], summary["name"]):
+        for k, lab in table.metrics.items():
+            if k in LOWER_IS_BETTER:
+                continue
+            for seed, v, med in disagreeing_seeds(_per_seed(runs, row, k)):
+                lines.append(f"**Seeds disagree**: {name}, {lab}, seed {seed} gives {v:.2f} against a median of "
+                             f"{med:.2f} over its other seeds (below {COLLAPSE_RATIO:.0%} of it); the row's mean "
+                             "hides a failed seed.")
+    return columns, lines
+
+
+def provenance(runs: pd.DataFrame) -> list[str]:
+    """The commits the table's runs were made at (the ``git_commit`` tag), and a warning when they differ."""
+    if not len(runs) or "git_commit" not in runs:
+        return []
+    counts = runs["git_commit"].fillna("unknown").value_counts().sort_index()
+    named = ", ".join(f"{c[:12]}{'-dirty' if c.endswith('-dirty') else ''} ({n} runs)" for c, n in counts.items())
+    lines = [f"Runs made at commit {named}."]
+    if len(counts) > 1:
+        lines.append(f"**Mixed commits**: the rows come from {len(counts)} commits; check that what changed "
+                     "between them does not touch the rows' configs.")
+    return lines
+
+
 def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> str:
-    """The markdown table: ours (mean ± std over seeds) beside the paper's number, best value of a column bold."""
+    """The markdown table: ours (mean ± std over seeds) beside the paper's number, best value of a column bold;
+    the primary metric's 95% CI and its difference from the reference row; provenance under it."""
     columns: dict[str, list[str]] = {"Row": list(summary["name"]) if len(summary) else []}
     for key, label in table.metrics.items():
         best = _best(summary[f"{key}_mean"], key) if len(summary) else np.nan
@@ -98,6 +187,8 @@ def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) ->
         if paper.notna().any():
             pbest = _best(paper, key)
             columns[f"{label} (paper)"] = [_fmt(p, np.nan, p == pbest) for p in paper]
+    sig_columns, sig_lines = significance(summary, runs, table)
+    columns.update(sig_columns)
     columns["n"] = [str(n) for n in summary["n"]] if len(summary) else []
     lines = [f"# {table.title}", ""]
     if len(summary):
@@ -108,24 +199,28 @@ def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) ->
     label = table.metrics.get(table.primary, table.primary)
     lines += ["", f"Kendall τ between our ranking and the paper's on {label}: "
               + ("n/a (fewer than 2 rows with both)" if np.isnan(tau) else f"{tau:.2f} over {n} rows") + "."]
+    lines += sig_lines
     done = set(summary["row"]) if len(summary) else set()
     missing = [spec.get("name", spec["row"]) for spec in table.rows if spec["row"] not in done]
     if missing:
         lines.append(f"Rows without a finished run: {', '.join(missing)}.")
     scales = sorted(runs["scale"].unique()) if len(runs) else []
     lines += ["", f"mean ± std over seeds (n runs per row); scale: {', '.join(scales) or '—'}. "
-              "Bold: best in its column. Regenerated by `python -m ablate.report`; do not edit by hand.", ""]
+              "Bold: best in its column. " + " ".join(provenance(runs))
+              + " Regenerated by `python -m ablate.report`; do not edit by hand.", ""]
     return "\n".join(lines)
 
 
 def plot(summary: pd.DataFrame, table: DictConfig):
-    """A bar chart of the primary metric per row: ours (mean, std as error bar) beside the paper's."""
+    """A bar chart of the primary metric per row: ours (mean, its 95% CI as error bar) beside the paper's."""
     key = table.primary
     label = table.metrics.get(key, key)
     fig, ax = plt.subplots(figsize=(max(4.0, 1.3 * len(summary) + 2), 3.2))
     x = np.arange(len(summary))
     if len(summary):
-        ax.bar(x - 0.2, summary[f"{key}_mean"], 0.4, yerr=summary[f"{key}_std"].fillna(0), capsize=3, label="ours")
+        mean = summary[f"{key}_mean"]
+        err = np.stack([(mean - summary[f"{key}_lo"]).fillna(0), (summary[f"{key}_hi"] - mean).fillna(0)])
+        ax.bar(x - 0.2, mean, 0.4, yerr=err, capsize=3, label="ours (95% CI)")
         ax.bar(x + 0.2, summary[f"{key}_paper"], 0.4, label="paper", alpha=0.7)
         ax.set_xticks(x, summary["name"], rotation=20, ha="right")
     ax.set_ylabel(label)
