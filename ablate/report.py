@@ -26,7 +26,10 @@ from ablate.significance import BOOTSTRAP_FROM, COLLAPSE_RATIO, RESAMPLES, diffe
 from ablate.tracking import KIND_JOB, KIND_SWEEP, Tracker, retry  # noqa: E402
 
 CONF = Path(__file__).resolve().parent.parent / "conf"
-LOWER_IS_BETTER = {"comp_time_ms", "params_m"}
+#: Cost columns every table gets after its metrics (from ``python -m ablate.latency``, which a multirun runs at its
+#: end); a table may list one itself to give it its paper's label and numbers (ChiNet's "Comp Time (ms)").
+COSTS = {"latency_ms": "Latency (ms)", "params_m": "Params (M)", "macs_g": "MACs (G)"}
+LOWER_IS_BETTER = {"comp_time_ms", *COSTS}
 
 
 def collect(tracker: Tracker, table: str) -> pd.DataFrame:
@@ -41,7 +44,7 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     runs = tracker.runs(exp.experiment_id, f"attributes.status = 'FINISHED' and tags.kind = '{KIND_JOB}'")
     records = [{"row": r.data.tags.get("row", "?"), "seed": r.data.tags.get("seed", "?"),
                 "scale": r.data.tags.get("scale", "?"), "config_hash": r.data.tags.get("config_hash", r.info.run_id),
-                "git_commit": r.data.tags.get("git_commit", "unknown"), "start": r.info.start_time, **r.data.metrics} for r in runs]
+                "git_commit": r.data.tags.get("git_commit", "unknown"), "run_id": r.info.run_id, "start": r.info.start_time, **r.data.metrics} for r in runs]
     if not records:
         return pd.DataFrame()
     df = pd.DataFrame.from_records(records).sort_values(["start", "config_hash"], kind="stable")
@@ -162,6 +165,45 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
     return columns, lines
 
 
+def costs(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> tuple[dict, list[str]]:
+    """Latency (median [interquartile range] over the interleaved rounds, and its ratio to the reference row),
+    parameters and MACs per row, with a footer saying how latency was measured and warning of a loaded machine."""
+    if not len(summary):
+        return {}, []
+    columns: dict[str, list[str]] = {}
+
+    def per_row(key: str) -> list[float]:
+        return [_per_seed(runs, row, key).mean() if key in runs else np.nan for row in summary["row"]]
+
+    med, q1, q3 = per_row("latency_ms"), per_row("latency_q1_ms"), per_row("latency_q3_ms")
+    label = table.metrics.get("latency_ms", COSTS["latency_ms"])
+    best = np.nanmin(med) if not np.all(np.isnan(med)) else np.nan
+    columns[f"{label} (ours)"] = ["—" if np.isnan(m) else (f"**{m:.2f}**" if m == best else f"{m:.2f}")
+                                  + f" [{a:.2f}, {b:.2f}]" for m, a, b in zip(med, q1, q3)]
+    paper = summary["latency_ms_paper"] if "latency_ms_paper" in summary else pd.Series(dtype=float)
+    if paper.notna().any():
+        columns[f"{label} (paper)"] = [_fmt(v, np.nan, v == _best(paper, "latency_ms")) for v in paper]
+    ref = reference(summary, table)
+    ref_med = med[list(summary["row"]).index(ref)] if ref is not None else np.nan
+    if not np.isnan(ref_med):
+        columns[f"{label} ratio"] = ["—" if np.isnan(m) else f"{m / ref_med:.2f}×" for m in med]
+    for key in ("params_m", "macs_g"):
+        values = per_row(key)
+        if not np.all(np.isnan(values)):
+            columns[table.metrics.get(key, COSTS[key])] = ["—" if np.isnan(v) else f"{v:.2f}" for v in values]
+    lines = []
+    if np.all(np.isnan(med)):
+        lines.append(f"{label}: not measured yet (`python -m ablate.latency experiment={table.name}`).")
+        return columns, lines
+    load, cores = runs.get("latency_load", pd.Series(dtype=float)).max(), runs["latency_cores"].max()
+    rounds = f"{label}: median [interquartile range] of one forward pass at batch 1, every row timed side by side " \
+             "in one process, interleaved (`python -m ablate.latency`); ratio to the reference row. " \
+             f"Load average up to {load:.1f} on {cores:.0f} cores."
+    lines.append(rounds + (f" **Loaded machine**: the load exceeded the {cores:.0f} available cores while timing; "
+                           "rerun `python -m ablate.latency` on a quiet machine." if load > cores else ""))
+    return columns, lines
+
+
 def provenance(runs: pd.DataFrame) -> list[str]:
     """The commits the table's runs were made at (the ``git_commit`` tag), and a warning when they differ."""
     if not len(runs) or "git_commit" not in runs:
@@ -180,6 +222,8 @@ def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) ->
     the primary metric's 95% CI and its difference from the reference row; provenance under it."""
     columns: dict[str, list[str]] = {"Row": list(summary["name"]) if len(summary) else []}
     for key, label in table.metrics.items():
+        if key in COSTS:
+            continue
         best = _best(summary[f"{key}_mean"], key) if len(summary) else np.nan
         columns[f"{label} (ours)"] = [_fmt(m, s, m == best) for m, s in
                                       zip(summary[f"{key}_mean"], summary[f"{key}_std"])] if len(summary) else []
@@ -189,6 +233,8 @@ def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) ->
             columns[f"{label} (paper)"] = [_fmt(p, np.nan, p == pbest) for p in paper]
     sig_columns, sig_lines = significance(summary, runs, table)
     columns.update(sig_columns)
+    cost_columns, cost_lines = costs(summary, runs, table)
+    columns.update(cost_columns)
     columns["n"] = [str(n) for n in summary["n"]] if len(summary) else []
     lines = [f"# {table.title}", ""]
     if len(summary):
@@ -199,7 +245,7 @@ def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) ->
     label = table.metrics.get(table.primary, table.primary)
     lines += ["", f"Kendall τ between our ranking and the paper's on {label}: "
               + ("n/a (fewer than 2 rows with both)" if np.isnan(tau) else f"{tau:.2f} over {n} rows") + "."]
-    lines += sig_lines
+    lines += sig_lines + cost_lines
     done = set(summary["row"]) if len(summary) else set()
     missing = [spec.get("name", spec["row"]) for spec in table.rows if spec["row"] not in done]
     if missing:
@@ -235,6 +281,7 @@ def table_spec(cfg: DictConfig) -> DictConfig:
     table = OmegaConf.to_container(cfg.table, resolve=True)
     table["metrics"] = table.get("metrics") or OmegaConf.to_container(cfg.get("metrics") or {}, resolve=True)
     table["primary"] = table.get("primary") or cfg.get("primary") or next(iter(table["metrics"]), None)
+    table["metrics"] = {**table["metrics"], **{k: v for k, v in COSTS.items() if k not in table["metrics"]}}
     return OmegaConf.create(table)
 
 
@@ -261,7 +308,10 @@ def compose(overrides: list[str]) -> DictConfig:
     """The root config of ``python -m ablate`` with ``overrides``, composed outside a Hydra app."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
 
+    if GlobalHydra.instance().is_initialized():  # inside the running app (a sweep's end): its own config source
+        return hydra_compose("config", overrides=overrides)
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         return hydra_compose("config", overrides=overrides)
 

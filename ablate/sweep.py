@@ -79,6 +79,13 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def fixed_overrides(config: DictConfig) -> list[str]:
+    """The sweep's command-line overrides that are not swept (``experiment=...``, ``scale=smoke``): with a row
+    and a seed added, they compose that job's config again."""
+    parsed = OverridesParser.create().parse_overrides(list(config.hydra.overrides.task))
+    return [o.input_line for o in parsed if not o.is_sweep_override()]
+
+
 class SweepCallback(Callback):
     """Creates the parent run before the jobs, and closes it, writes the table and reports failures after."""
 
@@ -104,6 +111,14 @@ class SweepCallback(Callback):
         tracker = Tracker.from_config(config)
         parent = (sdir / PARENT_FILE).read_text().strip() if (sdir / PARENT_FILE).exists() else None
         failures = sorted((sdir / FAILURES).glob("*.txt")) if (sdir / FAILURES).is_dir() else []
+        if config.get("comp_time", {}).get("after_sweep") and config.table.rows:
+            from ablate.latency import measure
+            from ablate.report import compose
+
+            try:
+                measure(config, tracker, compose, fixed_overrides(config), only_if_missing=True)
+            except Exception as err:  # the table is written all the same, its latency column empty
+                log.error("Could not time the rows side by side (python -m ablate.latency): %s", err)
         try:
             paths = write_table(config, tracker, parent_run=parent)
             log.info("Table written: %s", ", ".join(str(p) for p in paths))

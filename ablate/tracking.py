@@ -34,7 +34,8 @@ T = TypeVar("T")
 #: the paper's numbers and row names; the experiment a run lands in already separates tables; the float32 feature
 #: cache of frozen experts, ablate.experts.FeatureCache, changes the speed only).
 UNHASHED = ("force", "logger", "hydra", "table", "trainer.enable_progress_bar", "data.num_workers",
-            "experts.cache_features", "experts.cache_max_gb")
+            "experts.cache_features", "experts.cache_max_gb", "comp_time.threads", "comp_time.device",
+            "comp_time.after_sweep")
 #: Tags every job run carries; the report reads them.
 KIND_JOB, KIND_SWEEP = "job", "sweep"
 

@@ -25,7 +25,6 @@ from omegaconf.errors import OmegaConfBaseException
 from ablate.experts import attach as attach_experts
 from ablate.experts import feature_cache
 from ablate.experts import prepare as prepare_experts
-from ablate.metrics.timing import forward_time_ms
 from ablate.sweep import parent_run_id, record_failure, swept_keys, sweep_dir
 from ablate.tracking import KIND_JOB, RunLogger, Tracker, config_hash, flatten, git_commit
 
@@ -146,7 +145,6 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     results = trainer.test(task, datamodule=datamodule, ckpt_path=best, verbose=False)[0]
     metrics = {k.split("/", 1)[-1]: float(v) for k, v in results.items() if k.startswith("test/")}
     sample = next(iter(datamodule.test_dataloader()))
-    metrics["comp_time_ms"] = forward_time_ms(task.model, sample, **cfg.comp_time)
     metrics["params_m"] = sum(p.numel() for p in task.model.parameters()) / 1e6
     tracker.log_metrics(run_id, metrics, step=trainer.global_step)
     tracker.set_tags(run_id, {"device": str(next(task.model.parameters()).device),

@@ -43,7 +43,10 @@ def test_a_table_sweep_leaves_one_parent_with_a_finished_child_per_row(table2):
     job = jobs[0]
     for tag in ("table", "row", "seed", "config_hash", "git_commit", "sweep_id"):
         assert tag in job.data.tags
-    assert "det_rate" in job.data.metrics and "comp_time_ms" in job.data.metrics
+    assert "det_rate" in job.data.metrics and "comp_time_ms" not in job.data.metrics  # not timed while training
+    for metric in ("latency_ms", "latency_q1_ms", "latency_q3_ms", "params_m", "macs_g"):  # timed at the end
+        assert job.data.metrics[metric] > 0, metric
+    assert job.data.tags["latency_threads"] == "1" and job.data.tags["latency_device"] == "cpu"
     assert job.data.params["model._target_"] == "ablate.nn.chinet.build"
     artifacts = {a.path for a in client.list_artifacts(job.info.run_id)}
     assert {"config.yaml", "predictions.png", "checkpoints"} <= artifacts
@@ -55,6 +58,8 @@ def test_the_table_has_the_rows_in_paper_order_beside_the_paper(table2):
     rows = [line for line in text.splitlines() if line.startswith("| ")][1:]
     assert [r.split("|")[1].strip() for r in rows] == ["ChiNet", "U-Net", "FuseNet"]
     assert "Det. Rate % (paper)" in text and "97.35" in text and "Kendall τ" in text
+    assert "Comp Time (ms) (paper)" in text and "Comp Time (ms) ratio" in text and "MACs (G)" in text
+    assert "side by side" in text and "Δ Det. Rate % vs U-Net [95% CI]" in text
     assert (cwd / "results" / "chinet_table2.png").stat().st_size > 0
 
 
