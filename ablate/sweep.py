@@ -1,39 +1,63 @@
 """A Hydra callback that turns a multirun into one MLflow parent run, and regenerates its table at the end.
 
-Jobs find the parent through a file in the sweep directory (``.parent_run``), which works for the basic launcher
-and for ``hydra/launcher=joblib`` alike. A job that fails leaves a note in ``<sweep dir>/failures/``; the callback
-lists those notes at the end, marks the parent FAILED and exits with status 1 after the other jobs have run.
+Jobs find the parent through a file in the sweep directory (``.parent_run``), and the store it lives in through
+another (``.tracking.json``), which works for every launcher whose jobs see the sweep directory: the basic one,
+joblib, submitit (local or SLURM, on a shared filesystem) and Ray (the sweep directory is absolute, under the launch
+directory). A job so writes to its parent's store even where its own environment names no store (a Ray worker does
+not inherit the driver's ``MLFLOW_TRACKING_URI``). A job that fails leaves a note in ``<sweep dir>/failures/``; the
+callback lists those notes at the end, marks the parent FAILED and exits with status 1 after the other jobs have run.
 """
 from __future__ import annotations
 
+import importlib.util
+import json
 import logging
 import os
 import socket
+import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from ablate.tracking import KIND_SWEEP, Tracker, git_commit
 
 log = logging.getLogger(__name__)
 PARENT_FILE = ".parent_run"
 SWEPT_FILE = ".swept_keys"
+STORE_FILE = ".tracking.json"
 FAILURES = "failures"
+
+# conf/hydra/launcher/ray.yaml and submitit_local.yaml replace the plugins' configs of the same names, holding
+# exactly their keys. Hydra 1.3 still validates a file against a ConfigStore entry of the same name and warns that
+# this "automatic schema matching" is deprecated
+# (https://hydra.cc/docs/1.2/upgrades/1.0_to_1.1/automatic_schema_matching); the files compose the same with or
+# without it, so the warning tells a user nothing. This module is imported with the task function, before Hydra
+# composes (in the launching process and in every submitit job).
+warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/(ray|submitit_local)' is validated against ConfigStore")
 
 
 def sweep_dir() -> Path | None:
-    """The sweep directory of the running multirun job, or None for a single run."""
+    """The sweep directory of the running multirun job (a relative one resolved against the launch directory,
+    ``hydra.runtime.cwd``), or None for a single run."""
     if not HydraConfig.initialized():
         return None
     hc = HydraConfig.get()
     if hc.mode is None or hc.mode.name != "MULTIRUN":
         return None
-    return Path(hc.sweep.dir)
+    return Path(hc.runtime.cwd) / hc.sweep.dir
+
+
+def sweep_store() -> dict[str, str | None] | None:
+    """The tracking store the running multirun recorded (``uri``, ``artifact_location``), or None."""
+    sdir = sweep_dir()
+    path = sdir / STORE_FILE if sdir else None
+    return json.loads(path.read_text()) if path and path.exists() else None
 
 
 def parent_run_id() -> str | None:
@@ -79,6 +103,50 @@ def _alive(pid: int) -> bool:
     return True
 
 
+#: The extra of pyproject.toml that installs a launcher plugin, by the plugin's package.
+LAUNCHER_EXTRAS = {"hydra_plugins.hydra_ray_launcher": "ray", "hydra_plugins.hydra_submitit_launcher": "slurm"}
+
+
+def check_launcher(config: DictConfig) -> None:
+    """Fail with one line naming the launcher and its extra when its plugin is not installed (Hydra would otherwise
+    fail later, on the unresolvable ``_target_``)."""
+    target = str(OmegaConf.select(config, "hydra.launcher._target_", default="") or "")
+    package = ".".join(target.split(".")[:2])
+    if package.startswith("hydra_plugins.") and importlib.util.find_spec(package) is None:
+        choice = OmegaConf.select(config, "hydra.runtime.choices", default={}).get("hydra/launcher", target)
+        extra = LAUNCHER_EXTRAS.get(package)
+        hint = f"pip install -e '.[{extra}]'" if extra else f"install the package that provides {package}"
+        raise ValueError(f"hydra/launcher={choice} needs {package}, which is not installed: {hint}")
+
+
+def ray_driver_auth(config: DictConfig) -> bool:
+    """Let the driver of a ``hydra/launcher=ray`` sweep authenticate to a running Ray cluster; True if it now does.
+
+    Workaround. Ray (>= 2.52) checks a token on every connection once the cluster has token authentication on,
+    and ``ray start --head`` turns it on by itself when a token is available (``RAY_AUTH_TOKEN``,
+    ``RAY_AUTH_TOKEN_PATH`` or ``~/.ray/auth_token``) and ``RAY_AUTH_MODE`` is unset; ``ray.init(address=...)``,
+    which hydra-ray-launcher calls in the driver, does not, so the driver connects without the token and is
+    refused. Before the launcher starts, this applies to the driver the very check ``ray start`` applies
+    (``maybe_enable_token_auth_if_token_available``, ray/scripts/scripts.py), which sets ``RAY_AUTH_MODE=token``
+    when a token is there; an explicit ``RAY_AUTH_MODE`` is respected. Docs:
+    https://docs.ray.io/en/latest/ray-security/token-auth.html
+    """
+    target = str(OmegaConf.select(config, "hydra.launcher._target_", default="") or "")
+    if not target.startswith("hydra_plugins.hydra_ray_launcher") or \
+            not OmegaConf.select(config, "hydra.launcher.ray.init.address", default=None):
+        return False
+    try:
+        from ray._private.authentication.authentication_token_setup import (
+            maybe_enable_token_auth_if_token_available,
+        )
+    except ImportError:  # a Ray without token authentication (< 2.52)
+        return False
+    enabled = maybe_enable_token_auth_if_token_available(warn_if_disabled=False)
+    if enabled:
+        log.info("Ray: connecting with the cluster's token (RAY_AUTH_MODE=token)")
+    return enabled
+
+
 def fixed_overrides(config: DictConfig) -> list[str]:
     """The sweep's command-line overrides that are not swept (``experiment=...``, ``scale=smoke``): with a row
     and a seed added, they compose that job's config again."""
@@ -90,9 +158,21 @@ class SweepCallback(Callback):
     """Creates the parent run before the jobs, and closes it, writes the table and reports failures after."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        sdir = Path(str(config.hydra.sweep.dir))
+        """Check the launcher and the store, then open the parent run. A sweep that cannot be set up stops here
+        with one line: Hydra would only warn about an exception from a callback and launch the jobs anyway."""
+        try:
+            self._start(config)
+        except Exception as err:
+            print(f"error: {err}", file=sys.stderr)
+            raise SystemExit(1) from None
+
+    def _start(self, config: DictConfig) -> None:
+        sdir = Path(str(config.hydra.runtime.cwd)) / str(config.hydra.sweep.dir)
+        check_launcher(config)
         sdir.mkdir(parents=True, exist_ok=True)
+        ray_driver_auth(config)
         tracker = Tracker.from_config(config)
+        (sdir / STORE_FILE).write_text(json.dumps({"uri": tracker.uri, "artifact_location": tracker.artifact_location}))
         exp = tracker.experiment_id(config.table.name)
         close_dead_sweeps(tracker, exp)
         overrides = " ".join(config.hydra.overrides.task)
@@ -107,7 +187,7 @@ class SweepCallback(Callback):
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         from ablate.report import write_table
 
-        sdir = Path(str(config.hydra.sweep.dir))
+        sdir = Path(str(config.hydra.runtime.cwd)) / str(config.hydra.sweep.dir)
         tracker = Tracker.from_config(config)
         parent = (sdir / PARENT_FILE).read_text().strip() if (sdir / PARENT_FILE).exists() else None
         failures = sorted((sdir / FAILURES).glob("*.txt")) if (sdir / FAILURES).is_dir() else []

@@ -1,10 +1,14 @@
 """MLflow tracking: one experiment per table, one parent run per sweep, one child run per job.
 
-The store defaults to ``sqlite:///mlflow.db`` in the working directory, so ``mlflow ui`` in the project root finds
-it; ``MLFLOW_TRACKING_URI`` in the environment wins over the config. Several processes (``hydra/launcher=joblib``)
-write one SQLite file: the first use of the store (where MLflow creates and migrates its schema, which two processes
-cannot do at once) is serialised by a file lock beside it, every write goes through :func:`retry`, which waits out
-"database is locked", and experiment creation tolerates a concurrent creator.
+The store defaults to ``sqlite:///mlflow.db`` in the launch directory (where ``python -m ablate`` was started), so
+``mlflow ui`` there finds it; ``MLFLOW_TRACKING_URI`` in the environment wins over the config. Relative paths in the
+URI and the artifact root resolve against the launch directory, never against the directory a job happens to run
+in (a Ray job runs where its cluster was started). Two set-ups are supported: a SQLite file (one machine) and an
+``mlflow server`` on PostgreSQL (many machines; ``scripts/tracking_server.py`` starts one), whose artifacts go
+through the server. Several processes (``hydra/launcher=joblib``, ``submitit_local``) write one SQLite file: the
+first use of the store (where MLflow creates and migrates its schema, which two processes cannot do at once) is
+serialised by a file lock beside it, every write goes through :func:`retry`, which waits out "database is locked",
+and experiment creation tolerates a concurrent creator.
 """
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator, TypeVar
+from urllib.parse import urlparse
 
 from lightning.pytorch.loggers.logger import Logger
 from lightning.pytorch.utilities import rank_zero_only
@@ -38,6 +43,9 @@ UNHASHED = ("force", "logger", "hydra", "table", "trainer.enable_progress_bar", 
             "comp_time.after_sweep")
 #: Tags every job run carries; the report reads them.
 KIND_JOB, KIND_SWEEP = "job", "sweep"
+#: Every experiment's kind, so that ``mlflow ui`` opens it on its runs, not on the GenAI view of traces that
+#: MLflow 3 shows an experiment without this tag.
+EXPERIMENT_KIND = {"mlflow.experimentKind": "custom_model_development"}
 
 
 @contextmanager
@@ -66,14 +74,75 @@ def retry(fn: Callable[..., T], *args: Any, attempts: int = 12, **kwargs: Any) -
     raise AssertionError("unreachable")
 
 
+def launch_dir() -> Path:
+    """The directory the command was launched from: Hydra's original working directory
+    (``hydra.utils.get_original_cwd()``, the config's ``hydra.runtime.cwd``), else the current one.
+
+    Hydra sets ``hydra.runtime.cwd`` where it composes a job's config (``ConfigLoaderImpl.load_configuration``):
+    hydra-ray-launcher composes every job in the driver before shipping it, so a Ray job on a cluster started
+    elsewhere still sees the driver's directory; submitit composes in the job, which starts in the submitting
+    directory (SLURM's default working directory is the one ``sbatch`` ran in).
+    """
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.utils import get_original_cwd
+
+    return Path(get_original_cwd() if HydraConfig.initialized() else os.getcwd())
+
+
+def resolve_path(path: str | Path) -> Path:
+    """``path`` with ``~`` expanded, made absolute against :func:`launch_dir` if it is relative."""
+    path = Path(os.path.expanduser(str(path)))
+    return path if path.is_absolute() else launch_dir() / path
+
+
+def resolve_uri(uri: str) -> str:
+    """A tracking URI whose local path (``sqlite:///REL``, or a plain folder: MLflow's file store) is made absolute
+    against :func:`launch_dir`; server and database URIs are returned as they are."""
+    if uri.startswith("sqlite:///"):
+        rest = uri[len("sqlite:///"):]
+        return uri if rest.startswith("/") or rest.startswith(":memory:") else "sqlite:///" + str(resolve_path(rest))
+    if not urlparse(uri).scheme:
+        return str(resolve_path(uri))
+    return uri
+
+
+def is_server(uri: str) -> bool:
+    """Whether ``uri`` names a tracking server (``http://``, ``https://``) rather than a store MLflow opens itself."""
+    return urlparse(uri).scheme in ("http", "https")
+
+
 def tracking_uri(cfg_logger: DictConfig | dict | None = None) -> str:
-    """The tracking URI: ``MLFLOW_TRACKING_URI`` if set, else the config's, else ``sqlite:///mlflow.db``."""
+    """The tracking URI: ``MLFLOW_TRACKING_URI`` if set, else the config's, else ``sqlite:///mlflow.db``; relative
+    paths resolved against :func:`launch_dir`."""
     uri = os.environ.get("MLFLOW_TRACKING_URI")
-    if uri:
-        return uri
-    if cfg_logger is not None and cfg_logger.get("tracking_uri"):
-        return str(cfg_logger["tracking_uri"])
-    return "sqlite:///mlflow.db"
+    if not uri and cfg_logger is not None and cfg_logger.get("tracking_uri"):
+        uri = str(cfg_logger["tracking_uri"])
+    return resolve_uri(uri or "sqlite:///mlflow.db")
+
+
+def artifact_location(uri: str, root: str | None) -> str | None:
+    """Where new experiments keep their artifacts (``logger.artifact_root``), as a URI, or None for the server's.
+
+    With a tracking server (``http(s)://``) the default is None: the experiment is created without a location, so
+    ``mlflow server`` gives it ``mlflow-artifacts:/...`` and clients upload through the server, which stores the
+    files under its ``--artifacts-destination`` (``mlflow server --help``: "By default, data will be logged to the
+    mlflow-artifacts:/ uri proxy if the --serve-artifacts option is enabled", which it is by default; MLflow docs,
+    https://mlflow.org/docs/latest/ml/tracking/server). A remote URI given explicitly (``s3://...``) is kept. A
+    local path is an error there: every worker would write its own disk. With any other store the default is
+    ``mlartifacts`` in the launch directory, and a relative path resolves against it.
+    """
+    scheme = urlparse(str(root)).scheme if root is not None else ""
+    remote = len(scheme) > 1 and scheme != "file"  # a one-letter scheme is a Windows drive
+    if is_server(uri):
+        if root is None or remote:
+            return None if root is None else str(root)
+        raise ValueError(f"logger.artifact_root={root} is a local path, but the tracking store is the server {uri}: "
+                         "every worker would keep artifacts on its own disk. Leave it null (the server stores them) "
+                         "or give a URI every machine reaches (s3://..., mlflow-artifacts:/...)")
+    if remote:
+        return str(root)
+    local = urlparse(str(root)).path if scheme == "file" else (root or "mlartifacts")
+    return resolve_path(local).as_uri()
 
 
 def config_hash(cfg: DictConfig) -> str:
@@ -113,32 +182,56 @@ def git_commit() -> str:
 
 
 class Tracker:
-    """A thin, retrying wrapper over :class:`MlflowClient` for the run lifecycle of a table."""
+    """A thin, retrying wrapper over :class:`MlflowClient` for the run lifecycle of a table.
 
-    def __init__(self, uri: str, artifact_root: str = "mlartifacts") -> None:
+    ``uri`` is used as given (:func:`tracking_uri` resolves the configured one); ``artifact_root`` is turned into
+    :attr:`artifact_location` by :func:`artifact_location`. A Tracker pickles as its URI and artifact location, so
+    that Lightning's ``ddp_spawn`` can hand the run's logger to its processes, each opening its own client.
+    """
+
+    def __init__(self, uri: str, artifact_root: str | None = None) -> None:
         self.uri = uri
-        self.artifact_root = Path(artifact_root).resolve()
+        self.artifact_location = artifact_location(uri, artifact_root)
         if uri.startswith("sqlite:///"):  # MLflow creates the schema on first use: one process at a time
-            db = Path(uri[len("sqlite:///"):])
+            db = Path(uri[len("sqlite:///"):].split("?", 1)[0])
             with file_lock(db.with_name(db.name + "-lock")):
                 self.client = MlflowClient(tracking_uri=uri)
                 retry(self.client.search_experiments, max_results=1)
         else:
             self.client = MlflowClient(tracking_uri=uri)
 
+    def __getstate__(self) -> dict[str, Any]:
+        return {"uri": self.uri, "artifact_location": self.artifact_location}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(state["uri"], state["artifact_location"])
+
     @classmethod
     def from_config(cls, cfg: DictConfig) -> "Tracker":
+        """The store of ``cfg``; inside a multirun, the store its sweep recorded (where its parent run is), whatever
+        this process's environment says."""
+        from ablate.sweep import sweep_store
+
+        recorded = sweep_store()
+        if recorded is not None:
+            return cls(recorded["uri"], recorded["artifact_location"])
         lg = cfg.get("logger") or {}
-        return cls(tracking_uri(lg), lg.get("artifact_root", "mlartifacts"))
+        root = lg.get("artifact_root")
+        return cls(tracking_uri(lg), None if root is None else str(root))
 
     def experiment_id(self, name: str) -> str:
-        """The id of experiment ``name``, created if missing; safe when another process creates it too."""
+        """The id of experiment ``name``, created if missing (tagged :data:`EXPERIMENT_KIND`, with its artifacts
+        under :attr:`artifact_location`, or the server's when that is None); safe when another process creates it
+        too. An existing experiment without the tag gets it."""
         exp = retry(self.client.get_experiment_by_name, name)
         if exp is not None:
+            if any(exp.tags.get(k) != v for k, v in EXPERIMENT_KIND.items()):
+                for key, value in EXPERIMENT_KIND.items():
+                    retry(self.client.set_experiment_tag, exp.experiment_id, key, value)
             return exp.experiment_id
         try:
-            location = (self.artifact_root / name).as_uri()
-            return retry(self.client.create_experiment, name, artifact_location=location)
+            location = None if self.artifact_location is None else f"{self.artifact_location.rstrip('/')}/{name}"
+            return retry(self.client.create_experiment, name, artifact_location=location, tags=EXPERIMENT_KIND)
         except MlflowException:
             exp = retry(self.client.get_experiment_by_name, name)
             if exp is None:

@@ -3,16 +3,23 @@
 A job whose config hash already has a FINISHED run is skipped unless ``force=true``. A job that crashed or was
 killed is recorded FAILED or KILLED and runs again next time, resuming from its last checkpoint
 (``checkpoints/<table>/<config hash>/last.ckpt``) when one exists.
+
+A job runs in the launch directory, whichever process runs it, so that its relative paths (``checkpoints/``,
+``data/``, the SQLite store, the artifact root) are the ones the sweep was launched with.
 """
 from __future__ import annotations
 
 import logging
+import os
 import shutil
+import socket
 import sys
 import traceback
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import lightning as L
 import torch
@@ -26,7 +33,7 @@ from ablate.experts import attach as attach_experts
 from ablate.experts import feature_cache
 from ablate.experts import prepare as prepare_experts
 from ablate.sweep import parent_run_id, record_failure, swept_keys, sweep_dir
-from ablate.tracking import KIND_JOB, RunLogger, Tracker, config_hash, flatten, git_commit
+from ablate.tracking import KIND_JOB, RunLogger, Tracker, config_hash, flatten, git_commit, launch_dir
 
 log = logging.getLogger(__name__)
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
@@ -158,11 +165,36 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     return metrics
 
 
-def main(cfg: DictConfig) -> str:
-    """Hydra task function. In a multirun a failed job is noted for the end-of-sweep summary and the other jobs
-    go on; a failed single run exits with status 1 and one clear line."""
+@contextmanager
+def in_launch_dir() -> Iterator[Path]:
+    """Run the block in the launch directory (:func:`ablate.tracking.launch_dir`), then go back.
+
+    Workaround for ``hydra/launcher=ray``: a Ray task runs in the directory its cluster was started in, so the
+    relative paths of a job (``checkpoints/``, ``data/``, the expert locks, ``mlflow.db``) would land there, beside
+    another store. Every other launcher starts its jobs in the launch directory already, where this changes nothing.
+    A launch directory missing on this machine is an error: a sweep over several machines needs it on a shared
+    filesystem at the same path (submitit and Hydra's sweep directory need that too).
+    """
+    here, target = Path.cwd(), launch_dir()
+    if here == target:
+        yield target
+        return
+    if not target.is_dir():
+        raise JobFailed(f"the launch directory {target} does not exist on {socket.gethostname()}: run the sweep "
+                        "from a directory every machine sees at the same path (a shared filesystem)")
+    os.chdir(target)
     try:
-        return run(cfg).status
+        yield target
+    finally:
+        os.chdir(here)
+
+
+def main(cfg: DictConfig) -> str:
+    """Hydra task function, run in the launch directory. In a multirun a failed job is noted for the end-of-sweep
+    summary and the other jobs go on; a failed single run exits with status 1 and one clear line."""
+    try:
+        with in_launch_dir():
+            return run(cfg).status
     except (JobFailed, OmegaConfBaseException) as err:  # a config that does not resolve fails before any run
         if sweep_dir() is None:
             print(f"error: {err}", file=sys.stderr)

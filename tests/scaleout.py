@@ -1,0 +1,63 @@
+"""Helpers of the scale-out tests: run ``python -m ablate`` as a user does, read a store, find a free port."""
+from __future__ import annotations
+
+import importlib.util
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = ["scale=smoke", "data.synth.frames=20", "trainer.enable_progress_bar=false", "comp_time.repeats=2"]
+
+
+def ablate(cwd: Path, *args: str, module: str = "ablate", env: dict[str, str] | None = None,
+           timeout: int = 600) -> subprocess.CompletedProcess:
+    """``python -m MODULE ARGS`` in ``cwd``, with ``env`` added to this environment (and no tracking URI unless
+    ``env`` names one)."""
+    full = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
+    for key in ("MLFLOW_TRACKING_URI", "RAY_AUTH_MODE", "RAY_ADDRESS"):
+        full.pop(key, None)
+    full.update(env or {})
+    return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=full, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def output(out: subprocess.CompletedProcess) -> str:
+    """The tail of a command's stdout and stderr, for an assertion message."""
+    return out.stdout[-4000:] + "\n---\n" + out.stderr[-4000:]
+
+
+def runs(uri: str, experiment: str, kind: str = "job") -> tuple[MlflowClient, list]:
+    """The client of ``uri`` and the runs of ``experiment`` tagged ``kind``."""
+    client = MlflowClient(uri)
+    exp = client.get_experiment_by_name(experiment)
+    return client, client.search_runs([exp.experiment_id], f"tags.kind = '{kind}'") if exp else []
+
+
+def most_at_once(runs_: list) -> int:
+    """How many of the runs were running at the same moment, at most (from their start and end times)."""
+    events = sorted([(r.info.start_time, 1) for r in runs_] + [(r.info.end_time, -1) for r in runs_])
+    best = now = 0
+    for _, step in events:
+        now += step
+        best = max(best, now)
+    return best
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def need(*modules: str) -> None:
+    """Skip the test, naming them, when ``modules`` are not installed (``pip install -e .[slurm,ray,server]``)."""
+    missing = [m for m in modules if importlib.util.find_spec(m) is None]
+    if missing:
+        pytest.skip(f"not installed: {', '.join(missing)} (pip install -e .[slurm,ray,server])")

@@ -1,0 +1,115 @@
+"""Sweeps through the launchers of conf/hydra/launcher/, end to end at scale=smoke: submitit on this machine, Ray on
+a cluster that the test starts elsewhere on 127.0.0.1 with token authentication, and the SLURM config as composed."""
+from __future__ import annotations
+
+import os
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.scaleout import REPO, TINY, ablate, free_port, most_at_once, need, output, runs
+
+
+def test_submitit_local_runs_a_table_its_jobs_at_once_on_a_fresh_sqlite_store(tmp_path):
+    need("submitit", "hydra_plugins.hydra_submitit_launcher")
+    out = ablate(tmp_path, "-m", "experiment=chinet_table2", "hydra/launcher=submitit_local", *TINY)
+    assert out.returncode == 0, output(out)
+    _, jobs = runs(f"sqlite:///{tmp_path / 'mlflow.db'}", "chinet_table2")
+    assert sorted(r.data.tags["row"] for r in jobs) == ["chinet", "fusenet", "unet"]
+    assert {r.info.status for r in jobs} == {"FINISHED"}
+    assert most_at_once(jobs) >= 2  # in processes of their own, at once, on a store made by this sweep
+    _, (sweep,) = runs(f"sqlite:///{tmp_path / 'mlflow.db'}", "chinet_table2", kind="sweep")
+    assert sweep.info.status == "FINISHED" and {r.data.tags["mlflow.parentRunId"] for r in jobs} == {sweep.info.run_id}
+    rows = [line for line in (tmp_path / "results" / "chinet_table2.md").read_text().splitlines()
+            if line.startswith("| ")]
+    assert len(rows) == 1 + 3
+    logs = list((tmp_path / "multirun").glob("*/*/.submitit/*/*_log.out"))
+    assert len(logs) == 3 and all("FINISHED" in p.read_text() for p in logs)  # one log per job, in the sweep dir
+    assert "validated against ConfigStore" not in out.stdout + out.stderr
+
+
+@pytest.fixture
+def ray_cluster(tmp_path_factory):
+    """A Ray head on 127.0.0.1 with token authentication, started from a directory of its own, stopped after."""
+    need("ray", "hydra_plugins.hydra_ray_launcher")
+    started_in = tmp_path_factory.mktemp("cluster_cwd")
+    temp = Path(tempfile.mkdtemp(prefix="ray", dir="/tmp"))  # short: Ray's socket paths live under it
+    token, port = secrets.token_hex(16), free_port()
+    env = {**os.environ, "RAY_AUTH_TOKEN": token, "RAY_USAGE_STATS_ENABLED": "0", "PYTHONPATH": str(REPO)}
+    env.pop("RAY_AUTH_MODE", None)  # with a token and no mode, `ray start` turns token authentication on
+    log = temp / "head.log"
+    with open(log, "wb") as sink:
+        head = subprocess.Popen([str(Path(sys.executable).with_name("ray")), "start", "--head", "--block",
+                                 "--node-ip-address=127.0.0.1", f"--port={port}", "--num-cpus=2",
+                                 "--include-dashboard=false", "--disable-usage-stats", f"--temp-dir={temp}"],
+                                cwd=started_in, env=env, stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while "Ray runtime started" not in log.read_text(errors="replace"):
+            assert head.poll() is None and time.monotonic() < deadline, log.read_text(errors="replace")[-3000:]
+            time.sleep(0.5)
+        assert "Token authentication is disabled" not in log.read_text(errors="replace")
+        yield f"127.0.0.1:{port}", token, started_in
+    finally:  # the head and everything it started share its process group; a head drains for up to 30 s
+        os.killpg(head.pid, signal.SIGTERM)
+        try:
+            head.wait(timeout=3)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)
+            head.wait()
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+def test_ray_on_a_cluster_started_elsewhere_writes_the_table_into_the_drivers_store(ray_cluster, tmp_path):
+    address, token, started_in = ray_cluster
+    out = ablate(tmp_path, "-m", "experiment=chinet_table2", "hydra/launcher=ray",
+                 f"hydra.launcher.ray.init.address={address}", *TINY,
+                 env={"RAY_AUTH_TOKEN": token, "RAY_USAGE_STATS_ENABLED": "0"})
+    assert out.returncode == 0, output(out)
+    assert "(_run_job pid=" in out.stdout + out.stderr  # the jobs ran as Ray tasks
+    _, jobs = runs(f"sqlite:///{tmp_path / 'mlflow.db'}", "chinet_table2")
+    assert sorted(r.data.tags["row"] for r in jobs) == ["chinet", "fusenet", "unet"]
+    assert {r.info.status for r in jobs} == {"FINISHED"}
+    _, sweeps = runs(f"sqlite:///{tmp_path / 'mlflow.db'}", "chinet_table2", kind="sweep")
+    assert len(sweeps) == 1 and {r.data.tags["mlflow.parentRunId"] for r in jobs} == {sweeps[0].info.run_id}
+    assert (tmp_path / "results" / "chinet_table2.md").exists()
+    assert len(list((tmp_path / "checkpoints" / "chinet_table2").glob("*/best.ckpt"))) == 3
+    assert len(list((tmp_path / "multirun").glob("*/*/[0-9]/*.log"))) == 3  # job logs in the driver's sweep dir
+    assert not any(started_in.iterdir()), sorted(started_in.rglob("*"))  # nothing where the cluster was started
+
+
+def compose_launcher(*overrides: str):
+    from hydra import compose, initialize_config_dir
+
+    import ablate.sweep  # noqa: F401  (what `python -m ablate` imports before Hydra composes)
+
+    with initialize_config_dir(str(REPO / "conf"), version_base="1.3"):
+        return compose("config", overrides=list(overrides), return_hydra_config=True).hydra
+
+
+def test_the_slurm_launcher_is_the_plugins_schema_with_the_projects_defaults():
+    need("submitit", "hydra_plugins.hydra_submitit_launcher")
+    hydra = compose_launcher("hydra/launcher=slurm", "hydra.launcher.partition=gpu")
+    launcher = hydra.launcher
+    assert launcher._target_ == "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"
+    assert (launcher.partition, launcher.gpus_per_node, launcher.tasks_per_node, launcher.timeout_min,
+            launcher.array_parallelism) == ("gpu", 1, 1, 240, 16)
+    assert launcher.submitit_folder.endswith("/.submitit/%j") and launcher.submitit_folder.startswith("/")
+    assert launcher.signal_delay_s == 120  # the plugin's own keys are still there
+    with pytest.raises(Exception, match="partiton"):  # a misspelt key is refused, by name
+        compose_launcher("hydra/launcher=slurm", "hydra.launcher.partiton=gpu")
+
+
+@pytest.mark.filterwarnings("ignore:(?s).*validated against ConfigStore")  # pytest resets the filter of ablate.sweep
+def test_the_ray_launcher_never_passes_an_object_store_size_to_a_running_cluster():
+    need("ray", "hydra_plugins.hydra_ray_launcher")
+    init = compose_launcher("hydra/launcher=ray", "hydra.launcher.ray.init.address=auto").launcher.ray.init
+    init.setdefault("object_store_memory", 78643200)  # what hydra_plugins.hydra_ray_launcher._core.launch does
+    assert init.object_store_memory is None

@@ -1,0 +1,129 @@
+"""A shared store: ``mlflow server`` on PostgreSQL, started on 127.0.0.1 by scripts/tracking_server.py and stopped
+after. Parallel jobs log to it, their artifacts go through it, and skip, resume, row reuse and the report work."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from tests.scaleout import REPO, TINY, ablate, free_port, most_at_once, need, output, runs
+
+SCRIPT = REPO / "scripts" / "tracking_server.py"
+
+
+def postgres_missing() -> str | None:
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        from tracking_server import ServerError, pg_bin
+
+        for name in ("initdb", "pg_ctl", "createdb"):
+            pg_bin(name)
+    except ServerError as err:
+        return str(err)
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    return None
+
+
+def running(pid: int) -> bool:
+    """Whether ``pid`` runs: it exists and is not a zombie waiting for a parent that does not reap it (the server
+    outlives the start command, so its parent is init, which may reap late)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+@pytest.fixture(scope="module")
+def server():
+    need("psycopg")
+    if reason := postgres_missing():
+        pytest.skip(reason)
+    folder = Path(tempfile.mkdtemp(prefix="ablate-store-", dir="/tmp"))
+    folder.chmod(0o755)  # PostgreSQL runs as the user postgres when we are root: it must reach its data folder
+    store = folder / "store"
+    started = subprocess.run([sys.executable, str(SCRIPT), "start", str(store), "--port", str(free_port()),
+                              "--pg-port", str(free_port()), "--workers", "1"], capture_output=True, text=True)
+    try:
+        assert started.returncode == 0, started.stderr
+        uri = started.stdout.strip().split("=", 1)[1]
+        assert uri.startswith("http://127.0.0.1:")
+        yield uri, store
+    finally:
+        state = json.loads((store / "server.json").read_text()) if (store / "server.json").exists() else None
+        stopped = subprocess.run([sys.executable, str(SCRIPT), "stop", str(store)], capture_output=True, text=True)
+        shutil.rmtree(folder, ignore_errors=True)
+        assert stopped.returncode == 0, stopped.stderr
+        if state:  # nothing it started is left
+            assert not running(state["mlflow_pid"])
+            assert not (Path(state["pgdata"]) / "postmaster.pid").exists()
+
+
+@pytest.fixture(scope="module")
+def sweep(server, tmp_path_factory):
+    uri, store = server
+    cwd = tmp_path_factory.mktemp("server_sweep")
+    out = ablate(cwd, "-m", "experiment=chinet_table2", "row=chinet,unet", "hydra/launcher=joblib",
+                 "hydra.launcher.n_jobs=2", *TINY, env={"MLFLOW_TRACKING_URI": uri})
+    return uri, store, cwd, out
+
+
+def test_two_parallel_jobs_log_to_the_server_and_their_artifacts_are_stored_by_it(sweep):
+    uri, store, cwd, out = sweep
+    assert out.returncode == 0, output(out)
+    client, jobs = runs(uri, "chinet_table2")
+    assert sorted(r.data.tags["row"] for r in jobs) == ["chinet", "unet"]
+    assert {r.info.status for r in jobs} == {"FINISHED"} and most_at_once(jobs) == 2
+    _, (parent,) = runs(uri, "chinet_table2", kind="sweep")
+    assert {r.data.tags["mlflow.parentRunId"] for r in jobs} == {parent.info.run_id}
+    exp = client.get_experiment_by_name("chinet_table2")
+    assert exp.artifact_location.startswith("mlflow-artifacts:")  # never a file:// path of one machine
+    assert exp.tags["mlflow.experimentKind"] == "custom_model_development"
+    for job in jobs:  # on the server's side, under its --artifacts-destination
+        files = store / "artifacts" / exp.experiment_id / job.info.run_id / "artifacts"
+        assert {"config.yaml", "predictions.png"} <= {p.name for p in files.iterdir()}
+        assert (files / "checkpoints" / "best.ckpt").stat().st_size > 0
+        assert {a.path for a in client.list_artifacts(job.info.run_id)} >= {"config.yaml", "checkpoints"}
+    assert not (cwd / "mlflow.db").exists() and not (cwd / "mlartifacts").exists()
+    assert (cwd / "results" / "chinet_table2.md").exists()
+
+
+def test_against_the_server_a_rerun_skips_a_shared_row_is_reused_and_a_killed_job_resumes(sweep):
+    uri, _, cwd, first = sweep
+    assert first.returncode == 0, output(first)
+    again = ablate(cwd, "-m", "experiment=chinet_table2", "row=chinet,unet", *TINY, env={"MLFLOW_TRACKING_URI": uri})
+    assert again.returncode == 0, output(again)
+    assert again.stdout.count("Skipping") == 2
+    reuse = ablate(cwd, "experiment=chinet_table3", "row=chinet", *TINY, env={"MLFLOW_TRACKING_URI": uri})
+    assert reuse.returncode == 0 and "Reusing chinet (seed 0)" in reuse.stdout, output(reuse)
+    client, jobs = runs(uri, "chinet_table2")
+    unet = next(r for r in jobs if r.data.tags["row"] == "unet")
+    client.update_run(unet.info.run_id, status="RUNNING")  # as if its process had been killed
+    resume = ablate(cwd, "experiment=chinet_table2", "row=unet", *TINY, env={"MLFLOW_TRACKING_URI": uri})
+    assert resume.returncode == 0, output(resume)
+    assert "Marked 1 stale RUNNING run" in resume.stdout and "Resuming from" in resume.stdout
+    _, jobs = runs(uri, "chinet_table2")
+    assert sorted(r.info.status for r in jobs if r.data.tags["row"] == "unet") == ["FINISHED", "KILLED"]
+
+
+def test_the_report_reads_the_server(sweep, tmp_path):
+    uri, _, _, first = sweep
+    assert first.returncode == 0, output(first)
+    report = ablate(tmp_path, "experiment=chinet_table2", module="ablate.report", env={"MLFLOW_TRACKING_URI": uri})
+    assert report.returncode == 0, output(report)
+    text = (tmp_path / "results" / "chinet_table2.md").read_text()
+    assert "ChiNet" in text and "U-Net" in text
+
+
+def test_a_local_artifact_root_with_a_server_is_refused_by_name(server, tmp_path):
+    uri, _ = server
+    out = ablate(tmp_path, "-m", "experiment=chinet_table2", "logger.artifact_root=mlartifacts", *TINY,
+                 env={"MLFLOW_TRACKING_URI": uri})
+    assert out.returncode != 0
+    assert "logger.artifact_root=mlartifacts is a local path" in out.stderr + out.stdout
