@@ -6,6 +6,12 @@ A multirun writes its table at the end by itself. Only FINISHED job runs count (
 the scale of the latest run), so a failed job never becomes a row; a row with no finished run is listed under the
 table instead. The same runs give the same bytes: no timestamps, rows in the paper's order, PNG written without
 metadata.
+
+Two layouts (``table.layout``): ``rows`` (the default) has a row per trained model; ``conditions`` (DGFN Table I's
+shape) has a row per test condition and columns model x metric, from runs tested under ``task.eval_conditions``
+(:mod:`ablate.report_conditions`). A row with ``paper_only: true`` is another system of the paper, listed with the
+paper's numbers and never run; ``table.text_columns`` ({key: label}) adds text columns read from each row. A
+``rows`` table with ``primary_condition`` shows its metrics under that test condition (``<condition>/<metric>``).
 """
 from __future__ import annotations
 
@@ -21,6 +27,7 @@ import pandas as pd  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from scipy.stats import kendalltau  # noqa: E402
 
+from ablate.provenance import stale  # noqa: E402
 from ablate.significance import BOOTSTRAP_FROM, COLLAPSE_RATIO, RESAMPLES, difference, disagreeing_seeds, \
     mean_ci  # noqa: E402
 from ablate.tracking import KIND_JOB, KIND_SWEEP, Tracker, retry  # noqa: E402
@@ -44,12 +51,24 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     runs = tracker.runs(exp.experiment_id, f"attributes.status = 'FINISHED' and tags.kind = '{KIND_JOB}'")
     records = [{"row": r.data.tags.get("row", "?"), "seed": r.data.tags.get("seed", "?"),
                 "scale": r.data.tags.get("scale", "?"), "config_hash": r.data.tags.get("config_hash", r.info.run_id),
-                "git_commit": r.data.tags.get("git_commit", "unknown"), "run_id": r.info.run_id, "start": r.info.start_time, **r.data.metrics} for r in runs]
+                "git_commit": r.data.tags.get("git_commit", "unknown"), "run_id": r.info.run_id,
+                "targets": " ".join(sorted({v for k, v in r.data.params.items() if k.endswith("_target_")})),
+                "start": r.info.start_time, **r.data.metrics} for r in runs]
     if not records:
         return pd.DataFrame()
     df = pd.DataFrame.from_records(records).sort_values(["start", "config_hash"], kind="stable")
     df = df[df["scale"] == df["scale"].iloc[-1]]
     return df.drop_duplicates(["row", "seed"], keep="last").drop(columns="start").reset_index(drop=True)
+
+
+def under_condition(runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
+    """``runs`` with the metrics of ``table.primary_condition`` (``<condition>/<metric>``) as the plain metrics."""
+    condition = table.get("primary_condition")
+    if not condition or not len(runs):
+        return runs
+    prefix = f"{condition}/"
+    moved = {c: c[len(prefix):] for c in runs.columns if str(c).startswith(prefix)}
+    return runs.drop(columns=[c for c in moved.values() if c in runs]).rename(columns=moved)
 
 
 def summarise(runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
@@ -59,9 +78,10 @@ def summarise(runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
     out = []
     for spec in rows:
         sel = runs[runs["row"] == spec["row"]] if len(runs) else runs
-        if sel.empty:
+        if sel.empty and not spec.get("paper_only"):
             continue
-        rec = {"row": spec["row"], "name": spec.get("name", spec["row"]), "n": len(sel)}
+        rec = {"row": spec["row"], "name": spec.get("name", spec["row"]), "n": len(sel),
+               **{key: str(spec.get(key, "")) for key in table.get("text_columns") or {}}}
         for key in table.metrics:
             values = sel[key].dropna() if key in sel else pd.Series(dtype=float)
             rec[f"{key}_mean"] = values.mean() if len(values) else np.nan
@@ -205,15 +225,26 @@ def costs(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> tuple
 
 
 def provenance(runs: pd.DataFrame) -> list[str]:
-    """The commits the table's runs were made at (the ``git_commit`` tag), and a warning when they differ."""
+    """The commits the table's runs were made at (the ``git_commit`` tag), a warning when they differ, and one
+    when code the runs' configs build (``ablate.provenance``) changed since a run's commit."""
     if not len(runs) or "git_commit" not in runs:
         return []
     counts = runs["git_commit"].fillna("unknown").value_counts().sort_index()
     named = ", ".join(f"{c[:12]}{'-dirty' if c.endswith('-dirty') else ''} ({n} runs)" for c, n in counts.items())
     lines = [f"Runs made at commit {named}."]
     if len(counts) > 1:
-        lines.append(f"**Mixed commits**: the rows come from {len(counts)} commits; check that what changed "
-                     "between them does not touch the rows' configs.")
+        lines.append(f"**Mixed commits**: the rows come from {len(counts)} commits.")
+    targets = set(" ".join(runs["targets"].fillna("")).split()) if "targets" in runs else set()
+    shas = {c.removesuffix("-dirty") for c in counts.index} - {"unknown"}
+    changed = stale(shas, targets) if targets else {}
+    for sha, files in changed.items():
+        dirty = any(c == f"{sha}-dirty" for c in counts.index)
+        shown = ", ".join(files[:6]) + (f" and {len(files) - 6} more" if len(files) > 6 else "")
+        lines.append(f"**Code changed since {sha[:12]}**" + (" (some runs made with uncommitted changes on top)"
+                                                            if dirty else "")
+                     + f" in what its runs build: {shown}; their numbers may not be what the code gives today.")
+    if targets and not changed:
+        lines.append("No code the runs build has changed since their commits.")
     return lines
 
 
@@ -221,6 +252,8 @@ def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) ->
     """The markdown table: ours (mean ± std over seeds) beside the paper's number, best value of a column bold;
     the primary metric's 95% CI and its difference from the reference row; provenance under it."""
     columns: dict[str, list[str]] = {"Row": list(summary["name"]) if len(summary) else []}
+    for key, label in (table.get("text_columns") or {}).items():
+        columns[label] = list(summary[key]) if len(summary) else []
     for key, label in table.metrics.items():
         if key in COSTS:
             continue
@@ -235,7 +268,7 @@ def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) ->
     columns.update(sig_columns)
     cost_columns, cost_lines = costs(summary, runs, table)
     columns.update(cost_columns)
-    columns["n"] = [str(n) for n in summary["n"]] if len(summary) else []
+    columns["n"] = [str(n) if n else "paper only" for n in summary["n"]] if len(summary) else []
     lines = [f"# {table.title}", ""]
     if len(summary):
         lines.append(pd.DataFrame(columns).to_markdown(index=False, disable_numparse=True))
@@ -246,8 +279,9 @@ def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) ->
     lines += ["", f"Kendall τ between our ranking and the paper's on {label}: "
               + ("n/a (fewer than 2 rows with both)" if np.isnan(tau) else f"{tau:.2f} over {n} rows") + "."]
     lines += sig_lines + cost_lines
-    done = set(summary["row"]) if len(summary) else set()
-    missing = [spec.get("name", spec["row"]) for spec in table.rows if spec["row"] not in done]
+    done = set(summary.loc[summary["n"] > 0, "row"]) if len(summary) else set()
+    missing = [spec.get("name", spec["row"]) for spec in table.rows if spec["row"] not in done
+               and not spec.get("paper_only")]
     if missing:
         lines.append(f"Rows without a finished run: {', '.join(missing)}.")
     scales = sorted(runs["scale"].unique()) if len(runs) else []
@@ -290,6 +324,13 @@ def write_table(cfg: DictConfig, tracker: Tracker, parent_run: str | None = None
     """Write ``results/<table>.md`` and ``.png`` from the runs; log the figure to ``parent_run`` if given."""
     table = table_spec(cfg)
     runs = collect(tracker, table.name)
+    if table.get("layout", "rows") == "conditions":
+        from ablate.report_conditions import write_conditions
+
+        return write_conditions(cfg, table, runs, tracker, parent_run, results_dir)
+    if table.get("layout", "rows") != "rows":
+        raise ValueError(f"table.layout: {table.layout!r} is not one of rows, conditions")
+    runs = under_condition(runs, table)
     summary = summarise(runs, table)
     out = Path(results_dir)
     out.mkdir(parents=True, exist_ok=True)

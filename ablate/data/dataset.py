@@ -18,8 +18,15 @@ from ablate.data.conditions import apply_condition, apply_corruption
 from ablate.data.lidar_weather import LIDAR_WEATHER, apply_lidar_weather
 
 MODALITIES = {"rgb": 3, "intensity": 1, "sparse_depth": 1, "dense_depth": 1, "ddm_jet": 3, "dhi": 3, "bev": 6}
-TARGETS = ("free_space", "road_objects", "semantic", "instances", "boxes2d", "road_bev")
+#: Per-frame geometry for the space transforms (ablate.fusion.geometry), asked for like targets: calibration
+#: [4,3,4], dense LiDAR heights per pixel [1,H,W] and per BEV cell [1,Hb,Wb] (BiFNet DST), points in the BEV grid.
+GEOMETRY = ("calib", "height_image", "height_bev", "lidar_points")
+TARGETS = ("free_space", "road_objects", "semantic", "instances", "boxes2d", "road_bev", "road_valid",
+           "road_bev_valid", *GEOMETRY)
 CLASSES = ("Car", "Pedestrian", "Cyclist")  # label ids 0, 1, 2
+#: ``boxes2d`` label ids: the classes, then the KITTI types its evaluation ignores (ablate.metrics.kitti.LABEL_NAMES):
+#: Van (neighbour of Car), Person_sitting (of Pedestrian) and DontCare regions.
+BOX_LABELS = (*CLASSES, "Van", "Person_sitting", "DontCare")
 LIDAR_DERIVED = {"sparse_depth", "dense_depth", "ddm_jet", "dhi", "bev"}
 NO_MASKS = "no instance masks: no instance_2/ folder, nor velodyne/ and label_2/ to derive them from"
 
@@ -50,7 +57,10 @@ class KittiDataset(Dataset):
         self.split_dir, self.frames = Path(split_dir), list(frames)
         self.modalities, self.targets = list(modalities), list(targets)
         self.severity, self.corruption, self.seed, self.max_depth = severity, corruption, seed, max_depth
-        self.bev = {"x_range": (6.0, 46.0), "y_range": (-10.0, 10.0), "cell": 0.5, **(bev or {})}
+        bev = {k: v if isinstance(v, (int, float, str)) else tuple(v) for k, v in dict(bev or {}).items()}  # plain
+        self.bev = {"x_range": (6.0, 46.0), "y_range": (-10.0, 10.0), "cell": 0.5, **bev}
+        # options of the dense heights and points (GEOMETRY), kept apart from the raster's own
+        self.heights = {k: self.bev.pop(k) for k in ("window", "azimuth_res", "max_points") if k in self.bev}
         self.cache_dir = Path(cache_dir) / _key(str(self.split_dir.resolve())) if cache_dir else None
         self.cache_hits = self.cache_misses = 0
         self.image_size = tuple(image_size) if image_size else None  # bottom-centre crop (KITTI sizes vary)
@@ -68,10 +78,11 @@ class KittiDataset(Dataset):
                "instances": (d / "instance_2").is_dir() or (d / "velodyne").is_dir() and (d / "label_2").is_dir(),
                "road": (d / "gt_image_2").is_dir()}  # instance masks: instance_2/, else derived from LiDAR + boxes
         need = {"free_space": "road", "semantic": "road", "road_bev": "road", "road_objects": "instances",
-                "instances": "instances", "boxes2d": "labels"}
+                "instances": "instances", "boxes2d": "labels", "road_valid": "road", "road_bev_valid": "road",
+                "calib": None, **{g: "velodyne" for g in GEOMETRY[1:]}}
         for name in [m for m in self.modalities if m in LIDAR_DERIVED] + self.targets:
             src = "velodyne" if name in LIDAR_DERIVED else need[name]
-            if not has[src]:
+            if src and not has[src]:
                 raise DataError(f"{d}: cannot provide {name!r}: this data has no {src} "
                                 f"({NO_MASKS if src == 'instances' else src + ' folder missing'})")
         if "semantic" in self.targets and not has["instances"]:
@@ -118,6 +129,19 @@ class KittiDataset(Dataset):
                                 lambda: lidar.dense_depth(self.lidar(frame, "sparse_depth", shape)))
         if name == "dhi":
             return self._cached(frame, name, {"shape": shape, **key}, lambda: lidar.dhi_image(points(), calib(), shape))
+        grid = {k: self.bev[k] for k in ("x_range", "y_range", "cell")}
+        if name == "height_image":
+            opts = {k: v for k, v in self.heights.items() if k == "window"}
+            return self._cached(frame, name, {"shape": shape, **opts, **key},
+                                lambda: lidar.perspective_height(points(), calib(), shape, **opts))
+        if name == "height_bev":
+            opts = {k: v for k, v in self.heights.items() if k == "azimuth_res"}
+            return self._cached(frame, name, {**grid, **opts, **key},
+                                lambda: lidar.bev_height(points(), **grid, **opts))
+        if name == "lidar_points":
+            opts = {k: v for k, v in self.heights.items() if k == "max_points"}
+            return self._cached(frame, name, {**grid, **opts, **key},
+                                lambda: lidar.bev_points(points(), **grid, **opts))
         return self._cached(frame, name, {**self.bev, **key}, lambda: lidar.bev_image(points(), **self.bev))
 
     def lidar_instances(self, frame: str, labels: list, shape: tuple[int, int]) -> np.ndarray:
@@ -170,7 +194,12 @@ class KittiDataset(Dataset):
         top, left = h - ch, (w - cw) // 2
         shift = torch.tensor([left, top, left, top], dtype=torch.float32)
         for k, v in sample.items():
-            if isinstance(v, torch.Tensor) and k not in ("bev", "road_bev"):
+            if k == "calib":  # the principal point moves with the crop: P2 <- [[1,0,-left],[0,1,-top],[0,0,1]] P2
+                v = v.clone()
+                v[0, :2] -= torch.tensor([[left], [top]], dtype=v.dtype) * v[0, 2:3]
+                sample[k] = v
+            elif isinstance(v, torch.Tensor) and k not in ("bev", "road_bev", "road_bev_valid", "height_bev",
+                                                           "lidar_points"):
                 sample[k] = v[..., top:top + ch, left:left + cw]
             elif k in ("instances", "boxes2d"):
                 v = dict(v, boxes=v["boxes"] - shift)
@@ -185,12 +214,14 @@ class KittiDataset(Dataset):
             return out
         h, w = shape
         labels = kitti.read_labels(paths["label"]) if paths["label"].is_file() else []
-        road = kitti.read_road_gt(paths["road_gt"])[0] if "road_gt" in paths and paths["road_gt"].is_file() else None
+        road_gt = kitti.read_road_gt(paths["road_gt"]) if "road_gt" in paths and paths["road_gt"].is_file() else None
+        road = road_gt[0] if road_gt is not None else None
         inst = cv2.imread(str(paths["instance"]), cv2.IMREAD_UNCHANGED) if paths["instance"].is_file() else None
         if inst is None and not paths["instance"].parent.is_dir() and paths["label"].is_file() \
                 and any(t in self.targets for t in ("road_objects", "semantic", "instances")):
             inst = self.lidar_instances(paths["image"].stem, labels, shape)
-        if any(t in self.targets for t in ("free_space", "semantic", "road_bev")) and road is None:
+        if any(t in self.targets for t in ("free_space", "semantic", "road_bev", "road_valid", "road_bev_valid")) \
+                and road is None:
             raise DataError(f"{paths['image']}: road ground truth {paths.get('road_gt')} is missing")
         if any(t in self.targets for t in ("road_objects", "semantic", "instances")) and inst is None:
             raise DataError(f"{paths['image']}: instance masks {paths['instance']} are missing")
@@ -208,10 +239,10 @@ class KittiDataset(Dataset):
                 "labels": torch.tensor([CLASSES.index(labels[k - 1].type) for k in ids], dtype=torch.int64),
                 "boxes": torch.tensor([labels[k - 1].bbox for k in ids], dtype=torch.float32).reshape(-1, 4)}
         if "boxes2d" in self.targets:
-            objs = [o for o in labels if o.type in CLASSES]
+            objs = [o for o in labels if o.type in BOX_LABELS]
             scale = h / 375.0  # KITTI's difficulty heights are for 375-row images
             out["boxes2d"] = {"boxes": torch.tensor([o.bbox for o in objs], dtype=torch.float32).reshape(-1, 4),
-                              "labels": torch.tensor([CLASSES.index(o.type) for o in objs], dtype=torch.int64),
+                              "labels": torch.tensor([BOX_LABELS.index(o.type) for o in objs], dtype=torch.int64),
                               "difficulty": torch.tensor([o.difficulty_at(scale) for o in objs], dtype=torch.int64)}
         if "instances" in self.targets or "boxes2d" in self.targets:
             ignore = np.zeros((h, w), bool)
@@ -220,10 +251,45 @@ class KittiDataset(Dataset):
                     x0, y0, x1, y1 = (int(round(v)) for v in o.bbox)
                     ignore[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1] = True
             out["ignore"] = torch.from_numpy(ignore)
-        if "road_bev" in self.targets:
-            calib = kitti.Calibration.from_file(paths["calib"])
-            out["road_bev"] = torch.from_numpy(road_bev(road, calib, **self.bev)[None])
+        out.update(self._road(paths, shape, road_gt))
         return out
+
+    def _road(self, paths: dict, shape: tuple[int, int], road_gt) -> dict:
+        """The road targets beyond ``free_space`` (the image road mask) and the frame's geometry (GEOMETRY)."""
+        out: dict = {}
+        grid = {k: self.bev[k] for k in ("x_range", "y_range", "cell")}
+        calib = kitti.Calibration.from_file(paths["calib"]) if any(
+            t in self.targets for t in ("road_bev", "road_bev_valid", "calib")) else None
+        if "road_valid" in self.targets:
+            out["road_valid"] = torch.from_numpy(road_gt[1][None].astype(np.float32))
+        if "road_bev" in self.targets:
+            out["road_bev"] = torch.from_numpy(road_bev(road_gt[0], calib, **grid)[None])
+        if "road_bev_valid" in self.targets:  # cells whose centre on the road plane sees a non-void gt pixel
+            out["road_bev_valid"] = torch.from_numpy(road_bev(road_gt[1], calib, **grid)[None])
+        if "calib" in self.targets:
+            out["calib"] = torch.from_numpy(calib_array(calib))
+        for name in [g for g in GEOMETRY[1:] if g in self.targets]:  # heights get their channel axis
+            value = self.lidar(paths["image"].stem, name, shape)
+            out[name] = torch.from_numpy(np.ascontiguousarray(value if name == "lidar_points" else value[None]))
+        return out
+
+
+def calib_array(calib: kitti.Calibration) -> np.ndarray:
+    """(4,3,4) float64: P2, R0_rect (in [:3,:3]), Tr_velo_to_cam, Tr_cam_to_road (NaN when the file has none)."""
+    out = np.full((4, 3, 4), np.nan)
+    out[0], out[2] = calib.P2, calib.Tr_velo_to_cam
+    out[1] = 0.0
+    out[1, :, :3] = calib.R0_rect
+    if calib.Tr_cam_to_road is not None:
+        out[3] = calib.Tr_cam_to_road
+    return out
+
+
+def calibration(array) -> kitti.Calibration:
+    """The :class:`~ablate.data.kitti.Calibration` of a :func:`calib_array` (numpy or a CPU/GPU tensor)."""
+    a = np.asarray(array.detach().cpu() if isinstance(array, torch.Tensor) else array, np.float64)
+    road = None if np.isnan(a[3]).any() else a[3]
+    return kitti.Calibration(P2=a[0], R0_rect=a[1, :, :3], Tr_velo_to_cam=a[2], Tr_cam_to_road=road)
 
 
 def road_bev(road: np.ndarray, calib: kitti.Calibration, x_range=(6.0, 46.0), y_range=(-10.0, 10.0),

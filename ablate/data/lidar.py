@@ -1,5 +1,5 @@
-"""LiDAR representations: sparse and dense depth maps (SMoE §3.2), jet colouring, DHI image (DGFN §III-B)
-and BEV raster (BiFNet §V-A)."""
+"""LiDAR representations: sparse and dense depth maps (SMoE §3.2), jet colouring, DHI image (DGFN §III-B),
+BEV raster (BiFNet §V-A), and the dense heights per pixel and per BEV cell of BiFNet's DST (§IV-A1, §IV-A2)."""
 from __future__ import annotations
 
 import threading
@@ -168,3 +168,93 @@ def bev_image(points: np.ndarray, x_range: tuple[float, float] = (6.0, 46.0),
         out[k + 2] = np.bincount(lin, weights=v, minlength=n) / np.maximum(count, 1)
     out[:, count == 0] = 0.0
     return out.reshape(6, hb, wb).astype(np.float32)
+
+
+#: DST's height upsampling (BiFNet §IV-A1, §IV-A2): window radius (px) of the perspective neighbourhood, azimuth
+#: width (degrees) of a column of the range-image arrangement, and points closer than MIN_RANGE (m) dropped.
+HEIGHT_WINDOW, AZIMUTH_RES, MIN_RANGE = 4, 0.2, 2.0
+
+
+def perspective_height(points: np.ndarray, calib: Calibration, shape: tuple[int, int],
+                       window: int = HEIGHT_WINDOW) -> np.ndarray:
+    """Dense LiDAR height per image pixel, BiFNet §IV-A1 eq. (2): the projected points in a (2 window + 1)^2
+    neighbourhood of the pixel, weighted by 1 / (1 + their distance in pixels) and normalised by the sum of the
+    weights (eq. (2)'s normalisation parameter). Reading where the text lost its symbols: the weight decays with the
+    image distance between the pixel and the neighbour's projection (the nearest point per pixel,
+    :func:`project_points`); a pixel with no projected point in its window takes the height of the nearest one.
+    Height is z in the velodyne frame (m), as the paper's "height of this pixel in LiDAR coordinate".
+    Returns (H,W) float32."""
+    if window < 0:
+        raise DataError(f"perspective_height: window must be >= 0 px, got {window}")
+    h, w = shape
+    lin, idx = project_points(points, calib, shape)
+    if len(lin) == 0:
+        raise DataError("perspective_height: no LiDAR point projects into the image")
+    sparse, mask = np.zeros(h * w, np.float32), np.zeros(h * w, np.float32)
+    sparse[lin], mask[lin] = points[idx, 2], 1.0
+    sparse, mask = sparse.reshape(h, w), mask.reshape(h, w)
+    r = np.arange(-window, window + 1, dtype=np.float32)
+    kernel = 1.0 / (1.0 + np.hypot(r[:, None], r[None, :]))
+    num = cv2.filter2D(sparse, cv2.CV_32F, kernel, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.filter2D(mask, cv2.CV_32F, kernel, borderType=cv2.BORDER_CONSTANT)
+    out = np.empty(h * w, np.float32)
+    seeds = (mask == 0).astype(np.uint8)  # 0 at the LiDAR pixels
+    _nearest_fill(seeds, np.concatenate([[0], sparse.ravel()[np.flatnonzero(mask.ravel())]]).astype(np.float32),
+                  np.empty((h, w), np.float32), np.empty((h, w), np.int32), out)
+    out = out.reshape(h, w)
+    near = den > 1e-6
+    out[near] = num[near] / den[near]
+    return out
+
+
+def bev_height(points: np.ndarray, x_range: tuple[float, float] = (6.0, 46.0),
+               y_range: tuple[float, float] = (-10.0, 10.0), cell: float = 0.5, azimuth_res: float = AZIMUTH_RES,
+               min_range: float = MIN_RANGE) -> np.ndarray:
+    """Dense LiDAR height per BEV cell, BiFNet §IV-A2 eq. (3)-(4), on the grid of :func:`bev_image`.
+
+    The points are arranged as MV3D's front view (Chen et al. [6]): column = floor(atan2(y, x) / azimuth_res), the
+    lasers stacked in it. A cell's centre falls in one column (the nearest non-empty one when its own is empty);
+    its neighbours there (eq. (3)) are the points just nearer and just farther in horizontal distance
+    sqrt(x^2 + y^2), and its height (eq. (4)) their heights interpolated linearly in horizontal distance (the one
+    neighbour's height before the nearest or beyond the farthest point). Height is z in the velodyne frame (m).
+    Returns (Hb,Wb) float32."""
+    if azimuth_res <= 0:
+        raise DataError(f"bev_height: azimuth_res must be > 0 degrees, got {azimuth_res}")
+    hb, wb = bev_grid(x_range, y_range, cell)
+    pts = np.asarray(points, np.float64)
+    dist = np.hypot(pts[:, 0], pts[:, 1])
+    keep = dist > min_range
+    if not keep.any():
+        raise DataError(f"bev_height: no LiDAR point beyond {min_range} m")
+    res = np.deg2rad(azimuth_res)
+    col, dist, z = np.floor(np.arctan2(pts[keep, 1], pts[keep, 0]) / res).astype(np.int64), dist[keep], pts[keep, 2]
+    order = np.lexsort((dist, col))
+    col, dist, z = col[order], dist[order], z[order]
+    x, y = np.meshgrid(x_range[1] - (np.arange(hb) + 0.5) * cell, y_range[1] - (np.arange(wb) + 0.5) * cell,
+                       indexing="ij")
+    cdist, ccol = np.hypot(x, y).ravel(), np.floor(np.arctan2(y, x) / res).astype(np.int64).ravel()
+    filled = np.unique(col)
+    k = np.clip(np.searchsorted(filled, ccol), 1, max(len(filled) - 1, 1))
+    lower, upper = filled[k - 1], filled[np.minimum(k, len(filled) - 1)]
+    ccol = np.where(np.abs(ccol - lower) <= np.abs(upper - ccol), lower, upper)
+    start, end = np.searchsorted(col, ccol, "left"), np.searchsorted(col, ccol, "right")
+    span = dist.max() + 1.0  # (column, distance) as one sortable key
+    i = np.searchsorted(col * span + dist, ccol * span + cdist)  # first point of the column at or beyond the cell
+    right, left = np.clip(i, start, end - 1), np.clip(i - 1, start, end - 1)
+    gap = dist[right] - dist[left]
+    t = np.where(gap > 1e-9, (cdist - dist[left]) / np.where(gap > 1e-9, gap, 1.0), 0.0)
+    return (z[left] + np.clip(t, 0.0, 1.0) * (z[right] - z[left])).reshape(hb, wb).astype(np.float32)
+
+
+def bev_points(points: np.ndarray, x_range: tuple[float, float] = (6.0, 46.0),
+               y_range: tuple[float, float] = (-10.0, 10.0), cell: float = 0.5, max_points: int = 16384) -> np.ndarray:
+    """The points inside the BEV grid as (max_points, 3) float32 x, y, z (velodyne), NaN rows after the last, for
+    sparse transforms through the points themselves (SHPL). More points than ``max_points``: an evenly strided
+    subset."""
+    _, keep = bev_cells(points, x_range, y_range, cell)
+    inside = np.asarray(points, np.float32)[keep, :3]
+    if len(inside) > max_points:
+        inside = inside[np.linspace(0, len(inside) - 1, max_points).astype(np.int64)]
+    out = np.full((max_points, 3), np.nan, np.float32)
+    out[:len(inside)] = inside
+    return out

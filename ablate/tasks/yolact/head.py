@@ -79,7 +79,3 @@ class YolactHead(nn.Module):
             out["coef"].append(torch.tanh(self.coef(x)))
         return out
 
-
-def flatten_levels(maps: list[Tensor], depth: int) -> Tensor:
-    """Per-level maps [B, A*depth, Hl, Wl] -> [B, sum_l Hl*Wl*A, depth], in :class:`Anchors` order."""
-    return torch.cat([m.permute(0, 2, 3, 1).reshape(m.shape[0], -1, depth) for m in maps], 1)

@@ -5,8 +5,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ablate.tasks.yolact.anchors import VARIANCES, Anchors, box_region, encode, match
-from ablate.tasks.yolact.head import flatten_levels
+from ablate.tasks.boxes import VARIANCES, encode, flatten_levels, match
+from ablate.tasks.yolact.anchors import Anchors, box_region
 
 
 class YolactLoss(nn.Module):

@@ -1,34 +1,13 @@
-"""YOLACT inference: Fast NMS, mask assembly and decoding of the head's maps into per-image instances."""
+"""YOLACT inference: mask assembly and decoding of the head's maps into per-image instances (Fast NMS is the
+shared one of :mod:`ablate.tasks.boxes`)."""
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ablate.tasks.yolact.anchors import VARIANCES, Anchors, box_iou, box_region, decode_boxes
-from ablate.tasks.yolact.head import flatten_levels
-
-
-def fast_nms(boxes: Tensor, scores: Tensor, iou_threshold: float = 0.5, score_threshold: float = 0.05,
-             top_k: int = 200, max_detections: int = 100) -> tuple[Tensor, Tensor, Tensor]:
-    """YOLACT's Fast NMS (Bolya et al. 2019, §3.4), per class in matrix form.
-
-    ``boxes`` [N, 4] xyxy, ``scores`` [N, C] (one column per foreground class). For each class the ``top_k``
-    boxes are sorted by score; the upper triangle of their IoU matrix gives, per box, the largest IoU with any
-    higher-scoring box of that class, and a box is kept when that IoU is <= ``iou_threshold`` and its score is
-    > ``score_threshold``. Unlike greedy NMS, an already suppressed box still suppresses the boxes below it.
-    Returns (box index, class, score) of at most ``max_detections`` kept boxes, highest score first.
-    """
-    k = min(top_k, boxes.shape[0])
-    s, idx = scores.t().sort(1, descending=True)  # [C, N]
-    s, idx = s[:, :k], idx[:, :k]
-    iou = box_iou(boxes[idx], boxes[idx]).triu_(diagonal=1)  # [C, k, k]
-    iou_max = iou.max(1).values if k else s
-    keep = (iou_max <= iou_threshold) & (s > score_threshold)
-    classes = torch.arange(scores.shape[1], device=scores.device)[:, None].expand_as(keep)[keep]
-    s, order = s[keep].sort(descending=True)
-    order = order[:max_detections]
-    return idx[keep][order], classes[order], s[:max_detections]
+from ablate.tasks.boxes import VARIANCES, decode_boxes, fast_nms, flatten_levels
+from ablate.tasks.yolact.anchors import Anchors, box_region
 
 
 def assemble_masks(proto: Tensor, coef: Tensor, boxes: Tensor, image_size: tuple[int, int],

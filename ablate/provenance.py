@@ -1,0 +1,80 @@
+"""Is a table's code still the code of its runs? Checks for ``ablate.report``'s footer.
+
+A run records the commit it was made at (``git_commit`` tag, ``-dirty`` when the tree had changes) and its
+resolved config, whose ``_target_`` entries name the classes and functions it built. The code a run depends on
+is taken as those modules and every ``ablate`` module they import, transitively (read from the source with
+:mod:`ast`; an import inside a function counts too). A file of that set changed between the run's commit and the
+working tree makes the run *stale*: its numbers may not be what the code gives today. Config files are covered
+by the config hash: a row whose config changed gets a new hash and is trained again.
+"""
+from __future__ import annotations
+
+import ast
+import subprocess
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def module_file(name: str, root: Path = ROOT) -> Path | None:
+    """The source file of module ``name`` (``a.b`` -> ``a/b.py`` or ``a/b/__init__.py``) under ``root``."""
+    base = root.joinpath(*name.split("."))
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def _imported(path: Path, package: str) -> set[str]:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+            names |= {f"{node.module}.{a.name}" for a in node.names}  # `from pkg import module`
+    return {n for n in names if n == package or n.startswith(package + ".")}
+
+
+def dependencies(targets: set[str], package: str = "ablate", root: Path = ROOT) -> set[Path]:
+    """The source files of ``package`` that the dotted ``targets`` (``ablate.tasks.instance.InstanceTask``)
+    import, transitively, with the files of the packages on the way (their ``__init__``)."""
+    todo, seen, files = list(targets), set(), set()
+    while todo:
+        name = todo.pop()
+        if name in seen or not (name == package or name.startswith(package + ".")):
+            continue
+        seen.add(name)
+        parts = name.split(".")
+        for i in range(1, len(parts) + 1):  # the module itself, or its parents for a class or function name
+            path = module_file(".".join(parts[:i]), root)
+            if path is not None and path not in files:
+                files.add(path)
+                todo.extend(_imported(path, package))
+    return files
+
+
+def changed_since(commit: str, paths: list[str] = ("ablate", "conf"), root: Path = ROOT) -> set[Path] | None:
+    """Files under ``paths`` that differ between ``commit`` and the working tree; None when git cannot tell (no
+    checkout, an unknown commit)."""
+    sha = commit.removesuffix("-dirty")
+    try:
+        out = subprocess.run(["git", "diff", "--name-only", sha, "--", *paths], cwd=root, capture_output=True,
+                             text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return {(root / line).resolve() for line in out.splitlines() if line}
+
+
+def stale(commits: set[str], targets: set[str], root: Path = ROOT, package: str = "ablate") -> dict[str, list[str]]:
+    """{commit: files the runs depend on that changed since it}, for the commits with such files; a commit git
+    does not know maps to ``["unknown commit"]``."""
+    deps = {p.resolve() for p in dependencies(targets, package, root)}
+    out = {}
+    for commit in sorted(commits):
+        changed = changed_since(commit, [package], root)
+        if changed is None:
+            out[commit] = ["unknown commit"]
+        elif hit := sorted(str(p.relative_to(root)) for p in changed & deps):
+            out[commit] = hit
+    return out

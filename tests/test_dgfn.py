@@ -1,0 +1,85 @@
+"""DGFN Tables I and II end to end at scale=smoke, as a user runs them, and the detection task on real KITTI."""
+import math
+
+import pytest
+
+from test_cli import TINY, ablate, runs
+
+CONDITIONS = ["full", "normal", "camera_blank", "lidar_blank", "camera_occlusion", "lidar_occlusion", "camera_noise",
+              "camera_illumination"]
+
+
+@pytest.fixture(scope="module")
+def tables(tmp_path_factory):
+    cwd = tmp_path_factory.mktemp("dgfn")
+    first = ablate(cwd, "-m", "experiment=dgfn_table1", *TINY)
+    second = ablate(cwd, "-m", "experiment=dgfn_table2", *TINY)
+    return cwd, first, second
+
+
+def table_rows(text: str) -> list[str]:
+    return [line.split("|")[1].strip() for line in text.splitlines() if line.startswith("| ")][1:]
+
+
+def test_table1_tests_each_model_under_every_condition(tables):
+    cwd, first, _ = tables
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    client, jobs = runs(cwd, "dgfn_table1")
+    assert sorted(r.data.tags["row"] for r in jobs) == ["dgfn", "dgfn_baseline"]
+    assert {r.info.status for r in jobs} == {"FINISHED"}
+    for job in jobs:
+        metrics = job.data.metrics
+        for condition in CONDITIONS:
+            for key in ("car_easy", "car_moderate", "car_hard", "car_moderate_ap40", "gate_rgb", "gate_dhi"):
+                assert f"{condition}/{key}" in metrics, f"{condition}/{key}"
+        assert "camera_noise-s2/car_moderate" in metrics and "camera_blank-s2/car_moderate" not in metrics
+        assert "latency_ms" in metrics and job.data.params["model._target_"] == "ablate.tasks.detection.DGFN"
+    gated = next(r for r in jobs if r.data.tags["row"] == "dgfn").data.metrics
+    baseline = next(r for r in jobs if r.data.tags["row"] == "dgfn_baseline").data.metrics
+    assert baseline["camera_blank/gate_rgb"] == 1.0 and 0 < gated["camera_blank/gate_rgb"] < 1
+    assert not math.isclose(gated["camera_blank/gate_rgb"], gated["normal/gate_rgb"])
+    dgfn = next(r for r in jobs if r.data.tags["row"] == "dgfn")
+    assert {"gates.png", "predictions.png"} <= {a.path for a in client.list_artifacts(dgfn.info.run_id)}
+
+
+def test_table1_is_written_with_conditions_as_rows(tables):
+    cwd, _, _ = tables
+    text = (cwd / "results" / "dgfn_table1.md").read_text()
+    assert table_rows(text.split("Per model")[0]) == [
+        "Full", "Lidar + RGB (normal)", "Lidar + RGB (blank)", "Lidar (blank) + RGB", "Lidar + RGB (occlusion)",
+        "Lidar (occlusion) + RGB", "Lidar + RGB (noise)", "Lidar + RGB (illumination)", "Kendall τ vs paper (n)"]
+    assert "Proposed (with GFU): Easy (paper)" in text and "98.69" in text and "72.21" in text
+    assert "Δ Moderate (Full) vs Baseline (without GFU) [95% CI]" in text and "side by side" in text
+    gates = (cwd / "results" / "dgfn_table1_gates.md").read_text()
+    assert "w_C (camera)" in gates and len(table_rows(gates)) == 8
+    for name in ("dgfn_table1.png", "dgfn_table1_robustness.png", "dgfn_table1_gates.png"):
+        assert (cwd / "results" / name).stat().st_size > 0, name
+    before = (cwd / "results" / "dgfn_table1.md").read_bytes()
+    report = ablate(cwd, "experiment=dgfn_table1", module="ablate.report")
+    assert report.returncode == 0, report.stderr[-3000:]
+    assert (cwd / "results" / "dgfn_table1.md").read_bytes() == before
+
+
+def test_table2_reuses_table1s_dgfn_and_lists_the_papers_other_systems(tables):
+    cwd, _, second = tables
+    assert second.returncode == 0, second.stdout[-3000:] + second.stderr[-3000:]
+    assert "Reusing dgfn (seed 0)" in second.stdout
+    _, jobs = runs(cwd, "dgfn_table2")
+    assert sorted(r.data.tags["row"] for r in jobs) == ["dgfn", "ssd_dhi", "ssd_rgb"]
+    ssd_rgb = next(r for r in jobs if r.data.tags["row"] == "ssd_rgb")
+    assert ssd_rgb.data.params["model.single"] == "rgb" and ssd_rgb.data.params["task.train_corruptions"] == "None"
+    text = (cwd / "results" / "dgfn_table2.md").read_text()
+    assert table_rows(text) == ["SSD* [3]", "SSD* [3]", "3DOP [18]", "Mono3D [19]", "Deep MANTA [20]", "MV3D [7]",
+                                "Our DGFN"]
+    assert "| Stereo" in text and "paper only" in text and "97.58" in text and "Kendall τ" in text
+    assert "Rows without a finished run" not in text
+
+
+def test_detection_runs_on_real_kitti_boxes(kitti_root, tmp_path):
+    out = ablate(tmp_path, "experiment=dgfn_table1", "row=dgfn", "data=kitti", f"data.root={kitti_root / 'object'}",
+                 "task.classes=[Car,Pedestrian,Cyclist]", "task.eval_severities=[]", *TINY)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    _, (job,) = runs(tmp_path, "dgfn_table1")
+    assert job.info.status == "FINISHED" and job.data.params["data.root"].endswith("kitti/object")
+    assert {"normal/cyclist_moderate", "full/car_easy", "lidar_blank/gate_dhi"} <= set(job.data.metrics)
+    assert not (tmp_path / "data" / "synth").exists() and any((tmp_path / "data" / "cache").iterdir())

@@ -1,0 +1,37 @@
+"""Stale runs: the modules a run's config builds, their imports, and what changed since the run's commit."""
+import subprocess
+
+from ablate.provenance import ROOT, dependencies, stale
+
+
+def test_dependencies_follow_imports_from_the_config_targets():
+    files = {str(p.relative_to(ROOT)) for p in dependencies({"ablate.tasks.instance.InstanceTask"})}
+    assert "ablate/tasks/instance.py" in files
+    assert "ablate/tasks/yolact/anchors.py" in files      # imported by instance.py
+    assert "ablate/__init__.py" in files and "ablate/tasks/__init__.py" in files
+    assert "ablate/report.py" not in files and "ablate/latency.py" not in files
+
+
+def git(cwd, *args):
+    return subprocess.run(["git", *args], cwd=cwd, check=True, capture_output=True, text=True).stdout.strip()
+
+
+def test_a_change_to_an_imported_module_makes_runs_stale_and_others_do_not(tmp_path):
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "model.py").write_text("from pkg.layers import conv\n\nclass Net:\n    pass\n")
+    (pkg / "layers.py").write_text("def conv():\n    return 1\n")
+    (pkg / "report.py").write_text("import pkg.model\n")
+    git(tmp_path, "init", "-q")
+    git(tmp_path, "add", ".")
+    git(tmp_path, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "one")
+    sha = git(tmp_path, "rev-parse", "HEAD")
+    targets = {"pkg.model.Net"}
+    assert stale({sha}, targets, tmp_path, "pkg") == {}
+    (pkg / "report.py").write_text("import pkg.model  # a table-only change\n")
+    assert stale({sha}, targets, tmp_path, "pkg") == {}
+    (pkg / "layers.py").write_text("def conv():\n    return 2\n")
+    assert stale({sha}, targets, tmp_path, "pkg") == {sha: ["pkg/layers.py"]}
+    assert stale({sha + "-dirty"}, targets, tmp_path, "pkg") == {sha + "-dirty": ["pkg/layers.py"]}
+    assert stale({"0" * 40}, targets, tmp_path, "pkg") == {"0" * 40: ["unknown commit"]}
