@@ -22,17 +22,25 @@ from torch import Tensor, nn
 OPERATORS: dict[str, type[FusionOp]] = {}
 
 
-def register(name: str):
-    """Class decorator adding a fusion operator to ``OPERATORS`` under ``name``."""
+def registry(table: dict, kind: str, attribute: str):
+    """A class decorator factory: ``@reg(name)`` adds the class to ``table`` under ``name`` and sets
+    ``cls.<attribute> = name``; a name registered twice is an error naming ``kind``."""
 
-    def add(cls: type[FusionOp]) -> type[FusionOp]:
-        if name in OPERATORS:
-            raise ValueError(f"fusion operator {name!r} registered twice")
-        cls.op_name = name
-        OPERATORS[name] = cls
-        return cls
+    def reg(name: str):
+        def add(cls):
+            if name in table:
+                raise ValueError(f"{kind} {name!r} registered twice")
+            setattr(cls, attribute, name)
+            table[name] = cls
+            return cls
 
-    return add
+        return add
+
+    return reg
+
+
+#: Class decorator adding a fusion operator to ``OPERATORS`` under a name.
+register = registry(OPERATORS, "fusion operator", "op_name")
 
 
 def build(name: str, channels: int, num_inputs: int = 2, **options) -> nn.Module:

@@ -23,21 +23,13 @@ import torch
 from torch import Tensor
 
 from ablate.fusion.geometry import Geometry, backproject, project
+from ablate.fusion.ops import registry
 
 SPACES: dict[str, type[SpaceTransform]] = {}
 
 
-def register_space(name: str):
-    """Class decorator adding a space transform to ``SPACES`` under ``name``."""
-
-    def add(cls: type[SpaceTransform]) -> type[SpaceTransform]:
-        if name in SPACES:
-            raise ValueError(f"space transform {name!r} registered twice")
-        cls.space_name = name
-        SPACES[name] = cls
-        return cls
-
-    return add
+#: Class decorator adding a space transform to ``SPACES`` under a name.
+register_space = registry(SPACES, "space transform", "space_name")
 
 
 def build_space(name: str) -> SpaceTransform:

@@ -98,14 +98,6 @@ class InstanceTask(FusionTask):
         self.test_group_map = nn.ModuleDict({f"map_{g}": MaskAP() for g in self.groups})  # "clear" is a method name
 
     # -- batch access ---------------------------------------------------------------------------------------
-    def image_size(self, batch: dict) -> tuple[int, int]:
-        """(H, W) of the model's inputs in ``batch``."""
-        names = list(getattr(self.model, "modalities", None) or [])
-        for key in names or [k for k, v in batch.items() if torch.is_tensor(v) and v.ndim == 4]:
-            if key in batch:
-                return tuple(batch[key].shape[-2:])
-        raise KeyError(f"InstanceTask: batch has no image tensor (need one of {names}); got {sorted(batch)}")
-
     @staticmethod
     def targets(batch: dict) -> list[dict[str, torch.Tensor]]:
         """Per image ``masks``, ``labels``, ``boxes`` and, when the batch has it, ``ignore``."""
@@ -160,16 +152,7 @@ class InstanceTask(FusionTask):
     def _forward_frames(self, batch: dict, index: list[int]) -> tuple[dict, dict]:
         """Run the model in eval mode on frames ``index``; returns (their sub-batch, raw outputs)."""
         sub = select(batch, index)
-        device = next(self.model.parameters()).device
-        inputs = {k: v.to(device) for k, v in sub.items() if torch.is_tensor(v)}
-        was_training = self.model.training
-        self.model.eval()
-        try:
-            with torch.no_grad():
-                outputs = self.model(inputs)
-        finally:
-            self.model.train(was_training)
-        return sub, outputs
+        return sub, self.forward_eval(sub)
 
     def figure(self, batch: dict, score: float = 0.5):
         """Ground truth and predicted masks (score >= ``score``) over the RGB of the first frames, as SMoE Fig. 6."""
