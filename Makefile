@@ -9,8 +9,8 @@ $(VENV)/.installed: pyproject.toml
 	python3 -m venv $(VENV)
 	# torch first and pinned: the CPU wheel; a looser range could pull a multi-GB CUDA build.
 	$(PY) -m pip install --quiet torch==2.13.0
-	# the launchers' and the tracking server's extras too: their tests are part of `make test`
-	$(PY) -m pip install --quiet -e ".[test,slurm,ray,server]"
+	# the launchers', the tracking server's and the browser test's extras too: their tests are part of `make test`
+	$(PY) -m pip install --quiet -e ".[test,slurm,ray,server,browser]"
 	touch $@
 
 setup: $(VENV)/.installed

@@ -25,7 +25,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from ablate.tracking import KIND_SWEEP, Tracker, git_commit
+from ablate.tracking import KIND_SWEEP, Tracker, git_commit, is_server
 
 log = logging.getLogger(__name__)
 PARENT_FILE = ".parent_run"
@@ -207,6 +207,17 @@ class SweepCallback(Callback):
             failures.append(Path("report"))
         if parent:
             tracker.end(parent, "FAILED" if failures else "FINISHED")
+            try:
+                from ablate.report import COSTS, table_spec
+
+                spec = table_spec(config)
+                cond = spec.get("primary_condition")  # a rows table read under one test condition
+                metrics = [f"{cond}/{m}" if cond and m not in COSTS else m for m in spec.metrics]
+                link = tracker.share_table_view(tracker.experiment_id(config.table.name), metrics)
+                where = "" if is_server(tracker.uri) else f" (`mlflow ui` in {config.hydra.runtime.cwd})"
+                log.info("Runs in the MLflow UI%s: %s", where, link)
+            except Exception as err:  # a convenience: never the reason a sweep fails
+                log.warning("Could not store the MLflow UI view of the table: %s", err)
         if failures:
             log.error("%d job(s) failed:", len(failures))
             for path in failures:

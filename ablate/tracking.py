@@ -43,9 +43,14 @@ UNHASHED = ("force", "logger", "hydra", "table", "trainer.enable_progress_bar", 
             "comp_time.after_sweep")
 #: Tags every job run carries; the report reads them.
 KIND_JOB, KIND_SWEEP = "job", "sweep"
-#: Every experiment's kind, so that ``mlflow ui`` opens it on its runs, not on the GenAI view of traces that
-#: MLflow 3 shows an experiment without this tag.
+#: Every experiment's kind (model training, not GenAI). MLflow 3.17's UI still opens on its GenAI view until the
+#: browser's "Model training" switch is set (a per-browser setting, default GenAI), so a sweep also prints
+#: :func:`runs_link`, which sets it.
 EXPERIMENT_KIND = {"mlflow.experimentKind": "custom_model_development"}
+#: The MLflow UI's shared views: an experiment tag ``mlflow.sharedViewState.<key>`` holding the runs table's state as
+#: JSON, opened by ``#/experiments/<id>/runs?viewStateShareKey=<key>`` (MLflow 3.17's "Share" button writes the same
+#: tag; its reader also takes plain JSON, and keeps only the keys it shares: ``selectedColumns``, ``orderByKey``, ...).
+SHARED_VIEW_TAG, SHARED_VIEW_KEY = "mlflow.sharedViewState.", "ablate-table"
 
 
 @contextmanager
@@ -309,6 +314,24 @@ class Tracker:
 
     def log_text(self, run_id: str, text: str, name: str) -> None:
         retry(self.client.log_text, run_id, text, name)
+
+    def share_table_view(self, experiment_id: str, metrics: list[str]) -> str:
+        """Store the runs table view of a table's experiment, with the table's ``metrics`` as columns and the
+        newest runs first, under :data:`SHARED_VIEW_KEY`, and return its address in the MLflow UI
+        (:func:`runs_link`). A sweep's jobs stay folded under its parent run until its [+] is clicked: the UI does
+        not take which runs are expanded from a shared view."""
+        state = {"selectedColumns": [f"metrics.`{m}`" for m in metrics],
+                 "orderByKey": "attributes.start_time", "orderByAsc": False}
+        retry(self.client.set_experiment_tag, experiment_id, SHARED_VIEW_TAG + SHARED_VIEW_KEY, json.dumps(state))
+        return runs_link(self.uri, experiment_id)
+
+
+def runs_link(uri: str, experiment_id: str) -> str:
+    """Where the MLflow UI shows ``experiment_id``'s runs with the view of :meth:`Tracker.share_table_view`: on the
+    tracking server itself when ``uri`` is one, else on ``mlflow ui``'s default address (127.0.0.1:5000)."""
+    base = uri.rstrip("/") if is_server(uri) else "http://127.0.0.1:5000"
+    return (f"{base}/#/experiments/{experiment_id}/runs"
+            f"?viewStateShareKey={SHARED_VIEW_KEY}&workflowType=machine_learning")
 
 
 class RunLogger(Logger):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
 import socket
 import sys
@@ -27,7 +28,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
+from omegaconf.errors import OmegaConfBaseException, ValidationError
 
 from ablate.experts import attach as attach_experts
 from ablate.experts import feature_cache
@@ -71,9 +72,24 @@ class Outcome:
     ckpt_dir: Path
 
 
+def check_stage(cfg: DictConfig) -> None:
+    """Every option of ``stage`` but its name must be one the model's config reads (``${stage.<option>}`` or
+    ``${oc.select:stage.<option>,...}``, conf/model/): a misspelt or misplaced option (``+stage.spcae=shpl``, or
+    ``stage.space`` on a model without space transforms) raises a ValidationError naming it, instead of the
+    model silently taking its default."""
+    model = OmegaConf.to_yaml(OmegaConf.to_container(cfg.get("model") or {}, resolve=False))
+    reads = sorted(set(re.findall(r"stage\.(\w+)", model)) - {"name"})
+    for option in cfg.get("stage") or {}:
+        if option != "name" and option not in reads:
+            raise ValidationError(f"stage.{option}: not an option of model {cfg.model.get('_target_', '?')!r}, "
+                                  f"which reads stage.{{{', '.join(['name', *reads])}}}")
+
+
 def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcome:
     """Run one job tracked as an MLflow run of ``cfg.table.name``; raise :class:`JobFailed` after recording a
-    FAILED run, and re-raise an interrupt after recording KILLED."""
+    FAILED run, and re-raise an interrupt after recording KILLED. A config whose stage options no model reads
+    fails first (:func:`check_stage`)."""
+    check_stage(cfg)
     tracker = Tracker.from_config(cfg)
     exp = tracker.experiment_id(cfg.table.name)
     chash = config_hash(cfg)

@@ -57,7 +57,7 @@ def free_port() -> int:
 
 
 def need(*modules: str) -> None:
-    """Skip the test, naming them, when ``modules`` are not installed (``pip install -e .[slurm,ray,server]``)."""
+    """Skip the test, naming them, when ``modules`` are not installed (``pip install -e .[slurm,ray,server,browser]``)."""
     missing = [m for m in modules if importlib.util.find_spec(m) is None]
     if missing:
-        pytest.skip(f"not installed: {', '.join(missing)} (pip install -e .[slurm,ray,server])")
+        pytest.skip(f"not installed: {', '.join(missing)} (pip install -e .[slurm,ray,server,browser])")

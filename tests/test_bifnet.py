@@ -96,3 +96,25 @@ def test_table4_end_to_end_at_smoke_scale(tmp_path):
     assert [r.split("|")[1].strip() for r in rows] == ["Image", "LiDAR BEV", "Image + LiDAR BEV + DST (addition)",
                                                        "Image + LiDAR BEV + DST + CBF"]
     assert "MaxF (paper)" in text and "96.21" in text and "AP (paper)" in text and "PRE (ours)" in text
+
+
+@pytest.mark.parametrize("overrides, option", [
+    (["row=bifnet_shpl_sum", "+stage.spcae=dst"], "stage.spcae"),  # meant DST; would silently stay SHPL
+    (["+stage.space=shpl"], "stage.space"),                        # the SMoE fusion model has no space transform
+])
+def test_a_stage_option_the_model_does_not_read_is_refused_by_name(overrides, option):
+    from omegaconf.errors import ValidationError
+
+    from ablate.train import check_stage
+
+    with pytest.raises(ValidationError, match=option):
+        check_stage(config(*overrides))
+
+
+@pytest.mark.parametrize("table", sorted(TABLES) + ["smoe_table1", "smoe_table2", "chinet_table2", "dgfn_table1"])
+def test_every_row_of_the_tables_passes_the_stage_check(table):
+    from ablate.train import check_stage
+
+    for row in config(f"experiment={table}").table.rows:
+        if not row.get("paper_only"):
+            check_stage(config(f"experiment={table}", f"row={row.row}"))

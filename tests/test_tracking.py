@@ -4,7 +4,7 @@ import sqlite3
 import pytest
 from omegaconf import OmegaConf
 
-from ablate.tracking import Tracker, config_hash, flatten, retry
+from ablate.tracking import SHARED_VIEW_KEY, SHARED_VIEW_TAG, Tracker, config_hash, flatten, retry, runs_link
 
 
 def _cfg(**over):
@@ -91,3 +91,17 @@ def test_sweeps_whose_process_died_are_closed_as_killed(tmp_path):
     assert close_dead_sweeps(tracker, exp) == 1
     status = {r: tracker.client.get_run(r).info.status for r in (gone, alive, elsewhere)}
     assert status == {gone: "KILLED", alive: "RUNNING", elsewhere: "RUNNING"}
+
+
+def test_the_table_view_is_an_mlflow_shared_view_with_the_metric_columns(tmp_path):
+    import json
+
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db")
+    exp = tracker.experiment_id("chinet_table2")
+    link = tracker.share_table_view(exp, ["det_rate", "normal/ap11"])
+    state = json.loads(tracker.client.get_experiment(exp).tags[SHARED_VIEW_TAG + SHARED_VIEW_KEY])
+    assert state["selectedColumns"] == ["metrics.`det_rate`", "metrics.`normal/ap11`"]  # the UI's column keys
+    assert link == (f"http://127.0.0.1:5000/#/experiments/{exp}/runs?viewStateShareKey={SHARED_VIEW_KEY}"
+                    "&workflowType=machine_learning")
+    # on a tracking server the link is the server's own UI
+    assert runs_link("http://10.0.0.2:5001/", "7").startswith("http://10.0.0.2:5001/#/experiments/7/runs?")

@@ -1,0 +1,107 @@
+"""End to end in a browser: after a smoke sweep, plain ``mlflow ui`` in the launch directory shows the sweep's parent
+run with its jobs and the table's metric columns, through the link the sweep prints (ablate.tracking.runs_link) and
+through the clicks a user makes from the home page.
+
+Needs Debian's Chromium (``apt-get install chromium``; .ci/run installs it) and Playwright's Python driver (the
+``browser`` extra); it is skipped, saying which is missing, otherwise.
+"""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from tests.scaleout import TINY, ablate, free_port, need, output, runs
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+#: Chromium as root in a sandbox with no network: no sandbox, no GPU, none of its background connections.
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+ROWS = ("chinet seed=0", "unet seed=0", "fusenet seed=0")
+
+
+@pytest.fixture(scope="module")
+def ui(tmp_path_factory) -> tuple[Path, str, str]:
+    """A smoke ChiNet Table II sweep in a fresh directory, then ``mlflow ui`` there on a free port: (the directory,
+    the address of the UI, the link the sweep printed, pointed at that port)."""
+    if CHROMIUM is None:
+        pytest.skip("Chromium is not installed (apt-get install chromium)")
+    need("playwright")
+    cwd = tmp_path_factory.mktemp("ui")
+    out = ablate(cwd, "-m", "experiment=chinet_table2", *TINY)
+    assert out.returncode == 0, output(out)
+    found = re.search(r"Runs in the MLflow UI.*?: (http://127\.0\.0\.1:5000/\S+)", out.stdout + out.stderr)
+    assert found, output(out)
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    server = subprocess.Popen([str(Path(sys.executable).parent / "mlflow"), "ui", "--host", "127.0.0.1",
+                               "--port", str(port)], cwd=cwd, env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.STDOUT, start_new_session=True)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                with urllib.request.urlopen(f"{base}/health", timeout=2) as resp:
+                    if resp.status == 200:
+                        break
+            except OSError:
+                pass
+            assert server.poll() is None, "mlflow ui exited"
+            assert time.monotonic() < deadline, "mlflow ui did not answer within 120 s"
+            time.sleep(1)
+        yield cwd, base, found.group(1).replace("http://127.0.0.1:5000", base)
+    finally:
+        os.killpg(server.pid, signal.SIGTERM)
+        try:
+            server.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(server.pid, signal.SIGKILL)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    need("playwright")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        chromium = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield chromium
+        chromium.close()
+
+
+def test_printed_link_shows_the_parent_its_jobs_and_the_metric_columns(ui, browser):
+    cwd, _, link = ui
+    page = browser.new_page(viewport={"width": 2400, "height": 1000})
+    page.goto(link)
+    page.get_by_text("sweep ").first.wait_for(timeout=60_000)
+    page.locator(".ag-row", has_text="sweep ").first.locator("button").first.click()  # unfold the sweep's jobs
+    for name in ROWS:
+        page.get_by_text(name, exact=True).first.wait_for(timeout=20_000)
+    headers = " ".join(page.locator(".ag-header-cell").all_inner_texts())
+    for metric in ("det_rate", "iou_free_space", "iou_road_objects", "latency_ms"):
+        assert metric in headers, headers
+    # the job's row (its name and its values are two grid rows of one row-index) carries its Det. Rate
+    index = page.locator(".ag-row", has_text="unet seed=0").first.get_attribute("row-index")
+    cells = " ".join(page.locator(f'.ag-row[row-index="{index}"]').all_inner_texts())
+    _, jobs = runs(f"sqlite:///{cwd}/mlflow.db", "chinet_table2")
+    unet = next(r for r in jobs if r.info.run_name == "unet seed=0")
+    assert repr(unet.data.metrics["det_rate"]) in cells, cells
+
+
+def test_a_user_clicks_from_the_home_page_to_the_runs(ui, browser):
+    _, base, _ = ui
+    page = browser.new_context(viewport={"width": 1600, "height": 1000}).new_page()
+    page.goto(base + "/")
+    page.get_by_text("Model training", exact=True).first.click()
+    page.get_by_text("chinet_table2", exact=True).first.click()
+    page.get_by_text("sweep ").first.wait_for(timeout=60_000)
+    assert "workflowType=machine_learning" in page.url, page.url
