@@ -12,6 +12,14 @@ Metrics (the paper gives no definition of "Det. Rate %", so this is the reading 
 - ``iou_free_space`` and ``iou_road_objects``: per-class intersection over union, in percent.
 A multilabel prediction becomes a class map as: object where p(object) > 0.5, else free space where
 p(free space) > 0.5, else background — the same precedence the labels use.
+
+``class_weights`` (multiclass loss only; ChiNet §III-B says categorical cross-entropy and no weighting, which is the
+default ``None``): ``"median_frequency"`` weights class c by median(f) / f_c, f_c its share of the training
+split's pixels (median frequency balancing, Eigen & Fergus, ICCV 2015, with the share over all pixels rather than
+over the images holding c), counted once at the start of the fit and kept in the checkpoint (``class_weight``);
+or a list of 3 weights. The multilabel loss already gives road objects a term of its own. No table row sets it:
+tried on the FuseNet seed whose road objects never appeared at the cpu scale (ChiNet Table II, seed 1), it left
+their IoU at 0, so class imbalance alone does not explain that seed.
 """
 from __future__ import annotations
 
@@ -62,6 +70,21 @@ def class_map(outputs: dict[str, torch.Tensor], size: tuple[int, int]) -> torch.
     return torch.where(obj, 2, torch.where(free, 1, 0))
 
 
+def median_frequency(batches) -> torch.Tensor:
+    """Median frequency balancing weights median(f) / f_c from the ``semantic`` labels of ``batches``; a class
+    absent from every label gets weight 0 (it has no pixel to weigh)."""
+    counts = torch.zeros(len(CLASSES), dtype=torch.float64)
+    for batch in batches:
+        counts += torch.bincount(batch["semantic"].flatten(), minlength=len(CLASSES))[:len(CLASSES)].double()
+    if counts.sum() == 0:
+        raise ValueError("task.class_weights=median_frequency: the training split has no labelled pixel")
+    freq = counts / counts.sum()
+    present = freq > 0
+    weight = torch.zeros_like(freq)
+    weight[present] = freq[present].median() / freq[present]
+    return weight.float()
+
+
 def _up(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     return x if x.shape[-2:] == tuple(size) else F.interpolate(x, size=size, mode="bilinear", align_corners=False)
 
@@ -70,18 +93,33 @@ class SemanticTask(FusionTask):
     """Free space + road objects with ChiNet's losses and the metrics above."""
 
     def __init__(self, model: nn.Module, optimizer, scheduler=None, monitor: str = "val/det_rate",
-                 figure_frames: int = 4) -> None:
+                 figure_frames: int = 4, class_weights: str | list[float] | None = None) -> None:
         super().__init__(model, optimizer, scheduler, monitor)
         self.figure_frames = figure_frames
+        if isinstance(class_weights, str) and class_weights != "median_frequency" or \
+                class_weights is not None and not isinstance(class_weights, str) and len(class_weights) != 3:
+            raise ValueError(f"task.class_weights: 'median_frequency', a list of {len(CLASSES)} weights or null; "
+                             f"got {class_weights!r}")
+        self.class_weights = class_weights
+        if class_weights is not None:  # filled at the start of the fit, or from a checkpoint
+            given = [float(w) for w in class_weights] if not isinstance(class_weights, str) else [0.0] * 3
+            self.register_buffer("class_weight", torch.tensor(given))
         for stage in ("val", "test"):
             setattr(self, f"{stage}_rate", MulticlassRecall(num_classes=3, average="micro", ignore_index=0))
             setattr(self, f"{stage}_iou", MulticlassJaccardIndex(num_classes=3, average="none"))
 
+    def on_fit_start(self) -> None:
+        super().on_fit_start()
+        if self.class_weights == "median_frequency" and not bool(self.class_weight.any()):
+            self.class_weight.copy_(median_frequency(self.trainer.datamodule.train_dataloader()))
+
     def loss(self, outputs: dict[str, torch.Tensor], batch: dict) -> torch.Tensor:
-        """BCE per output branch (multilabel, ChiNet), or cross-entropy over 3 classes (multiclass variants)."""
+        """BCE per output branch (multilabel, ChiNet), or cross-entropy over 3 classes (multiclass variants),
+        weighted by ``class_weight`` when the task has one."""
         size = batch["semantic"].shape[-2:]
         if "semantic" in outputs:
-            return F.cross_entropy(_up(outputs["semantic"], size), batch["semantic"])
+            weight = getattr(self, "class_weight", None)
+            return F.cross_entropy(_up(outputs["semantic"], size), batch["semantic"], weight=weight)
         return sum(F.binary_cross_entropy_with_logits(_up(outputs[name], size), batch[name]) for name in BRANCHES)
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:

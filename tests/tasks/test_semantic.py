@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from ablate.tasks.base import NonFiniteLossError, poly_lr
-from ablate.tasks.semantic import SegmentationHead, SemanticTask, class_map
+from ablate.tasks.semantic import SegmentationHead, SemanticTask, class_map, median_frequency
 
 
 class Fixed(torch.nn.Module):
@@ -58,6 +58,33 @@ def test_multilabel_loss_is_bce_per_branch():
              "road_objects": torch.zeros(1, 1, 2, 2)}
     loss = _task({"free_space": free, "road_objects": obj}).loss({"free_space": free, "road_objects": obj}, batch)
     assert loss.item() == pytest.approx(2 * torch.log(torch.tensor(2.0)).item())
+
+
+def test_median_frequency_weights_are_the_median_share_over_each_class_share():
+    # pixel shares 6/10 background, 3/10 free space, 1/10 objects: median 3/10 -> weights 0.5, 1, 3
+    labels = torch.tensor([[0, 0, 0, 0, 0, 0, 1, 1, 1, 2]])
+    batches = [{"semantic": labels[:, :5]}, {"semantic": labels[:, 5:]}]
+    assert median_frequency(batches).tolist() == pytest.approx([0.5, 1.0, 3.0])
+    # a class no label holds weighs nothing, and the median is over the classes present
+    assert median_frequency([{"semantic": torch.tensor([0, 0, 0, 1])}]).tolist() == pytest.approx([1 / 3, 1.0, 0.0])
+
+
+def test_weighted_multiclass_loss_is_torchs_weighted_cross_entropy():
+    logits = torch.randn(2, 3, 4, 5)
+    target = torch.randint(0, 3, (2, 4, 5))
+    task = SemanticTask(Fixed({"semantic": logits}), functools.partial(torch.optim.SGD, lr=0.1),
+                        class_weights=[0.5, 1.0, 3.0])
+    loss = task.loss({"semantic": logits}, {"semantic": target})
+    w = torch.tensor([0.5, 1.0, 3.0])[target]  # sum of w_i * nll_i over sum of w_i
+    nll = -logits.log_softmax(1).gather(1, target[:, None])[:, 0]
+    assert loss.item() == pytest.approx(((w * nll).sum() / w.sum()).item(), rel=1e-5)
+    assert "class_weight" in task.state_dict()  # kept in the checkpoint
+
+
+@pytest.mark.parametrize("bad", ["inverse", [1.0, 2.0]])
+def test_unknown_class_weights_name_the_option(bad):
+    with pytest.raises(ValueError, match="task.class_weights"):
+        SemanticTask(Fixed({}), functools.partial(torch.optim.SGD, lr=0.1), class_weights=bad)
 
 
 def test_nan_loss_stops_the_job_with_a_clear_message():
