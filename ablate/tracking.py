@@ -176,11 +176,13 @@ def flatten(data: Any, prefix: str = "") -> dict[str, str]:
 
 
 def git_commit() -> str:
-    """The current git commit (with ``-dirty`` when the tree has changes), or ``unknown`` outside a checkout."""
+    """The current git commit (with ``-dirty`` when tracked files have changes), or ``unknown`` outside a checkout.
+    ``results/`` does not count: the tables a sweep writes there are outputs, and would otherwise mark every run of
+    the next sweep dirty."""
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":!results"],
+                               capture_output=True, text=True, check=True).stdout.strip()
         return sha + ("-dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"

@@ -4,7 +4,8 @@ import sqlite3
 import pytest
 from omegaconf import OmegaConf
 
-from ablate.tracking import SHARED_VIEW_KEY, SHARED_VIEW_TAG, Tracker, config_hash, flatten, retry, runs_link
+from ablate.tracking import SHARED_VIEW_KEY, SHARED_VIEW_TAG, Tracker, config_hash, flatten, git_commit, retry, \
+    runs_link
 
 
 def _cfg(**over):
@@ -105,3 +106,24 @@ def test_the_table_view_is_an_mlflow_shared_view_with_the_metric_columns(tmp_pat
                     "&workflowType=machine_learning")
     # on a tracking server the link is the server's own UI
     assert runs_link("http://10.0.0.2:5001/", "7").startswith("http://10.0.0.2:5001/#/experiments/7/runs?")
+
+
+def test_a_run_is_dirty_for_changed_code_not_for_the_tables_a_sweep_wrote(tmp_path, monkeypatch):
+    import subprocess
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "t.md").write_text("old table")
+    (tmp_path / "model.py").write_text("x = 1")
+    git("init", "-q")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "c")
+    monkeypatch.chdir(tmp_path)
+    clean = git_commit()
+    assert len(clean) == 40
+    (tmp_path / "results" / "t.md").write_text("regenerated table")
+    assert git_commit() == clean
+    (tmp_path / "model.py").write_text("x = 2")
+    assert git_commit() == clean + "-dirty"
