@@ -13,12 +13,11 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 
+from scripts.tracking_server import wait_healthy
 from tests.scaleout import TINY, ablate, free_port, need, output, runs
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -42,22 +41,14 @@ def ui(tmp_path_factory) -> tuple[Path, str, str]:
     assert found, output(out)
     port = free_port()
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
-    server = subprocess.Popen([str(Path(sys.executable).parent / "mlflow"), "ui", "--host", "127.0.0.1",
-                               "--port", str(port)], cwd=cwd, env=env, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.STDOUT, start_new_session=True)
+    log = cwd / "mlflow_ui.log"
+    with log.open("w") as out:
+        server = subprocess.Popen([str(Path(sys.executable).parent / "mlflow"), "ui", "--host", "127.0.0.1",
+                                   "--port", str(port)], cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT,
+                                  start_new_session=True)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                with urllib.request.urlopen(f"{base}/health", timeout=2) as resp:
-                    if resp.status == 200:
-                        break
-            except OSError:
-                pass
-            assert server.poll() is None, "mlflow ui exited"
-            assert time.monotonic() < deadline, "mlflow ui did not answer within 120 s"
-            time.sleep(1)
+        wait_healthy(base, server, log, timeout_s=120)  # fails with the UI's log if it exits or never answers
         yield cwd, base, found.group(1).replace("http://127.0.0.1:5000", base)
     finally:
         os.killpg(server.pid, signal.SIGTERM)
