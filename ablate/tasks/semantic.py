@@ -96,8 +96,8 @@ class SemanticTask(FusionTask):
                  figure_frames: int = 4, class_weights: str | list[float] | None = None) -> None:
         super().__init__(model, optimizer, scheduler, monitor)
         self.figure_frames = figure_frames
-        if isinstance(class_weights, str) and class_weights != "median_frequency" or \
-                class_weights is not None and not isinstance(class_weights, str) and len(class_weights) != 3:
+        if class_weights not in (None, "median_frequency") and (isinstance(class_weights, str)
+                                                                or len(class_weights) != len(CLASSES)):
             raise ValueError(f"task.class_weights: 'median_frequency', a list of {len(CLASSES)} weights or null; "
                              f"got {class_weights!r}")
         self.class_weights = class_weights
