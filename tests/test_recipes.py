@@ -56,3 +56,14 @@ def test_a_new_scale_without_a_recipe_names_the_missing_recipe(tmp_path):
     (conf / "scale" / "gpu.yaml").write_text((CONF / "scale" / "paper.yaml").read_text().replace("paper", "gpu"))
     with pytest.raises(MissingConfigException, match="recipe/instance_gpu"):
         compose_with("scale=gpu", conf=conf)
+
+
+@pytest.mark.parametrize("scale,dropout", [("smoke", 0.0), ("cpu", 0.0), ("paper", 0.2)])
+@pytest.mark.parametrize("row", ["chinet", "unet", "fusenet", "simo", "miso", "iimo"])
+def test_chinet_family_dropout_is_the_papers_at_paper_scale_and_off_on_the_cpu(row, scale, dropout):
+    cfg = compose_with("experiment=chinet_table2", f"row={row}", f"scale={scale}")
+    assert cfg.model.variant == row and cfg.model.dropout == dropout
+
+
+def test_a_chinet_model_outside_the_semantic_recipe_keeps_the_papers_dropout():
+    assert compose_with("model=chinet").model.dropout == 0.2
