@@ -2,6 +2,7 @@
 those same frames (memorising them is the easiest thing a detector can do), at several update counts.
 
     PYTHONPATH=. python bench/bench_detection_capacity.py [--row ssd_dhi] [--frames 16] [--steps 100,300]
+        [--set model.batch_norm=true ...]
 
 Prints per step count: wall seconds, seconds per update, the final training loss and KITTI AP (11-point, Car
 moderate, and the moderate mean over Car and Pedestrian) on the memorised frames. Runs on the generated default
@@ -27,12 +28,13 @@ from hydra.utils import instantiate
 REPO = Path(__file__).resolve().parents[1]
 
 
-def measure(row: str, frames: int, steps: int, seed: int) -> dict[str, float]:
+def measure(row: str, frames: int, steps: int, seed: int, overrides: list[str] = ()) -> dict[str, float]:
     import ablate  # noqa: F401  (registers the config resolvers)
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=[f"row={row}", "task=detection", f"seed={seed}",
-                                           f"+data.limit_frames={{train:{frames},val:{frames},test:{frames}}}"])
+                                           f"+data.limit_frames={{train:{frames},val:{frames},test:{frames}}}",
+                                           *overrides])
     L.seed_everything(seed, workers=True)
     data = instantiate(cfg.data)
     data.prepare_data()
@@ -58,13 +60,14 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=16)
     parser.add_argument("--steps", default="100,300")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a config override")
     args = parser.parse_args()
     os.chdir(REPO)
-    print(f"row {args.row}, {args.frames} frames, {torch.get_num_threads()} thread(s), load average "
+    print(f"row {args.row} {' '.join(args.set)}, {args.frames} frames, {torch.get_num_threads()} thread(s), load average "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print("updates  wall s  s/update  loss   Car moderate %  AP moderate %")
     for steps in (int(s) for s in args.steps.split(",")):
-        r = measure(args.row, args.frames, steps, args.seed)
+        r = measure(args.row, args.frames, steps, args.seed, args.set)
         print(f"{steps:7d}  {r['wall_s']:6.0f}  {r['s_per_update']:8.2f}  {r['loss']:5.2f}  "
               f"{r['car_moderate']:14.1f}  {r['ap11']:13.1f}")
 

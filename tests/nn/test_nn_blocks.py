@@ -42,6 +42,19 @@ def test_vgg16_ssd_sizes_and_parameters():
         net(torch.randn(1, 3, 128, 128))
 
 
+def test_vgg16_ssd_with_batch_norm_has_vgg16_bn_layout_and_the_same_maps():
+    full = VGG16SSD(batch_norm=True)
+    assert sum(p.numel() for p in full.features.parameters()) == 14_723_136  # torchvision vgg16_bn().features
+    conv4_3 = full.features[full.conv4_3 - 2]
+    assert isinstance(conv4_3, torch.nn.Conv2d) and conv4_3.out_channels == 512 and full.conv4_3 == 32
+    assert isinstance(full.features[full.conv4_3], torch.nn.ReLU)
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in full.modules()) == 13 + 2 + 8  # trunk, conv6-7, extras
+    net = VGG16SSD(width=0.125, batch_norm=True)
+    outs = net(torch.randn(2, 3, 300, 300))
+    assert [o.shape[-1] for o in outs] == [38, 19, 10, 5, 3, 1] and [o.shape[1] for o in outs] == net.channels
+    assert not any("bn" in k for k in VGG16SSD(width=0.125).state_dict())  # without it: the old checkpoints' keys
+
+
 def test_vgg16_loads_torchvision_features(tmp_path):
     src = VGG16SSD(width=0.125)
     state = {f"features.{k}": v for k, v in src.features.state_dict().items()} | {"classifier.0.weight": torch.zeros(2, 2)}

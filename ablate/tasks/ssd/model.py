@@ -36,6 +36,9 @@ class DGFN(nn.Module):
     over 15 updates), so the DGFN rows start it at 1 (conf/model/dgfn.yaml) and the single-sensor SSD rows, with
     the predictor right after, at SSD's 20.
 
+    ``batch_norm``: trunks with a BatchNorm after every conv (ScratchDet's remedy for SSD from scratch; see
+    :mod:`ablate.nn.vgg`), not in DGFN.
+
     ``input_size``: the (H, W) every input is resized to (bilinear, antialiased) before the trunks, as SSD300
     warps its input to 300x300; null keeps the data's size (it must then be about 270 px or more on each side, for
     the unpadded conv10_2 / conv11_2). Reading: DGFN does not give its input size; SSD300's is taken. Boxes stay in
@@ -45,7 +48,7 @@ class DGFN(nn.Module):
     def __init__(self, modalities: Mapping[str, int], head: Callable[..., nn.Module],
                  fusion: Callable[..., nn.Module] | None = None, single: str | None = None, width: float = 1.0,
                  input_size: tuple[int, int] | None = (300, 300), weights: str | Mapping | None = None,
-                 l2norm_scale: float = 20.0) -> None:
+                 l2norm_scale: float = 20.0, batch_norm: bool = False) -> None:
         super().__init__()
         modalities = {str(k): int(v) for k, v in dict(modalities).items()}
         if single is not None:
@@ -61,7 +64,7 @@ class DGFN(nn.Module):
         self.modalities, self.single = modalities, single
         self.input_size = tuple(int(s) for s in input_size) if input_size is not None else None
         files = weights if isinstance(weights, Mapping) else {m: weights for m in modalities}
-        self.branches = nn.ModuleDict({m: VGG16SSD(c, width) for m, c in modalities.items()})
+        self.branches = nn.ModuleDict({m: VGG16SSD(c, width, batch_norm=batch_norm) for m, c in modalities.items()})
         for m, branch in self.branches.items():
             he_init(branch)
             nn.init.constant_(branch.l2norm.weight, float(l2norm_scale))
