@@ -67,3 +67,10 @@ def test_chinet_family_dropout_is_the_papers_at_paper_scale_and_off_on_the_cpu(r
 
 def test_a_chinet_model_outside_the_semantic_recipe_keeps_the_papers_dropout():
     assert compose_with("model=chinet").model.dropout == 0.2
+
+
+@pytest.mark.parametrize("scale,batch_norm", [("smoke", True), ("cpu", True), ("paper", False)])
+@pytest.mark.parametrize("row", ["dgfn", "dgfn_baseline", "ssd_rgb", "ssd_dhi"])
+def test_detection_trunks_get_batch_norm_only_below_paper_scale(row, scale, batch_norm):
+    cfg = compose_with("experiment=dgfn_table2", f"row={row}", f"scale={scale}")
+    assert cfg.model.batch_norm is batch_norm
