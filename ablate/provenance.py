@@ -3,7 +3,11 @@
 A run records the commit it was made at (``git_commit`` tag, ``-dirty`` when the tree had changes) and its
 resolved config, whose ``_target_`` entries name the classes and functions it built. The code a run depends on
 is taken as those modules and every ``ablate`` module they import, transitively (read from the source with
-:mod:`ast`; an import inside a function counts too). A file of that set changed between the run's commit and the
+:mod:`ast`; an import inside a function counts too). A package's ``__init__`` met only on the way to one of its
+modules counts itself and the modules it imports *as modules* (``from ablate.fusion import ops_bifnet``, an import
+for its registrations), not the names it re-exports (``from ablate.nn.vgg import VGG16SSD`` in ``ablate.nn``, there
+for other importers): those count where a module names the package itself (``from ablate.nn import VGG16SSD``). So
+a ChiNet run, which imports ``ablate.nn.unet``, does not depend on the VGG-16 it never builds. A file of that set changed between the run's commit and the
 working tree makes the run *stale*: its numbers may not be what the code gives today. Config files are covered
 by the config hash: a row whose config changed gets a new hash and is trained again.
 """
@@ -25,32 +29,40 @@ def module_file(name: str, root: Path = ROOT) -> Path | None:
     return None
 
 
-def _imported(path: Path, package: str) -> set[str]:
+def _imported(path: Path, package: str, root: Path, modules_only: bool = False) -> set[str]:
+    """The ``package`` names ``path`` imports; ``modules_only``: just those that are modules (``import a.b``,
+    ``from a import b`` with ``a/b.py``), not the names imported from them."""
     names = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             names |= {a.name for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module)
-            names |= {f"{node.module}.{a.name}" for a in node.names}  # `from pkg import module`
+            members = {f"{node.module}.{a.name}" for a in node.names}  # `from pkg import module` or a name
+            names |= {m for m in members if module_file(m, root)} if modules_only else members | {node.module}
     return {n for n in names if n == package or n.startswith(package + ".")}
 
 
 def dependencies(targets: set[str], package: str = "ablate", root: Path = ROOT) -> set[Path]:
     """The source files of ``package`` that the dotted ``targets`` (``ablate.tasks.instance.InstanceTask``)
-    import, transitively, with the files of the packages on the way (their ``__init__``)."""
-    todo, seen, files = list(targets), set(), set()
+    import, transitively, with the files of the packages on the way (their ``__init__``, with the modules it
+    imports as modules; see the module docstring)."""
+    todo, seen, files, followed = list(targets), set(), set(), {}
     while todo:
         name = todo.pop()
         if name in seen or not (name == package or name.startswith(package + ".")):
             continue
         seen.add(name)
         parts = name.split(".")
-        for i in range(1, len(parts) + 1):  # the module itself, or its parents for a class or function name
-            path = module_file(".".join(parts[:i]), root)
-            if path is not None and path not in files:
-                files.add(path)
-                todo.extend(_imported(path, package))
+        paths = [module_file(".".join(parts[:i]), root) for i in range(1, len(parts) + 1)]
+        named = max((i for i, p in enumerate(paths) if p is not None), default=-1)  # the module the name is in
+        for i, path in enumerate(paths):
+            if path is None:
+                continue
+            files.add(path)
+            how = "all" if i == named else "modules"  # the named module, or a package on the way to it
+            if followed.get(path) not in (how, "all"):
+                followed[path] = how
+                todo.extend(_imported(path, package, root, modules_only=how == "modules"))
     return files
 
 

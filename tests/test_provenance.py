@@ -35,3 +35,21 @@ def test_a_change_to_an_imported_module_makes_runs_stale_and_others_do_not(tmp_p
     assert stale({sha}, targets, tmp_path, "pkg") == {sha: ["pkg/layers.py"]}
     assert stale({sha + "-dirty"}, targets, tmp_path, "pkg") == {sha + "-dirty": ["pkg/layers.py"]}
     assert stale({"0" * 40}, targets, tmp_path, "pkg") == {"0" * 40: ["unknown commit"]}
+
+
+def test_a_package_on_the_way_counts_its_module_imports_not_its_re_exports(tmp_path):
+    pkg = tmp_path / "pkg"
+    (pkg / "nn").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "nn" / "__init__.py").write_text("from pkg.nn import registry\nfrom pkg.nn.vgg import VGG\n")
+    for name in ("registry", "vgg", "unet", "chinet"):
+        (pkg / "nn" / f"{name}.py").write_text("")
+    (pkg / "nn" / "chinet.py").write_text("from pkg.nn.unet import Block\n")
+    (pkg / "detector.py").write_text("from pkg.nn import VGG\n")
+    files = lambda *t: {str(p.relative_to(tmp_path)) for p in dependencies(set(t), "pkg", tmp_path)}  # noqa: E731
+    assert files("pkg.nn.chinet.build") == {"pkg/__init__.py", "pkg/nn/__init__.py", "pkg/nn/registry.py",
+                                            "pkg/nn/chinet.py", "pkg/nn/unet.py"}
+    assert "pkg/nn/vgg.py" in files("pkg.detector.Detector")  # names the package: its re-exports count
+    assert "pkg/nn/vgg.py" in files("pkg.nn.chinet.build", "pkg.detector.Detector")
+    real = {str(p.relative_to(ROOT)) for p in dependencies({"ablate.nn.chinet.build"})}
+    assert "ablate/nn/unet.py" in real and "ablate/nn/vgg.py" not in real
