@@ -27,6 +27,18 @@ EXTRAS = [(256, 1, 1, 0), (512, 3, 2, 1), (128, 1, 1, 0), (256, 3, 2, 1),
           (128, 1, 1, 0), (256, 3, 1, 0), (128, 1, 1, 0), (256, 3, 1, 0)]
 
 
+class BatchNorm2d(nn.BatchNorm2d):
+    """BatchNorm that normalises a training batch holding one value per channel (one frame at conv11_2's 1x1 map,
+    as the last batch of an epoch can be) with the running statistics instead of failing: one value has no batch
+    variance. Every other batch is normalised as by :class:`torch.nn.BatchNorm2d`."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        if self.training and x.shape[0] * x.shape[2] * x.shape[3] == 1:
+            return nn.functional.batch_norm(x, self.running_mean, self.running_var, self.weight, self.bias, False,
+                                            0.0, self.eps)
+        return super().forward(x)
+
+
 class L2Norm(nn.Module):
     """SSD's channel-wise L2 normalisation of conv4_3 with a learnable per-channel scale (init 20)."""
 
@@ -58,14 +70,14 @@ class VGG16SSD(nn.Module):
         self.in_channels, self.width, self.batch_norm = in_channels, width, batch_norm
         self.conv4_3 = CONV4_3_BN if batch_norm else CONV4_3
         s = lambda c: max(1, round(c * width))  # noqa: E731
-        norm = (lambda c: nn.BatchNorm2d(c)) if batch_norm else (lambda c: nn.Identity())  # noqa: E731
+        norm = (lambda c: BatchNorm2d(c)) if batch_norm else (lambda c: nn.Identity())  # noqa: E731
         layers: list[nn.Module] = []
         ch = in_channels
         for v in VGG16:
             if v in ("M", "C"):
                 layers.append(nn.MaxPool2d(2, 2, ceil_mode=v == "C"))
             else:
-                layers += [nn.Conv2d(ch, s(v), 3, padding=1)] + ([nn.BatchNorm2d(s(v))] if batch_norm else []) \
+                layers += [nn.Conv2d(ch, s(v), 3, padding=1)] + ([BatchNorm2d(s(v))] if batch_norm else []) \
                     + [nn.ReLU(inplace=True)]
                 ch = s(v)
         self.features = nn.Sequential(*layers)

@@ -53,6 +53,8 @@ def test_vgg16_ssd_with_batch_norm_has_vgg16_bn_layout_and_the_same_maps():
     outs = net(torch.randn(2, 3, 300, 300))
     assert [o.shape[-1] for o in outs] == [38, 19, 10, 5, 3, 1] and [o.shape[1] for o in outs] == net.channels
     assert not any("bn" in k for k in VGG16SSD(width=0.125).state_dict())  # without it: the old checkpoints' keys
+    one = net.train()(torch.randn(1, 3, 300, 300))  # conv11_2 is 1x1: one value per channel, running stats there
+    assert one[-1].shape == (1, net.channels[-1], 1, 1) and torch.isfinite(one[-1]).all()
 
 
 def test_vgg16_loads_torchvision_features(tmp_path):
