@@ -7,9 +7,10 @@ is taken as those modules and every ``ablate`` module they import, transitively 
 modules counts itself and the modules it imports *as modules* (``from ablate.fusion import ops_bifnet``, an import
 for its registrations), not the names it re-exports (``from ablate.nn.vgg import VGG16SSD`` in ``ablate.nn``, there
 for other importers): those count where a module names the package itself (``from ablate.nn import VGG16SSD``). So
-a ChiNet run, which imports ``ablate.nn.unet``, does not depend on the VGG-16 it never builds. A file of that set changed between the run's commit and the
-working tree makes the run *stale*: its numbers may not be what the code gives today. Config files are covered
-by the config hash: a row whose config changed gets a new hash and is trained again.
+a ChiNet run, which imports ``ablate.nn.unet``, does not depend on the VGG-16 it never builds. A file of that set
+changed between the run's commit and the working tree makes the run *stale*: its numbers may not be what the code
+gives today. Config files are covered by the config hash: a row whose config changed gets a new hash and is trained
+again.
 """
 from __future__ import annotations
 

@@ -66,8 +66,8 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a config override")
     args = parser.parse_args()
     os.chdir(REPO)
-    print(f"row {args.row} {' '.join(args.set)}, {args.frames} frames, {torch.get_num_threads()} thread(s), load average "
-          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    print(f"row {args.row} {' '.join(args.set)}, {args.frames} frames, {torch.get_num_threads()} thread(s), "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print("updates  wall s  s/update  loss   Car moderate %  AP moderate %")
     for steps in (int(s) for s in args.steps.split(",")):
         r = measure(args.row, args.frames, steps, args.seed, args.set)

@@ -20,8 +20,7 @@ from ablate.nn.weights import WeightsError, adapt_first_conv, load_checked, read
 
 # conv widths of VGG-16 conv1_1 .. conv5_3; "M" a 2x2 max-pool ("C": with ceil_mode, SSD's pool3)
 VGG16 = [64, 64, "M", 128, 128, "M", 256, 256, 256, "C", 512, 512, 512, "M", 512, 512, 512]
-CONV4_3 = 22  # index of conv4_3's ReLU in ``features`` (torchvision's vgg16().features numbering)
-CONV4_3_BN = 32  # the same in vgg16_bn().features
+CONV4_3 = 10  # conv4_3 is the 10th conv of VGG16
 # SSD300 extras: (out, kernel, stride, padding), pairs conv8_1/8_2 .. conv11_1/11_2
 EXTRAS = [(256, 1, 1, 0), (512, 3, 2, 1), (128, 1, 1, 0), (256, 3, 2, 1),
           (128, 1, 1, 0), (256, 3, 1, 0), (128, 1, 1, 0), (256, 3, 1, 0)]
@@ -68,18 +67,19 @@ class VGG16SSD(nn.Module):
         if width <= 0 or in_channels < 1:
             raise ValueError(f"VGG16SSD needs width > 0 and in_channels >= 1, got width={width}, in_channels={in_channels}")
         self.in_channels, self.width, self.batch_norm = in_channels, width, batch_norm
-        self.conv4_3 = CONV4_3_BN if batch_norm else CONV4_3
         s = lambda c: max(1, round(c * width))  # noqa: E731
         norm = (lambda c: BatchNorm2d(c)) if batch_norm else (lambda c: nn.Identity())  # noqa: E731
         layers: list[nn.Module] = []
-        ch = in_channels
+        ch, convs = in_channels, 0
         for v in VGG16:
             if v in ("M", "C"):
                 layers.append(nn.MaxPool2d(2, 2, ceil_mode=v == "C"))
             else:
                 layers += [nn.Conv2d(ch, s(v), 3, padding=1)] + ([BatchNorm2d(s(v))] if batch_norm else []) \
                     + [nn.ReLU(inplace=True)]
-                ch = s(v)
+                ch, convs = s(v), convs + 1
+                if convs == CONV4_3:
+                    self.conv4_3 = len(layers) - 1  # its ReLU's index: 22 as in vgg16().features, 32 in vgg16_bn()
         self.features = nn.Sequential(*layers)
         self.l2norm = L2Norm(s(512))
         self.pool5 = nn.MaxPool2d(3, 1, 1)
