@@ -179,9 +179,12 @@ def feature_cache(cfg: DictConfig, model: torch.nn.Module) -> FeatureCache | Non
     """A :class:`FeatureCache` of at most ``experts.cache_max_gb`` GiB (default unbounded) for stage 2 when
     ``experts.cache_features`` is on and every per-modality part of ``model`` is a frozen expert (stages backbone,
     fpn, late with ``experts.freeze``), else None: fine-tuned experts (``freeze: false``) change every step, and
-    stages early and single have no frozen part."""
+    stages early and single have no frozen part; nor with ``data.augment``, where a frame's input changes per epoch."""
     experts = cfg.get("experts") or {}
     if not experts.get("cache_features", False) or not getattr(model, "cacheable", False):
+        return None
+    if (cfg.get("data") or {}).get("augment"):
+        log.info("experts.cache_features is off: data.augment gives each frame a new view every epoch")
         return None
     max_gb = experts.get("cache_max_gb")
     return FeatureCache(float("inf") if max_gb is None else float(max_gb) * 2**30)

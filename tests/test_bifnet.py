@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 from test_cli import REPO, TINY, ablate, runs
 
 from ablate.fusion.bidirectional import WithContext  # (importing ablate registers ${channels:...})
@@ -72,6 +73,9 @@ def test_recipes(scale, lr, epochs, expert_epochs, freeze):
     assert cfg.experts.get("max_epochs") == expert_epochs and cfg.experts.freeze is freeze
     if scale == "paper":
         assert cfg.trainer.max_steps == 30000
+    # §V-B's flip / translation / scaling at paper scale; below it the frozen experts' features are cached per frame
+    augment = {"flip": 0.5, "scale": [1.0, 1.2]} if scale == "paper" else None
+    assert OmegaConf.to_container(cfg.data).get("augment") == augment
 
 
 def test_table4_end_to_end_at_smoke_scale(tmp_path):

@@ -11,6 +11,10 @@ Sample dict (a batch after :func:`collate` holds the same keys):
 - ``frame`` (id) and ``condition`` (name), ``lidar_condition`` (name, only with ``lidar_weather``); lists in a
   batch, as are ``instances`` and ``boxes2d``.
 
+``augment`` (``{flip: p, scale: [lo, hi]}``, ablate.data.augment) gives each training frame a random flip, zoom and
+shift of the scene or camera, followed by every modality, target and the calibration; validation and test frames
+are never augmented.
+
 Splits (fixed, independent of ``seed``): a folder's ``ImageSets/{train,val,test}.txt`` when present (the
 generated dataset writes a seeded 60/20/20 split there); otherwise a permutation of the sorted frames with seed 0
 cut 4489/1496/1496 when all 7481 KITTI object frames are present (SMoE §3.3), else 60/20/20.
@@ -86,7 +90,8 @@ class KittiDataModule(L.LightningDataModule):
                  conditions: list[str] = ("clear",), severity: float = 1.0, corruption: dict | None = None,
                  batch_size: int = 4, num_workers: int = 0, seed: int = 0, max_depth: float = 80.0,
                  limit_frames: dict | None = None, bev: dict | None = None, cache: bool = True,
-                 image_size: list[int] | None = None, lidar_weather: list[str] | None = None) -> None:
+                 image_size: list[int] | None = None, lidar_weather: list[str] | None = None,
+                 augment: dict | None = None) -> None:
         super().__init__()
         for m in modalities:
             if m not in MODALITIES:
@@ -97,6 +102,8 @@ class KittiDataModule(L.LightningDataModule):
         self.num_workers, self.seed, self.max_depth = num_workers, seed, max_depth
         self.limit_frames, self.bev, self.cache = dict(limit_frames or {}), bev, cache
         self.lidar_weather = list(lidar_weather) if lidar_weather else None
+        # flip / scale / translation of the training split (ablate.data.augment): {flip: p, scale: [lo, hi]}
+        self.augment = dict(augment) if augment else None
         # Real KITTI images range from 1224x370 to 1242x375: crop to the smallest unless told otherwise.
         self.image_size = image_size if image_size or root is None else [370, 1224]
         self.datasets: dict[str, KittiDataset] = {}
@@ -124,10 +131,16 @@ class KittiDataModule(L.LightningDataModule):
             self.datasets[name] = KittiDataset(
                 split_dir, frames[:cap] if cap is not None else frames, self.modalities, self.targets,
                 self.conditions, self.severity, self.corruption, self.seed, self.max_depth,
-                Path(self.data_dir) / "cache" if self.cache else None, self.bev, self.image_size, self.lidar_weather)
+                Path(self.data_dir) / "cache" if self.cache else None, self.bev, self.image_size, self.lidar_weather,
+                self.augment if name == "train" else None)
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         self.setup()
+        if not self.datasets[split].frames:
+            d, n = self.datasets[split].split_dir, sum(len(ds.frames) for ds in self.datasets.values())
+            cap = f", data.limit_frames.{split}={self.limit_frames[split]}" if split in self.limit_frames else ""
+            raise DataError(f"{d}: the {split} split has no frames ({n} in all{cap}); list them in "
+                            f"{d / 'ImageSets' / (split + '.txt')} or give more frames")
         gen = torch.Generator().manual_seed(self.seed)
         return DataLoader(self.datasets[split], self.batch_size, shuffle=shuffle, num_workers=self.num_workers,
                           collate_fn=collate, generator=gen, persistent_workers=self.num_workers > 0)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import zlib
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -14,6 +15,7 @@ from torch.utils.data import Dataset
 
 from ablate.data import DataError
 from ablate.data import kitti, lidar, masks
+from ablate.data.augment import Augment, View, flip_box, flip_calibration, mirror_points, warp
 from ablate.data.conditions import apply_condition, apply_corruption
 from ablate.data.lidar_weather import LIDAR_WEATHER, apply_lidar_weather
 
@@ -47,7 +49,8 @@ class KittiDataset(Dataset):
     def __init__(self, split_dir: Path, frames: list[str], modalities: list[str], targets: list[str],
                  conditions: list[str], severity: float = 1.0, corruption: dict | None = None, seed: int = 0,
                  max_depth: float = 80.0, cache_dir: str | Path | None = None, bev: dict | None = None,
-                 image_size: tuple[int, int] | None = None, lidar_weather: list[str] | None = None) -> None:
+                 image_size: tuple[int, int] | None = None, lidar_weather: list[str] | None = None,
+                 augment: dict | None = None) -> None:
         for m in modalities:
             if m not in MODALITIES:
                 raise KeyError(f"unknown modality {m!r}; valid: {', '.join(MODALITIES)}")
@@ -71,6 +74,7 @@ class KittiDataset(Dataset):
             if w not in LIDAR_WEATHER:
                 raise KeyError(f"unknown LiDAR weather {w!r}; valid: {', '.join(LIDAR_WEATHER)}")
         self.lidar_condition = spread(self.frames, lidar_weather, seed, 1) if lidar_weather else {}
+        self.augment = Augment.from_config(dict(augment)) if augment else None  # ablate.data.augment
 
     def _check_available(self) -> None:
         d = self.split_dir
@@ -107,26 +111,31 @@ class KittiDataset(Dataset):
         tmp.replace(path)
         return value
 
-    def lidar(self, frame: str, name: str, shape: tuple[int, int]) -> np.ndarray:
-        """A derived LiDAR modality in its raw units (metres, uint8 DHI, BEV), from the cache when present."""
+    def lidar(self, frame: str, name: str, shape: tuple[int, int], flip: bool = False) -> np.ndarray:
+        """A derived LiDAR modality in its raw units (metres, uint8 DHI, BEV), from the cache when present;
+        ``flip``: of the world mirrored in the camera frame (ablate.data.augment), cached apart."""
         paths = kitti.frame_paths(self.split_dir, frame)
-        calib = lambda: kitti.Calibration.from_file(paths["calib"])  # noqa: E731
         weather = self.lidar_condition.get(frame, "clear")
         key = {"weather": weather, "severity": self.severity} if weather != "clear" else {}
+        key.update({"flip": True} if flip else {})
+
+        def calib():
+            c = kitti.Calibration.from_file(paths["calib"])
+            return flip_calibration(c, shape[1]) if flip else c
 
         def points():
             pts = kitti.read_velodyne(paths["velodyne"])
-            if weather == "clear":
-                return pts
-            rng = np.random.default_rng([self.seed, zlib.crc32(frame.encode()), 1])
-            return apply_lidar_weather(weather, pts, rng, self.severity)
+            if weather != "clear":
+                rng = np.random.default_rng([self.seed, zlib.crc32(frame.encode()), 1])
+                pts = apply_lidar_weather(weather, pts, rng, self.severity)
+            return mirror_points(pts, kitti.Calibration.from_file(paths["calib"])) if flip else pts
 
         if name == "sparse_depth":
             return self._cached(frame, name, {"shape": shape, **key},
                                 lambda: lidar.sparse_depth(points(), calib(), shape))
         if name == "dense_depth":
             return self._cached(frame, name, {"shape": shape, **key},
-                                lambda: lidar.dense_depth(self.lidar(frame, "sparse_depth", shape)))
+                                lambda: lidar.dense_depth(self.lidar(frame, "sparse_depth", shape, flip)))
         if name == "dhi":
             return self._cached(frame, name, {"shape": shape, **key}, lambda: lidar.dhi_image(points(), calib(), shape))
         grid = {k: self.bev[k] for k in ("x_range", "y_range", "cell")}
@@ -160,6 +169,9 @@ class KittiDataset(Dataset):
         rng = np.random.default_rng([self.seed, zlib.crc32(frame.encode())])
         rgb = kitti.read_image(paths["image"]).astype(np.float32) / 255.0
         shape = rgb.shape[:2]
+        view = self.augment.draw(shape) if self.augment else View()
+        if view.flip:
+            rgb = np.ascontiguousarray(rgb[:, ::-1])
         rgb = apply_condition(condition, rgb, rng, self.severity)
         corr = self.corruption or {}
         if corr.get("modality") == "rgb" and rng.random() < corr.get("p", 1.0):
@@ -173,17 +185,20 @@ class KittiDataset(Dataset):
             elif m == "intensity":
                 x = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)[None]
             elif m in ("sparse_depth", "dense_depth"):
-                x = self.lidar(frame, m, shape)[None] / self.max_depth
+                x = self.lidar(frame, m, shape, view.flip)[None] / self.max_depth
             elif m == "ddm_jet":
-                x = lidar.jet(self.lidar(frame, "dense_depth", shape), self.max_depth).transpose(2, 0, 1) / 255.0
+                x = lidar.jet(self.lidar(frame, "dense_depth", shape, view.flip), self.max_depth)
+                x = x.transpose(2, 0, 1) / 255.0
             elif m == "dhi":
-                x = self.lidar(frame, "dhi", shape).transpose(2, 0, 1) / 255.0
+                x = self.lidar(frame, "dhi", shape, view.flip).transpose(2, 0, 1) / 255.0
             else:
-                x = self.lidar(frame, "bev", shape)
+                x = self.lidar(frame, "bev", shape, view.flip)
             if corr.get("modality") == m and m != "rgb" and rng.random() < corr.get("p", 1.0):
                 x = apply_corruption(corr["name"], x, rng, m, self.severity)
             sample[m] = torch.from_numpy(np.ascontiguousarray(x, np.float32))
-        sample.update(self._targets(paths, shape))
+        sample.update(self._targets(paths, shape, view.flip))
+        if view.affine is not None:
+            sample = warp(sample, view.affine)
         return self._crop(sample, shape) if self.image_size and self.image_size != shape else sample
 
     def _crop(self, sample: dict, shape: tuple[int, int]) -> dict:
@@ -208,18 +223,22 @@ class KittiDataset(Dataset):
                 sample[k] = v
         return sample
 
-    def _targets(self, paths: dict, shape: tuple[int, int]) -> dict:
+    def _targets(self, paths: dict, shape: tuple[int, int], flip: bool = False) -> dict:
         out: dict = {}
         if not self.targets:
             return out
         h, w = shape
         labels = kitti.read_labels(paths["label"]) if paths["label"].is_file() else []
         road_gt = kitti.read_road_gt(paths["road_gt"]) if "road_gt" in paths and paths["road_gt"].is_file() else None
-        road = road_gt[0] if road_gt is not None else None
         inst = cv2.imread(str(paths["instance"]), cv2.IMREAD_UNCHANGED) if paths["instance"].is_file() else None
         if inst is None and not paths["instance"].parent.is_dir() and paths["label"].is_file() \
                 and any(t in self.targets for t in ("road_objects", "semantic", "instances")):
             inst = self.lidar_instances(paths["image"].stem, labels, shape)
+        if flip:  # the image-space labels of the flipped image (ablate.data.augment)
+            labels = [replace(o, bbox=flip_box(o.bbox, w)) for o in labels]
+            road_gt = tuple(np.ascontiguousarray(a[:, ::-1]) for a in road_gt) if road_gt is not None else None
+            inst = np.ascontiguousarray(inst[:, ::-1]) if inst is not None else None
+        road = road_gt[0] if road_gt is not None else None
         if any(t in self.targets for t in ("free_space", "semantic", "road_bev", "road_valid", "road_bev_valid")) \
                 and road is None:
             raise DataError(f"{paths['image']}: road ground truth {paths.get('road_gt')} is missing")
@@ -251,15 +270,16 @@ class KittiDataset(Dataset):
                     x0, y0, x1, y1 = (int(round(v)) for v in o.bbox)
                     ignore[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1] = True
             out["ignore"] = torch.from_numpy(ignore)
-        out.update(self._road(paths, shape, road_gt))
+        out.update(self._road(paths, shape, road_gt, flip))
         return out
 
-    def _road(self, paths: dict, shape: tuple[int, int], road_gt) -> dict:
+    def _road(self, paths: dict, shape: tuple[int, int], road_gt, flip: bool = False) -> dict:
         """The road targets beyond ``free_space`` (the image road mask) and the frame's geometry (GEOMETRY)."""
         out: dict = {}
         grid = {k: self.bev[k] for k in ("x_range", "y_range", "cell")}
         calib = kitti.Calibration.from_file(paths["calib"]) if any(
             t in self.targets for t in ("road_bev", "road_bev_valid", "calib")) else None
+        calib = flip_calibration(calib, shape[1]) if flip and calib is not None else calib
         if "road_valid" in self.targets:
             out["road_valid"] = torch.from_numpy(road_gt[1][None].astype(np.float32))
         if "road_bev" in self.targets:
@@ -269,7 +289,7 @@ class KittiDataset(Dataset):
         if "calib" in self.targets:
             out["calib"] = torch.from_numpy(calib_array(calib))
         for name in [g for g in GEOMETRY[1:] if g in self.targets]:  # heights get their channel axis
-            value = self.lidar(paths["image"].stem, name, shape)
+            value = self.lidar(paths["image"].stem, name, shape, flip)
             out[name] = torch.from_numpy(np.ascontiguousarray(value if name == "lidar_points" else value[None]))
         return out
 

@@ -93,3 +93,13 @@ def test_unknown_generator_version_is_one_clear_error(tmp_path):
     with pytest.raises(DataError, match=r"data.synth.version=1: this ablate generates version 2"):
         ensure_synth(tmp_path, {"frames": 2, "version": 1})
     assert not any(tmp_path.iterdir())  # nothing generated
+
+
+def test_an_empty_split_is_one_clear_error_naming_it(dm):
+    from ablate.data import DataError
+
+    small = KittiDataModule(synth=SMALL, data_dir=dm.data_dir, modalities=["rgb"], limit_frames={"val": 0})
+    assert len(small.train_dataloader()) > 0
+    with pytest.raises(DataError, match=r"the val split has no frames \(8 in all, data.limit_frames.val=0\); "
+                                        r"list them in .*ImageSets/val.txt"):
+        small.val_dataloader()
