@@ -83,11 +83,14 @@ def _checkpoint(tags: dict) -> Path:
 
 def row_checkpoint(tracker: Tracker, run) -> Path | None:
     """The best checkpoint of a job run, found from its tags (``checkpoints/<table>/<config hash>/``), not from
-    a recomputed hash; a single-modal row of a two-stage table was tested from its expert's, found through the
-    ``expert_<modality>`` tag. None when it is not on this machine."""
+    a recomputed hash; a run reused from another table's (``reused_from``) has its source's; a single-modal row of
+    a two-stage table was tested from its expert's, found through the ``expert_<modality>`` tag. None when it is
+    not on this machine."""
     own = _checkpoint(run.data.tags)
     if own.exists():
         return own
+    if "reused_from" in run.data.tags:
+        return row_checkpoint(tracker, retry(tracker.client.get_run, run.data.tags["reused_from"]))
     experts = [v for k, v in run.data.tags.items() if k.startswith("expert_")]
     if len(experts) == 1:
         expert = _checkpoint(retry(tracker.client.get_run, experts[0]).data.tags)

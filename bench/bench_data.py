@@ -1,5 +1,5 @@
 """Generated dataset and cache figures: generator frames/s, default dataset time and size, cost of one sample
-with a cold and a warm cache. Usage: python bench/bench_data.py [OUT_DIR]."""
+with a cold and a warm cache, and of one BiFNet training sample with and without augmentation. Usage: python bench/bench_data.py [OUT_DIR]."""
 from __future__ import annotations
 
 import shutil
@@ -43,8 +43,32 @@ def main() -> None:
     warm = (time.perf_counter() - t) / n
     print(f"one sample (all modalities, night, semantic+instances+boxes2d): cold cache {cold * 1e3:.1f} ms, "
           f"cached {warm * 1e3:.1f} ms")
+    road(out)
     if len(sys.argv) <= 1:
         shutil.rmtree(out)
+
+
+def road(out: Path, n: int = 50) -> None:
+    """One BiFNet training sample (rgb, bev, road targets, DST / SHPL geometry) with a warm cache, plain and with
+    the paper-scale augmentation (ablate.data.augment; its flipped views cached by a first pass)."""
+    targets = ["free_space", "road_valid", "road_bev", "road_bev_valid", "calib", "height_image", "height_bev",
+               "lidar_points"]
+    per = {}
+    for name, augment in (("plain", None), ("augmented", {"flip": 0.5, "scale": [1.0, 1.2]})):
+        dm = KittiDataModule(data_dir=str(out), modalities=["rgb", "bev"], targets=targets, augment=augment,
+                             bev={"x_range": [6.0, 46.0], "y_range": [-10.0, 10.0], "cell": 0.5, "window": 4,
+                                  "azimuth_res": 0.2, "max_points": 16384})
+        dm.setup()
+        ds = dm.datasets["train"]
+        for _ in range(4 if augment else 1):  # fill the cache (both views of a flipped frame)
+            for i in range(n):
+                ds[i]
+        t = time.perf_counter()
+        for i in range(n):
+            ds[i]
+        per[name] = (time.perf_counter() - t) / n
+    print(f"one BiFNet training sample (rgb, bev, road targets, geometry), cached: {per['plain'] * 1e3:.1f} ms; "
+          f"with flip 0.5 and zoom 1.0-1.2: {per['augmented'] * 1e3:.1f} ms")
 
 
 if __name__ == "__main__":

@@ -97,3 +97,22 @@ def test_latency_column_has_median_iqr_ratio_and_paper():
 
 def test_a_loaded_machine_is_flagged_under_the_table():
     assert "**Loaded machine**" in _table_with_latency(load=6.3)
+
+
+def test_a_reused_run_is_timed_from_its_source_runs_checkpoint(tmp_path, monkeypatch):
+    from ablate.latency import row_checkpoint
+    from ablate.tracking import Tracker
+
+    monkeypatch.chdir(tmp_path)
+    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    source_id = tracker.start(tracker.experiment_id("table_a"), "dgfn seed=0",
+                              {"table": "table_a", "config_hash": "abc", "kind": "job"})
+    tracker.end(source_id, "FINISHED")
+    copy_id = tracker.copy_run(tracker.client.get_run(source_id), tracker.experiment_id("table_b"),
+                               {"table": "table_b"})
+    copy = tracker.client.get_run(copy_id)
+    assert row_checkpoint(tracker, copy) is None  # neither checkpoint on this machine
+    ckpt = tmp_path / "checkpoints" / "table_a" / "abc" / "best.ckpt"
+    ckpt.parent.mkdir(parents=True)
+    ckpt.write_bytes(b"")
+    assert row_checkpoint(tracker, copy) == ckpt.relative_to(tmp_path)
