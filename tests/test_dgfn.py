@@ -83,3 +83,25 @@ def test_detection_runs_on_real_kitti_boxes(kitti_root, tmp_path):
     assert job.info.status == "FINISHED" and job.data.params["data.root"].endswith("kitti/object")
     assert {"normal/cyclist_moderate", "full/car_easy", "lidar_blank/gate_dhi"} <= set(job.data.metrics)
     assert not (tmp_path / "data" / "synth").exists() and any((tmp_path / "data" / "cache").iterdir())
+
+
+def test_the_table2_follow_up_reuses_every_row_but_its_clean_trained_dgfn():
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+    from test_cli import REPO
+
+    from ablate.tracking import config_hash
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        def cfg(experiment, row):
+            return compose("config", overrides=[f"experiment={experiment}", f"row={row}", "seed=1"])
+
+        for row in ("dgfn", "ssd_rgb", "ssd_dhi"):
+            assert config_hash(cfg("dgfn_table2_followup", row)) == config_hash(cfg("dgfn_table2", row)), row
+        assert config_hash(cfg("dgfn_table2_followup", "dgfn_baseline")) == config_hash(cfg("dgfn_table1",
+                                                                                          "dgfn_baseline"))
+        clean, dgfn = (OmegaConf.to_container(cfg("dgfn_table2_followup", r), resolve=True)
+                       for r in ("dgfn_clean", "dgfn"))
+    assert clean["task"].pop("train_corruptions") is None and dgfn["task"].pop("train_corruptions")
+    clean.pop("table"), dgfn.pop("table")
+    assert clean == dgfn  # the control differs from DGFN in its training data only
