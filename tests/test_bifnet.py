@@ -122,3 +122,27 @@ def test_every_row_of_the_tables_passes_the_stage_check(table):
     for row in config(f"experiment={table}").table.rows:
         if not row.get("paper_only"):
             check_stage(config(f"experiment={table}", f"row={row.row}"))
+
+
+def test_the_image_row_runs_on_a_real_kitti_road_frame(kitti_root, tmp_path):
+    """The KITTI road layout (image_2, calib with Tr_cam_to_road, gt_image_2 in road colours), read in place: the
+    sample has one frame and no scan, so it is each split (ImageSets) and only the image branch can run; a fused
+    row fails on the missing scan, naming it, and is recorded FAILED."""
+    root = tmp_path / "road" / "training"
+    (root / "ImageSets").mkdir(parents=True)
+    for sub in ("image_2", "calib", "gt_image_2"):
+        (root / sub).symlink_to(kitti_root / "road" / "training" / sub)
+    for split in ("train", "val", "test"):
+        (root / "ImageSets" / f"{split}.txt").write_text("um_000000\n")
+    camera_only = ["modalities=[rgb]", "targets=[free_space,road_valid,road_bev,road_bev_valid,calib]"]
+    out = ablate(tmp_path, "experiment=bifnet_table4", "row=bifnet_image", "data=kitti", f"data.root={root.parent}",
+                 *camera_only, *TINY)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    _, (job,) = runs(tmp_path, "bifnet_table4")
+    assert job.info.status == "FINISHED" and 0 <= job.data.metrics["max_f"] <= 100
+    assert job.data.metrics["rec"] > 0  # the real frame's road, warped into the devkit's metric BEV, is scored
+    fused = ablate(tmp_path, "experiment=bifnet_table4", "row=bifnet_dst_cbf", "data=kitti",
+                   f"data.root={root.parent}", *TINY)
+    assert fused.returncode != 0 and "cannot provide 'bev': this data has no velodyne" in fused.stdout + fused.stderr
+    _, jobs = runs(tmp_path, "bifnet_table4")
+    assert {r.data.tags["row"]: r.info.status for r in jobs}["bifnet_dst_cbf"] == "FAILED"
