@@ -92,9 +92,7 @@ def flip_calibration(calib: kitti.Calibration, width: int) -> kitti.Calibration:
 
 def mirror_points(points: np.ndarray, calib: kitti.Calibration) -> np.ndarray:
     """(N,4) velodyne points (x, y, z, reflectance) of the world mirrored in the rectified camera frame."""
-    t = np.eye(4)
-    t[:3, :3] = calib.R0_rect @ calib.Tr_velo_to_cam[:, :3]
-    t[:3, 3] = calib.R0_rect @ calib.Tr_velo_to_cam[:, 3]
+    t = calib.velo_to_rect_matrix
     xyz1 = np.hstack([points[:, :3].astype(np.float64), np.ones((len(points), 1))])
     out = points.copy()
     out[:, :3] = (xyz1 @ (np.linalg.inv(t) @ MIRROR @ t).T)[:, :3]

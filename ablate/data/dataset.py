@@ -323,9 +323,7 @@ def road_bev(road: np.ndarray, calib: kitti.Calibration, x_range=(6.0, 46.0), y_
     ys = y_range[1] - (np.arange(wb) + 0.5) * cell
     x, y = np.meshgrid(xs, ys, indexing="ij")
     # velodyne -> road frame is affine; solve for the z that puts the point on the road plane (road Y = 0).
-    velo_to_rect = np.vstack([np.hstack([calib.R0_rect @ calib.Tr_velo_to_cam[:, :3],
-                                         (calib.R0_rect @ calib.Tr_velo_to_cam[:, 3])[:, None]]), [0, 0, 0, 1]])
-    a = calib.Tr_cam_to_road[1] @ velo_to_rect  # road Y as a function of (x, y, z, 1)
+    a = calib.Tr_cam_to_road[1] @ calib.velo_to_rect_matrix  # road Y as a function of (x, y, z, 1)
     z = -(a[0] * x + a[1] * y + a[3]) / a[2]
     uv, depth = calib.velo_to_image(np.stack([x.ravel(), y.ravel(), z.ravel()], 1))
     u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])

@@ -83,6 +83,14 @@ class Calibration:
             path=str(path),
         )
 
+    @property
+    def velo_to_rect_matrix(self) -> np.ndarray:
+        """(4,4) homogeneous velodyne -> rectified camera transform, ``R0_rect . Tr_velo_to_cam``."""
+        out = np.eye(4)
+        out[:3, :3] = self.R0_rect @ self.Tr_velo_to_cam[:, :3]
+        out[:3, 3] = self.R0_rect @ self.Tr_velo_to_cam[:, 3]
+        return out
+
     def velo_to_rect(self, xyz: np.ndarray) -> np.ndarray:
         """(N,3) velodyne points -> (N,3) points in the rectified camera frame."""
         xyz = np.asarray(xyz, dtype=np.float64)[:, :3]

@@ -27,6 +27,9 @@ def test_points_in_image_and_boxes_hold_points(obj, frame):
     inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
     assert 17_000 <= inside.sum() <= 20_500
     rect = calib.velo_to_rect(pts[:, :3])
+    homogeneous = np.c_[pts[:, :3].astype(np.float64), np.ones(len(pts))] @ calib.velo_to_rect_matrix.T
+    np.testing.assert_allclose(homogeneous[:, :3], rect, atol=1e-9)  # the 4x4 form is the same transform
+    assert (homogeneous[:, 3] == 1).all()
     for o in read_labels(obj / "label_2" / f"{frame}.txt"):
         if o.type == "DontCare":
             continue

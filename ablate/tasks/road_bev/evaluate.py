@@ -56,9 +56,7 @@ class MetricBev:
         to_road = np.vstack([cal.Tr_cam_to_road, [0, 0, 0, 1]])
         rect = np.eye(4)
         rect[:3, :3] = cal.R0_rect
-        velo_to_rect = np.vstack([np.hstack([cal.R0_rect @ cal.Tr_velo_to_cam[:, :3],
-                                             (cal.R0_rect @ cal.Tr_velo_to_cam[:, 3])[:, None]]), [0, 0, 0, 1]])
-        velo = np.linalg.inv(velo_to_rect) @ rect @ np.linalg.inv(to_road) @ road
+        velo = np.linalg.inv(cal.velo_to_rect_matrix) @ rect @ np.linalg.inv(to_road) @ road
         g = self.grid
         row = np.floor((g.x_range[1] - velo[0]) / g.cell).astype(np.int64)
         col = np.floor((g.y_range[1] - velo[1]) / g.cell).astype(np.int64)
