@@ -105,10 +105,10 @@ def flip_box(bbox, width: int) -> tuple[float, float, float, float]:
     return (width - 1.0 - x1, y0, width - 1.0 - x0, y1)
 
 
-def warp(sample: dict, affine: np.ndarray) -> dict:
-    """The sample seen through intrinsics changed by ``affine``: camera-space tensors warped, ``calib``'s P2
-    premultiplied, boxes mapped and clipped (a box left with less than a pixel of width or height is dropped, with
-    its mask and fields). The output keeps each tensor's size."""
+def warp(sample: dict, affine: np.ndarray, shape: tuple[int, int]) -> dict:
+    """The sample of an image of ``shape`` (H, W) seen through intrinsics changed by ``affine``: camera-space tensors
+    warped, ``calib``'s P2 premultiplied, boxes mapped and clipped (a box left with less than a pixel of width or
+    height is dropped, with its mask and fields). The output keeps each tensor's size."""
     a = affine[:2].astype(np.float64)
     out = dict(sample)
     for k, v in sample.items():
@@ -119,13 +119,15 @@ def warp(sample: dict, affine: np.ndarray) -> dict:
         elif isinstance(v, torch.Tensor) and k not in NOT_CAMERA and v.dim() >= 2:
             out[k] = _warp_tensor(v, a, cv2.INTER_LINEAR if k in SMOOTH else cv2.INTER_NEAREST)
         elif k in ("instances", "boxes2d"):
-            out[k] = _warp_boxes(v, affine, a, sample)
+            out[k] = _warp_boxes(v, affine, a, shape)
     return out
 
 
 def _warp_tensor(v: torch.Tensor, a: np.ndarray, interpolation: int) -> torch.Tensor:
     """Warp the last two axes of ``v`` by the 2x3 ``a`` (output pixel = a @ input pixel), size kept."""
     h, w = v.shape[-2:]
+    if v.numel() == 0:  # no planes (a frame without instances): nothing to warp
+        return v
     flat = v.reshape(-1, h, w).numpy()
     dtype = flat.dtype
     work = flat if dtype in (np.uint8, np.uint16, np.float32, np.float64) else flat.astype(np.float32)  # cv2's
@@ -134,14 +136,10 @@ def _warp_tensor(v: torch.Tensor, a: np.ndarray, interpolation: int) -> torch.Te
     return torch.from_numpy(np.stack(planes).astype(dtype).reshape(v.shape))
 
 
-def _warp_boxes(target: dict, affine: np.ndarray, a: np.ndarray, sample: dict) -> dict:
-    boxes = target["boxes"].double()
-    if len(boxes) == 0:
-        return dict(target, masks=_warp_tensor(target["masks"], a, cv2.INTER_NEAREST)) if "masks" in target \
-            else target
+def _warp_boxes(target: dict, affine: np.ndarray, a: np.ndarray, shape: tuple[int, int]) -> dict:
     s, tx, ty = affine[0, 0], affine[0, 2], affine[1, 2]
-    h, w = _image_size(sample)
-    mapped = boxes * s + torch.tensor([tx, ty, tx, ty], dtype=torch.float64)
+    h, w = shape
+    mapped = target["boxes"].double() * s + torch.tensor([tx, ty, tx, ty], dtype=torch.float64)
     mapped[:, 0::2] = mapped[:, 0::2].clamp(0, w - 1)
     mapped[:, 1::2] = mapped[:, 1::2].clamp(0, h - 1)
     keep = ((mapped[:, 2] - mapped[:, 0]) >= 1) & ((mapped[:, 3] - mapped[:, 1]) >= 1)
@@ -150,10 +148,3 @@ def _warp_boxes(target: dict, affine: np.ndarray, a: np.ndarray, sample: dict) -
     if "masks" in out:
         out["masks"] = _warp_tensor(out["masks"], a, cv2.INTER_NEAREST)
     return out
-
-
-def _image_size(sample: dict) -> tuple[int, int]:
-    for k, v in sample.items():
-        if isinstance(v, torch.Tensor) and k not in NOT_CAMERA and k != "calib" and v.dim() >= 2:
-            return tuple(v.shape[-2:])
-    raise KeyError("the sample has no camera-space tensor to size its boxes by")

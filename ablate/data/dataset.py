@@ -198,7 +198,7 @@ class KittiDataset(Dataset):
             sample[m] = torch.from_numpy(np.ascontiguousarray(x, np.float32))
         sample.update(self._targets(paths, shape, view.flip))
         if view.affine is not None:
-            sample = warp(sample, view.affine)
+            sample = warp(sample, view.affine, shape)
         return self._crop(sample, shape) if self.image_size and self.image_size != shape else sample
 
     def _crop(self, sample: dict, shape: tuple[int, int]) -> dict:

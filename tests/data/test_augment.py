@@ -106,7 +106,7 @@ def test_a_flipped_frame_is_the_mirrored_scene_in_every_modality(data_dir):
 def test_a_zoom_is_a_change_of_intrinsics_that_images_labels_and_boxes_follow(data_dir):
     plain = first(data_dir, None)
     a = np.array([[1.25, 0.0, -20.0], [0.0, 1.25, -6.0], [0.0, 0.0, 1.0]])
-    zoomed = warp(plain, a)
+    zoomed = warp(plain, a, (SMALL["height"], SMALL["width"]))
     xyz = np.array([[15.0, 2.0, -1.5], [30.0, -3.0, 0.0]])
     uv = calibration(plain["calib"]).velo_to_image(xyz)[0]
     np.testing.assert_allclose(calibration(zoomed["calib"]).velo_to_image(xyz)[0], uv * 1.25 + [-20.0, -6.0])
@@ -170,3 +170,14 @@ def test_an_augmented_batch_trains_the_bidirectional_network(data_dir, space):
     loss = RoadLoss()(model(b), b)["loss"]
     loss.backward()
     assert torch.isfinite(loss) and model.branches["rgb"].encoder.conv1.weight.grad.abs().sum() > 0
+
+
+def test_a_zoom_of_a_frame_without_objects_keeps_its_empty_targets():
+    empty = {"rgb": torch.rand(3, 8, 10), "ignore": torch.zeros(8, 10, dtype=torch.bool),
+             "instances": {"masks": torch.zeros(0, 8, 10, dtype=torch.bool),
+                           "labels": torch.zeros(0, dtype=torch.int64), "boxes": torch.zeros(0, 4)},
+             "boxes2d": {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.int64),
+                         "difficulty": torch.zeros(0, dtype=torch.int64)}}
+    out = warp(empty, np.array([[1.1, 0.0, -0.5], [0.0, 1.1, -0.3], [0.0, 0.0, 1.0]]), (8, 10))
+    assert out["instances"]["masks"].shape == (0, 8, 10) and out["instances"]["boxes"].shape == (0, 4)
+    assert out["boxes2d"]["difficulty"].shape == (0,) and out["rgb"].shape == (3, 8, 10)
