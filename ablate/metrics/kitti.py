@@ -3,15 +3,36 @@ torchmetrics ``Metric``.
 
 DGFN (Kim et al., seed 002) §IV-A evaluates 2D detection of car, pedestrian and cyclist "with three difficulty
 levels (easy, moderate, hard) as proposed in the KITTI Benchmark", and §IV-B by "the same evaluation method" as
-MV3D and 3DOP (Table II). This is the devkit's evaluation, per class and level:
+MV3D and 3DOP (Table II).
 
-* A ground truth counts at a level when its box height >= 40 / 25 / 25 px, occlusion <= 0 / 1 / 2 and truncation
-  <= 0.15 / 0.30 / 0.50 (easy / moderate / hard); pixel heights scale with ``image_height / 375``
-  (:func:`ablate.metrics.coco.counted`). The rules are nested, so a GT counts at every level from its own up.
+Conformance: by default this equals the 2017 KITTI object devkit (``devkit_object``, ``cpp/evaluate_object.cpp``,
+released with the 3D and bird's-eye-view benchmarks) bug for bug in 2D; runs record it as evaluator
+``kitti_object_devkit_2017`` (:data:`DEVKITS`, :data:`ablate.metrics.EVALUATORS`). ``devkit="2d_2012"`` follows the
+older 2D-only devkit (2012, ``cpp/evaluate_object.cpp``), which differs in one rule only: ``cleanData`` there
+ignores a ground truth *shorter* than the level's minimum height, where the 2017 one ignores it when *not taller*
+(``height <= MIN_HEIGHT``), so a GT exactly 40.00 px tall is not easy, one exactly 25.00 px tall counts at no level.
+Published numbers: KITTI's server and devkit since 2017 (and so the AP40 ranking since 2019) use the 2017 rule;
+numbers computed before 2017, such as 3DOP's (2015) and, by their dates, MV3D's (2016) that DGFN Table II quotes,
+the 2012 one. Only boxes exactly on a threshold tell them apart. Heights are ``y2 - y1`` in float64, as the devkit
+takes them from labels read as double, so a label's 25.00 px is not always 25.0 (148.45 - 123.45 is
+24.999999999999986: too short under both rules); boxes passed as float32 (``boxes2d`` of ``ablate.data.dataset``)
+are rounded first, and about 1 in 6 labels 25.00 px tall then falls on the other side of the threshold. Tests
+(tests/metrics/test_kitti.py): cases by hand, boxes at 24.99, 25.00, 25.01, 39.99, 40.00 and 40.01 px under both
+rules, and random frames against a loop-by-loop transliteration of ``cleanData``, ``computeStatistics``,
+``getThresholds`` and ``eval_class`` with either rule.
+
+This is the devkit's evaluation, per class and level:
+
+* A ground truth counts at a level when its box height > 40 / 25 / 25 px (``devkit="2d_2012"``: >=), occlusion
+  <= 0 / 1 / 2 and truncation <= 0.15 / 0.30 / 0.50 (easy / moderate / hard); pixel heights scale with
+  ``image_height / 375``. The rules are nested, so a GT counts at every level from its lowest up. The height rule
+  is applied to the GT boxes at evaluation, so a ``difficulty`` input (computed with >=, as
+  ``Object3D.difficulty_at``) follows the chosen devkit too.
 * A detection matches a GT of its class at IoU > 0.7 (Car) or 0.5 (Pedestrian, Cyclist). A match to an ignored
   GT (the neighbouring class, Van for Car and Person_sitting for Pedestrian, or a GT not counted at the level) is
   neither TP nor FP; a counted GT left unmatched is a FN.
-* A detection shorter than the level's minimum height is ignored: never a FP, though it may absorb a GT as above.
+* A detection shorter than the level's minimum height is ignored (both devkits: ``height < MIN_HEIGHT``): never a
+  FP, though it may absorb a GT as above.
   An unmatched detection with more than its class's overlap of its own area inside a DontCare box is not a FP.
 * Thresholds (``getThresholds``): from the sorted TP scores, up to 41 scores whose recalls are closest to
   0, 1/40, ..., 1; precision at each is interpolated as the maximum over itself and the later ones.
@@ -55,6 +76,8 @@ NEIGHBOURS = {"Car": "Van", "Pedestrian": "Person_sitting"}
 #: Label ids of predictions and targets: the dataset's classes first, then the GT-only KITTI types.
 LABEL_NAMES = (*CLASSES, "Van", "Person_sitting", "DontCare")
 N_SAMPLE_PTS = 41
+#: The devkit versions KittiAP follows (``cleanData``'s ground-truth height rule) and the ``evaluator`` tag of each.
+DEVKITS = {"2017": "kitti_object_devkit_2017", "2d_2012": "kitti_object_devkit_2d_2012"}
 _STATES = ("pred_counts", "pred_boxes", "pred_scores", "pred_labels", "pred_in_dc",
            "gt_counts", "gt_boxes", "gt_labels", "gt_level")
 
@@ -107,6 +130,9 @@ class KittiAP(Metric):
             dataset's classes, so ``boxes2d`` labels are valid as they are.
         image_height: height of the evaluated images; the pixel thresholds scale with it / 375.
         min_overlap: per-class IoU overrides of KITTI's (Car 0.7, Pedestrian 0.5, Cyclist 0.5).
+        devkit: ``"2017"`` (default): a GT counts at a level when taller than its minimum height, as the 2017
+            object devkit's ``cleanData``; ``"2d_2012"``: when at least that tall, as the older 2D devkit (numbers
+            published before 2017). See the module docstring.
     """
 
     full_state_update = False
@@ -115,8 +141,11 @@ class KittiAP(Metric):
 
     def __init__(self, classes: Sequence[str] = CLASSES, label_names: Sequence[str] = LABEL_NAMES,
                  image_height: float = REFERENCE_HEIGHT, min_overlap: dict[str, float] | None = None,
-                 **kwargs: Any) -> None:
+                 devkit: str = "2017", **kwargs: Any) -> None:
         super().__init__(**kwargs)
+        if devkit not in DEVKITS:
+            raise ValueError(f"KittiAP: devkit must be one of {sorted(DEVKITS)}, got {devkit!r}")
+        self.devkit = devkit
         self.classes, self.label_names = tuple(classes), tuple(label_names)
         self.min_overlap = {**MIN_OVERLAP, **(min_overlap or {})}
         for c in self.classes:
@@ -128,6 +157,16 @@ class KittiAP(Metric):
         self.image_height = float(image_height)
         for name in _STATES:
             self.add_state(name, default=[], dist_reduce_fx="cat")
+
+    @property
+    def evaluator(self) -> str:
+        """The evaluator this metric follows, as a run records it (``ablate.tasks.base.FusionTask.evaluator``)."""
+        return DEVKITS[self.devkit]
+
+    def gt_tall_enough(self, heights: np.ndarray, level: int) -> np.ndarray:
+        """Which GT box heights (px) are tall enough to count at ``level`` under ``self.devkit``'s ``cleanData``."""
+        minimum = MIN_HEIGHT[level] * self.image_height / REFERENCE_HEIGHT
+        return heights > minimum if self.devkit == "2017" else heights >= minimum
 
     def _id(self, name: str) -> int:
         return self.label_names.index(name) if name in self.label_names else -1
@@ -191,10 +230,11 @@ class KittiAP(Metric):
         """(ap11, ap40) in percent of ``cls`` at ``level``, -1 with no counted GT (eval.cpp ``eval_class``)."""
         cid, nid, thr = self._id(cls), self._id(NEIGHBOURS.get(cls, "")), self.min_overlap[cls]
         prepared, scores_tp, n_gt = [], [], 0
-        for boxes, scores, labels, in_dc, _, gt_labels, gt_level, iou in images:
+        for boxes, scores, labels, in_dc, gt_boxes, gt_labels, gt_level, iou in images:
             small = ~counted(boxes[:, 3] - boxes[:, 1], self.image_height, MIN_HEIGHT[level])
             det, gt = (labels == cid) | small, (gt_labels == cid) | (gt_labels == nid)
-            counts = (gt_labels[gt] == cid) & (gt_level[gt] >= 0) & (gt_level[gt] <= level)
+            tall = self.gt_tall_enough(gt_boxes[gt, 3] - gt_boxes[gt, 1], level)
+            counts = (gt_labels[gt] == cid) & (gt_level[gt] >= 0) & (gt_level[gt] <= level) & tall
             iou_, small_, scores_ = iou[gt][:, det], small[det], scores[det]
             fp_able = ~small_ & (labels[det] == cid) & ~in_dc[det]
             ok, to_small = iou_ > thr, np.append(small_, False)  # to_small[match]: matched a too-short det

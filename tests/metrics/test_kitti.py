@@ -1,4 +1,5 @@
-"""KittiAP against hand-computed cases and a loop-by-loop transliteration of the KITTI devkit's eval.cpp."""
+"""KittiAP against hand-computed cases and a loop-by-loop transliteration of the KITTI object devkit's
+evaluate_object.cpp (2017; its ``cleanData`` with the older 2D devkit's height rule as the ``2d_2012`` option)."""
 from __future__ import annotations
 
 import numpy as np
@@ -31,6 +32,7 @@ def found_cars(n: int) -> list[tuple[dict, dict]]:
 
 
 def evaluate(images, **kwargs) -> dict[str, float]:
+    """KittiAP over ``images`` (pairs of ``image``), one update per image; values as floats."""
     metric = KittiAP(**kwargs)
     for p, t in images:
         metric.update([p], [t])
@@ -50,7 +52,7 @@ def ref_boxoverlap(a, b, criterion=-1):
     return inter / (a_area + b_area - inter) if criterion == -1 else inter / a_area
 
 
-def ref_clean(cls, gts, dets, diff, scale):
+def ref_clean(cls, gts, dets, diff, scale, devkit="2017"):
     ignored_gt, ignored_det, n_gt = [], [], 0
     for typ, box, occ, trunc in gts:
         if typ == cls:
@@ -59,7 +61,9 @@ def ref_clean(cls, gts, dets, diff, scale):
             valid = 0
         else:
             valid = -1
-        ignore = occ > MAX_OCC[diff] or trunc > MAX_TRUNC[diff] or box[3] - box[1] < MIN_H[diff] * scale
+        height = box[3] - box[1]  # double in evaluate_object.cpp
+        too_short = height <= MIN_H[diff] * scale if devkit == "2017" else height < MIN_H[diff] * scale
+        ignore = occ > MAX_OCC[diff] or trunc > MAX_TRUNC[diff] or too_short
         if valid == 1 and not ignore:
             ignored_gt.append(0)
             n_gt += 1
@@ -130,11 +134,11 @@ def ref_thresholds(v, n_groundtruth, n_sample_pts=41):
     return t
 
 
-def ref_eval_class(cls, frames, diff, scale=1.0):
+def ref_eval_class(cls, frames, diff, scale=1.0, devkit="2017"):
     """(ap11, ap40); frames: list of (gts, dets) in the tuple forms of ``image``. -1 with no counted GT."""
     n_gt, v, cleaned = 0, [], []
     for gts, dets in frames:
-        ig_gt, dc, ig_det, n = ref_clean(cls, gts, dets, diff, scale)
+        ig_gt, dc, ig_det, n = ref_clean(cls, gts, dets, diff, scale, devkit)
         n_gt += n
         cleaned.append((gts, dets, dc, ig_gt, ig_det))
         v += ref_statistics(cls, gts, dets, dc, ig_gt, ig_det, False)[3]
@@ -154,10 +158,11 @@ def ref_eval_class(cls, frames, diff, scale=1.0):
     return sum(precision[0:41:4]) / 11 * 100, sum(precision[1:]) / 40 * 100
 
 
-def random_frames(seed: int, n_images: int = 60) -> list[tuple[list, list]]:
+def random_frames(seed: int, n_images: int = 60, on_thresholds: float = 0.0) -> list[tuple[list, list]]:
     """KITTI-like frames: every type, occlusion 0-3, truncation 0-0.6, heights around the thresholds, objects in
     overlapping clusters, 1-3 jittered detections of most objects (some with another label), random false
-    positives, some inside DontCare boxes, scores with ties."""
+    positives, some inside DontCare boxes, scores with ties. ``on_thresholds``: the share of objects put on a
+    whole-pixel row with a height of exactly 25 or 40 px or 0.01 px off, with a detection of the same box."""
     rng = np.random.default_rng(seed)
     types = ["Car", "Pedestrian", "Cyclist", "Van", "Person_sitting", "DontCare"]
     frames = []
@@ -169,8 +174,14 @@ def random_frames(seed: int, n_images: int = 60) -> list[tuple[list, list]]:
                 x, y = rng.uniform(0, 1000), rng.uniform(100, 250)
             x, y = x + rng.normal(0, 15), y + rng.normal(0, 5)
             w, h = rng.uniform(10, 150), rng.uniform(10, 110) if rng.random() < 0.5 else rng.uniform(15, 45)
+            exact = rng.random() < on_thresholds
+            if exact:
+                y, h = float(round(y)), float(rng.choice([24.99, 25.0, 25.01, 39.99, 40.0, 40.01]))
             box = tuple(np.round([x, y, x + w, y + h], 2).tolist())
             gts.append((typ, box, int(rng.integers(0, 4)), float(np.round(rng.uniform(0, 0.6), 2))))
+            if exact and typ != "DontCare":
+                dets.append(({"Van": "Car", "Person_sitting": "Pedestrian"}.get(typ, typ), box,
+                             float(np.round(rng.random(), 2))))
             for _ in range(rng.integers(1, 4) if rng.random() < 0.8 else 0):
                 label = {"Van": "Car", "Person_sitting": "Pedestrian", "DontCare": "Car"}.get(typ, typ)
                 label = label if rng.random() < 0.85 else types[rng.integers(0, 3)]
@@ -318,15 +329,95 @@ def test_height_thresholds_scale_with_image_height():
     assert evaluate(frames, image_height=187.5)["Car/easy/ap40"] == pytest.approx(100 * 39 / 40)
 
 
+# ---- boxes on the height thresholds: cleanData ignores a GT not taller than the minimum (2017), shorter (2d_2012) ----
+def test_height_rule_of_each_devkit():
+    heights = np.array([24.99, 25.0, 25.01, 39.99, 40.0, 40.01])
+    assert KittiAP().gt_tall_enough(heights, 1).tolist() == [False, False, True, True, True, True]  # > 25
+    assert KittiAP().gt_tall_enough(heights, 0).tolist() == [False, False, False, False, False, True]  # > 40
+    old = KittiAP(devkit="2d_2012")
+    assert old.gt_tall_enough(heights, 1).tolist() == [False, True, True, True, True, True]  # >= 25
+    assert old.gt_tall_enough(heights, 0).tolist() == [False, False, False, False, True, True]  # >= 40
+    assert KittiAP(image_height=750.0).gt_tall_enough(np.array([50.0, 50.01]), 1).tolist() == [False, True]
+
+
+def missed_car(height: float, difficulty: int | None = None) -> tuple[dict, dict]:
+    """An image with one undetected Car GT ``height`` px tall (occluded 0, truncated 0; y from 100.0, so 25.0 and
+    40.0 are exact and 24.99 / 25.01 come out 0.01 px off); ``difficulty``: given as that input instead."""
+    pred, target = image([("Car", (400.0, 100.0, 450.0, 100.0 + height), 0, 0.0)])
+    if difficulty is not None:
+        target = {"boxes": target["boxes"], "labels": target["labels"], "difficulty": torch.tensor([difficulty])}
+    return pred, target
+
+
+# With found_cars(41) (41 easy Cars, each found) and one missed Car:
+#   missed GT counted: 42 GTs, 41 TPs -> getThresholds gives 40 thresholds, precision 1 at points 0..39, 0 at 40:
+#                      ap40 = 39/40 = 97.5, ap11 = 10/11 = 90.91 (points 0, 4, ..., 36; point 40 is 0)
+#   missed GT ignored: 41 GTs, 41 TPs -> 41 thresholds, precision 1 at every point: ap40 = ap11 = 100
+COUNTED, IGNORED = (100 * 39 / 40, 100 * 10 / 11), (100.0, 100.0)
+
+
+@pytest.mark.parametrize("devkit, height, moderate", [
+    ("2017", 24.99, IGNORED), ("2017", 25.0, IGNORED), ("2017", 25.01, COUNTED),
+    ("2d_2012", 24.99, IGNORED), ("2d_2012", 25.0, COUNTED), ("2d_2012", 25.01, COUNTED)])
+def test_ground_truth_on_the_moderate_and_hard_minimum(devkit, height, moderate):
+    # counted GTs at moderate and hard: 41 + (1 if moderate is COUNTED else 0); at easy (> 40 or >= 40) always 41
+    for difficulty in (None, 1 if height >= 25 else -1):  # by occlusion / truncation, or as boxes2d gives it
+        out = evaluate(found_cars(41) + [missed_car(height, difficulty)], devkit=devkit)
+        for level in ("moderate", "hard"):
+            assert (out[f"Car/{level}/ap40"], out[f"Car/{level}/ap11"]) == pytest.approx(moderate), (level, difficulty)
+        assert (out["Car/easy/ap40"], out["Car/easy/ap11"]) == pytest.approx(IGNORED)
+
+
+@pytest.mark.parametrize("devkit, height, easy", [
+    ("2017", 39.99, IGNORED), ("2017", 40.0, IGNORED), ("2017", 40.01, COUNTED),
+    ("2d_2012", 39.99, IGNORED), ("2d_2012", 40.0, COUNTED), ("2d_2012", 40.01, COUNTED)])
+def test_ground_truth_on_the_easy_minimum(devkit, height, easy):
+    # counted GTs at easy: 41 + (1 if easy is COUNTED else 0); at moderate and hard (> 25) always 42
+    for difficulty in (None, 0 if height >= 40 else 1):
+        out = evaluate(found_cars(41) + [missed_car(height, difficulty)], devkit=devkit)
+        assert (out["Car/easy/ap40"], out["Car/easy/ap11"]) == pytest.approx(easy), difficulty
+        assert (out["Car/moderate/ap40"], out["Car/moderate/ap11"]) == pytest.approx(COUNTED), difficulty
+
+
+def test_default_ignores_a_25_px_ground_truth_at_moderate_and_hard_without_dropping_it():
+    exact = (400.0, 100.0, 450.0, 125.0)
+    out = evaluate(found_cars(41) + [image([("Car", exact, 0, 0.0)])])
+    assert out["Car/moderate/ap40"] == out["Car/hard/ap40"] == pytest.approx(100.0)  # 41 counted GTs, all found
+    # still a GT: a detection of it (25 px, tall enough at moderate) is absorbed, neither TP nor FP
+    out = evaluate(found_cars(41) + [image([("Car", exact, 0, 0.0)], [("Car", exact, 0.99)])])
+    assert out["Car/moderate/ap40"] == out["Car/hard/ap40"] == pytest.approx(100.0)
+
+
+# A lone Car detection (no GT) scoring 0.99, above the 41 found Cars (0.01 .. 0.41):
+#   a FP (int(height) >= minimum): at threshold k, k + 1 TPs and 1 FP -> precision (k + 1) / (k + 2), interpolated
+#       to its maximum 41/42 at every point: ap40 = ap11 = 100 * 41/42 = 97.62
+#   ignored (int(height) < minimum, e.g. int(24.99) = 24): precision 1 at every point: 100
+FP = (100 * 41 / 42, 100 * 41 / 42)
+
+
+@pytest.mark.parametrize("devkit", ["2017", "2d_2012"])  # the detection rule is the same in both
+@pytest.mark.parametrize("height, moderate, easy", [
+    (24.99, IGNORED, IGNORED), (25.0, FP, IGNORED), (25.01, FP, IGNORED),
+    (39.99, FP, IGNORED), (40.0, FP, FP), (40.01, FP, FP)])
+def test_detection_on_the_minimum_heights(devkit, height, moderate, easy):
+    lone = image([], [("Car", (400.0, 100.0, 450.0, 100.0 + height), 0.99)])
+    out = evaluate(found_cars(41) + [lone], devkit=devkit)
+    assert (out["Car/moderate/ap40"], out["Car/moderate/ap11"]) == pytest.approx(moderate)
+    assert (out["Car/hard/ap40"], out["Car/hard/ap11"]) == pytest.approx(moderate)
+    assert (out["Car/easy/ap40"], out["Car/easy/ap11"]) == pytest.approx(easy)
+
+
 # ---- the reference on random cases ----
-@pytest.mark.parametrize("seed,image_height", [(0, 375.0), (1, 375.0), (2, 250.0)])
-def test_matches_devkit_transliteration_on_random_frames(seed, image_height):
-    frames = random_frames(seed)
-    out = evaluate([image(g, d) for g, d in frames], image_height=image_height)
+@pytest.mark.parametrize("seed,image_height,on_thresholds,devkit", [
+    (0, 375.0, 0.0, "2017"), (1, 375.0, 0.0, "2017"), (2, 250.0, 0.0, "2017"),
+    (5, 375.0, 0.4, "2017"), (6, 375.0, 0.4, "2d_2012"), (7, 375.0, 0.0, "2d_2012")])
+def test_matches_devkit_transliteration_on_random_frames(seed, image_height, on_thresholds, devkit):
+    frames = random_frames(seed, on_thresholds=on_thresholds)
+    out = evaluate([image(g, d) for g, d in frames], image_height=image_height, devkit=devkit)
     inner = 0
     for cls in CLASSES:
         for k, level in enumerate(("easy", "moderate", "hard")):
-            ap11, ap40 = ref_eval_class(cls, frames, k, image_height / 375)
+            ap11, ap40 = ref_eval_class(cls, frames, k, image_height / 375, devkit)
             assert out[f"{cls}/{level}/ap11"] == pytest.approx(ap11, abs=1e-4), (cls, level)
             assert out[f"{cls}/{level}/ap40"] == pytest.approx(ap40, abs=1e-4), (cls, level)
             inner += 0 < ap40 < 100 and ap11 != ap40
@@ -377,6 +468,8 @@ def test_bad_options_and_inputs_are_named():
         KittiAP(classes=("Car", "Truck"))
     with pytest.raises(ValueError, match="image_height"):
         KittiAP(image_height=0)
+    with pytest.raises(ValueError, match=r"devkit must be one of \['2017', '2d_2012'\], got '2012'"):
+        KittiAP(devkit="2012")
     p, t = image([("Car", CAR, 0, 0.0)])
     with pytest.raises(KeyError, match="difficulty"):
         KittiAP().update([p], [{"boxes": t["boxes"], "labels": t["labels"]}])
