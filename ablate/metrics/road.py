@@ -3,7 +3,14 @@
 BiFNet (seed 004) §V-A evaluates with "the evaluation metrics in literature [12]" (Fritsch, Kuehnl, Geiger, "A New
 Performance Measure and Evaluation Benchmark for Road Detection Algorithms", ITSC 2013): PRE = TP / (TP + FP),
 REC = TP / (TP + FN), MaxF = max over thresholds of the F-measure (beta = 1) and AP, "all calculated in BEV space".
-Readings of the KITTI road devkit (``transform2BEV.py``, ``helper.py``) chosen here:
+
+Conformance: by default this follows the KITTI road devkit (``devkit_road``, 2013: ``python/transform2BEV.py``
+with ``BirdsEyeView.py``, and ``python/helper.py``) bug for bug; runs record it as evaluator ``kitti_road_devkit``
+(:data:`LOOKUPS`, :data:`ablate.metrics.EVALUATORS`). ``lookup="nearest"`` (``kitti_road_nearest_pixel``) keeps
+this project's earlier reading of the warp, a deviation from the devkit. Tests (tests/metrics/test_road.py): the
+measures against a loop-based reference of ``helper.py`` and counts by hand; the lookup's pixels on a calibration
+projected by hand and, on the real frame um_000000, against a transliteration of ``BirdsEyeView``; the BEV cells a
+single road pixel lands in.
 
 * BEV grid. Cells of 0.05 m, lateral x in [-10, 10] m (column 0 left), forward z in [6, 46] m (row 0 far), so
   800 x 400 cells; a cell is represented by its centre on the road plane.
@@ -12,11 +19,16 @@ Readings of the KITTI road devkit (``transform2BEV.py``, ``helper.py``) chosen h
   y = 0 (y down). The homography from road (x, z, 1) to image_2 is columns (0, 2, 3) of
   ``P2 . R0_rect . Tr_cam_to_road^-1`` (:func:`road_homography`). A calib without ``Tr_cam_to_road`` (the object
   benchmark's) may instead give ``camera_height``: a level plane that far below the rectified camera.
-* Lookup. Each cell centre is projected into the image and takes the value of the nearest pixel (0-based pixel
-  centres, as :func:`ablate.data.lidar.project_points`). The devkit reads the projection as 1-based and truncates,
-  taking a pixel 1-2 px up and left; prediction and ground truth are sampled at the same pixels either way.
-  Cells whose centre falls outside the image (or behind the camera) are don't-care, as in the devkit, where their
-  ground truth is black (void).
+* Lookup, ``lookup="devkit"`` (default; ``BirdsEyeView.computeBEVLookUpTable`` and ``transformImage2BEV``): the
+  cell centres are cast to float32, projected, and the projection (u, v) is read as 1-based: a cell is kept only
+  where 1 <= u <= W and 1 <= v <= H, and takes the pixel (int(v) - 1, int(u) - 1), truncating. Read with 0-based
+  pixel centres, that pixel's centre lies 1 to 2 px up and left of the projection (the nearest pixel's within
+  0.5 px); the image's first row and column take projections in [1, 2), its last only one exactly on H or W.
+* Lookup, ``lookup="nearest"`` (a deviation, kept as an option): the nearest pixel with 0-based pixel centres, as
+  :func:`ablate.data.lidar.project_points`; a cell is kept where -0.5 <= u < W - 0.5 (and so for v).
+* Either way prediction and ground truth are sampled at the same pixels, and cells left out are don't-care, as in
+  the devkit, where their ground truth stays black (void). Both also leave out a cell centre behind the camera,
+  which the devkit does not test for; no cell of its grid is behind the camera.
 * Thresholds 0/255 .. 255/255; a cell is road at threshold t when ``p >= t`` (``evalExp``). TP / FP / FN are
   summed over all frames before PRE, REC and F are formed (``pxEval_maximizeFMeasure``), never averaged per frame.
 * PRE = TP / (TP + FP + 1e-10), F = 2 PRE REC / (PRE + REC + 1e-10); MaxF is the first (lowest-threshold) maximum;
@@ -46,6 +58,8 @@ BEV_RES, BEV_X, BEV_Z = 0.05, (-10.0, 10.0), (6.0, 46.0)
 #: The devkit's 256 thresholds and 11 recall levels.
 NUM_THRESHOLDS = 256
 AP_RECALLS = np.arange(0.0, 1.1, 0.1)
+#: The BEV lookups (:func:`bev_lookup`) and the ``evaluator`` tag of each: the devkit's, and the nearest pixel.
+LOOKUPS = {"devkit": "kitti_road_devkit", "nearest": "kitti_road_nearest_pixel"}
 
 
 def road_homography(calib: Calibration, camera_height: float | None = None) -> np.ndarray:
@@ -74,17 +88,36 @@ def bev_centres(res: float = BEV_RES, x_range=BEV_X, z_range=BEV_Z) -> tuple[np.
     return np.meshgrid(x_range[0] + (np.arange(cols) + 0.5) * res, z_range[1] - (np.arange(rows) + 0.5) * res)
 
 
+def check_lookup(lookup: str) -> str:
+    """``lookup`` if it names a BEV lookup, else a ValueError naming the option and the accepted values."""
+    if lookup not in LOOKUPS:
+        raise ValueError(f"lookup must be one of {sorted(LOOKUPS)}, got {lookup!r}")
+    return lookup
+
+
 def bev_lookup(homography: np.ndarray, image_shape: tuple[int, int], res: float = BEV_RES, x_range=BEV_X,
-               z_range=BEV_Z) -> tuple[np.ndarray, np.ndarray]:
-    """For each BEV cell (flattened row-major): the flat index of its nearest image pixel, and whether its centre
-    lies inside the image and in front of the camera (index 0 where not)."""
+               z_range=BEV_Z, lookup: str = "devkit") -> tuple[np.ndarray, np.ndarray]:
+    """For each BEV cell (flattened row-major): the flat index of the image pixel it takes, and whether it is kept
+    (its centre projects into the image, in front of the camera; index 0 where not).
+
+    ``lookup="devkit"``: ``BirdsEyeView.computeBEVLookUpTable`` / ``transformImage2BEV`` of the road devkit: float32
+    cell centres, projection read as 1-based, kept where 1 <= u <= W and 1 <= v <= H, pixel (int(v) - 1,
+    int(u) - 1). ``lookup="nearest"``: the nearest pixel with 0-based pixel centres (a deviation from the devkit)."""
     x, z = bev_centres(res, x_range, z_range)
+    if check_lookup(lookup) == "devkit":
+        x, z = x.astype(np.float32).astype(np.float64), z.astype(np.float32).astype(np.float64)
     hom = np.stack([x.ravel(), z.ravel(), np.ones(x.size)]).T @ np.asarray(homography, np.float64).T
     with np.errstate(divide="ignore", invalid="ignore"):
-        u, v = np.rint(hom[:, 0] / hom[:, 2]), np.rint(hom[:, 1] / hom[:, 2])
+        u, v = hom[:, 0] / hom[:, 2], hom[:, 1] / hom[:, 2]
     h, w = image_shape
-    inside = (hom[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    return np.where(inside, v * w + u, 0).astype(np.int64), inside
+    if lookup == "devkit":
+        inside = (u >= 1) & (u <= w) & (v >= 1) & (v <= h)
+        col, row = np.floor(np.where(inside, u, 1)) - 1, np.floor(np.where(inside, v, 1)) - 1
+    else:
+        col, row = np.rint(u), np.rint(v)
+        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    inside &= hom[:, 2] > 0
+    return np.where(inside, row * w + col, 0).astype(np.int64), inside
 
 
 def road_scores(tp: Tensor, fp: Tensor, fn: Tensor) -> dict[str, Tensor]:
@@ -122,6 +155,9 @@ class RoadMaxF(Metric):
         res, x_range, z_range: the BEV grid (defaults: the devkit's 0.05 m, x in [-10, 10], z in [6, 46]).
         camera_height: when set, warp with a level road plane this far below the camera instead of each calib's
             ``Tr_cam_to_road`` (for calibrations that lack it).
+        lookup: the perspective -> BEV lookup of ``update(..., calib=...)``: ``"devkit"`` (default, the road
+            devkit's ``transformImage2BEV``) or ``"nearest"`` (the nearest pixel, a deviation; see the module
+            docstring). Its ``evaluator`` tag: :data:`LOOKUPS`.
     """
 
     full_state_update = False
@@ -129,8 +165,12 @@ class RoadMaxF(Metric):
     higher_is_better = True
 
     def __init__(self, res: float = BEV_RES, x_range: Sequence[float] = BEV_X, z_range: Sequence[float] = BEV_Z,
-                 camera_height: float | None = None, **kwargs: Any) -> None:
+                 camera_height: float | None = None, lookup: str = "devkit", **kwargs: Any) -> None:
         super().__init__(**kwargs)
+        try:
+            self.lookup = check_lookup(lookup)
+        except ValueError as err:
+            raise ValueError(f"RoadMaxF: {err}") from None
         if res <= 0 or x_range[1] <= x_range[0] or z_range[1] <= z_range[0]:
             raise ValueError(f"RoadMaxF: need res > 0 and increasing ranges, got res={res}, x_range={x_range}, "
                              f"z_range={z_range}")
@@ -141,6 +181,11 @@ class RoadMaxF(Metric):
         self.shape = bev_shape(self.res, self.x_range, self.z_range)
         for name in ("tp", "fp", "fn"):
             self.add_state(name, default=torch.zeros(NUM_THRESHOLDS, dtype=torch.long), dist_reduce_fx="sum")
+
+    @property
+    def evaluator(self) -> str:
+        """The evaluator this metric follows, as a run records it (``ablate.tasks.base.FusionTask.evaluator``)."""
+        return LOOKUPS[self.lookup]
 
     def update(self, preds: Tensor, target: Tensor, valid: Tensor | None = None,
                calib: Calibration | Sequence[Calibration] | None = None) -> None:
@@ -178,7 +223,8 @@ class RoadMaxF(Metric):
 
     def _warp(self, level: Tensor, target: Tensor, valid: Tensor,
               calib: Calibration | Sequence[Calibration]) -> tuple[Tensor, Tensor, Tensor]:
-        """Perspective (B,H,W) -> BEV (B,rows,cols) by the nearest pixel of each cell centre; outside is don't-care."""
+        """Perspective (B,H,W) -> BEV (B,rows,cols) by ``self.lookup``'s pixel of each cell; cells left out are
+        don't-care."""
         calibs = [calib] * len(level) if isinstance(calib, Calibration) else list(calib)
         if len(calibs) != len(level):
             raise ValueError(f"RoadMaxF.update: {len(calibs)} calibrations for {len(level)} frames")
@@ -186,7 +232,7 @@ class RoadMaxF(Metric):
         for lv, tg, va, cal in zip(level, target, valid, calibs):
             hom = road_homography(cal, self.camera_height)
             index, inside = (torch.from_numpy(a).to(lv.device) for a in
-                             bev_lookup(hom, tuple(lv.shape), self.res, self.x_range, self.z_range))
+                             bev_lookup(hom, tuple(lv.shape), self.res, self.x_range, self.z_range, self.lookup))
             out.append([x.flatten()[index].view(self.shape) for x in (lv, tg, va)])
             out[-1][2] &= inside.view(self.shape)
         return tuple(torch.stack(x) for x in zip(*out))

@@ -1,5 +1,6 @@
 """RoadMaxF against hand-computed cases, a loop-based reference of the devkit's 256-threshold evaluation, a made-up
-calibration and the real KITTI road frame um_000000."""
+calibration projected by hand, and the real KITTI road frame um_000000 against a transliteration of the road
+devkit's BEV lookup (BirdsEyeView.computeBEVLookUpTable / transformImage2BEV)."""
 from __future__ import annotations
 
 import numpy as np
@@ -139,12 +140,17 @@ def made_up_calib(road: bool = True) -> Calibration:
                        Tr_cam_to_road=cam_to_road if road else None, path="made_up.txt")
 
 
-@pytest.mark.parametrize("road, pixel", [(True, (39, 53)), (False, (38, 59))])
-def test_warp_puts_a_ground_point_in_its_cell(road, pixel):
+GRID = {"res": 0.5, "x_range": (-2.0, 2.0), "z_range": (6.0, 10.0)}  # 8 x 8 cells
+
+
+@pytest.mark.parametrize("road, lookup, pixel", [(True, "devkit", (37, 52)), (False, "devkit", (37, 58)),
+                                                 (True, "nearest", (39, 53)), (False, "nearest", (38, 59))])
+def test_warp_puts_a_ground_point_in_its_cell(road, lookup, pixel):
     # Grid res .5, x in [-2, 2], z in [6, 10]: cell (row 3, column 5) has centre x = .75, z = 8.25.
-    # Road frame: u = 100 (.75 - .5) / (8.25 - .25) + 50 = 53.125, v = 100 * 1.5 / 8 + 20 = 38.75 -> pixel (39, 53).
-    # Level plane 1.5 m down: u = 100 * .75 / 8.25 + 50 = 59.09, v = 150 / 8.25 + 20 = 38.18 -> pixel (38, 59).
-    grid = {"res": 0.5, "x_range": (-2.0, 2.0), "z_range": (6.0, 10.0)}
+    # Road frame: u = 100 (.75 - .5) / (8.25 - .25) + 50 = 53.125, v = 100 * 1.5 / 8 + 20 = 38.75:
+    #   devkit (1-based, truncated): (int(38.75) - 1, int(53.125) - 1) = (37, 52); nearest: (39, 53).
+    # Level plane 1.5 m down: u = 100 * .75 / 8.25 + 50 = 59.09, v = 150 / 8.25 + 20 = 38.18:
+    #   devkit (37, 58); nearest (38, 59).
     calib = made_up_calib(road)
     hom = road_homography(calib, None if road else 1.5)
     uvw = hom @ np.array([0.75, 8.25, 1.0])
@@ -153,22 +159,44 @@ def test_warp_puts_a_ground_point_in_its_cell(road, pixel):
     image = torch.zeros(60, 100)
     image[pixel] = 1
     gt = torch.zeros(60, 100, dtype=torch.bool)
-    metric = RoadMaxF(**grid, camera_height=None if road else 1.5)
+    metric = RoadMaxF(**GRID, camera_height=None if road else 1.5, lookup=lookup)
     metric.update(image, gt, calib=calib)
     assert metric.fp[1].item() == 1 and metric.tp[0].item() == 0  # one cell picked up the marked pixel
-    idx, inside = bev_lookup(hom, (60, 100), **grid)
+    idx, inside = bev_lookup(hom, (60, 100), **GRID, lookup=lookup)
     assert inside.all()
     hit = np.flatnonzero(image.numpy().ravel()[idx])
     assert hit.tolist() == [3 * 8 + 5]
 
 
-def test_cells_outside_the_image_are_dont_care():
-    # Same grid and road frame, image 60 px wide: a cell is inside when u = 100 (x - .5) / (z - .25) + 50 < 59.5.
-    # Columns 0-5 (x - .5 <= .25) are inside on all 8 rows, column 6 (x - .5 = .75) on the 4 far rows (z - .25 >=
-    # 8), column 7 on none: 52 of the 64 cells count.
-    metric = RoadMaxF(res=0.5, x_range=(-2.0, 2.0), z_range=(6.0, 10.0))
+@pytest.mark.parametrize("cell, devkit, nearest", [
+    # (row, column): centre (x, z) -> u = 100 (x - .5) / (z - .25) + 50, v = 150 / (z - .25) + 20
+    ((3, 5), (37, 52), (39, 53)),  # (.75, 8.25): u = 53.125, v = 38.75
+    ((0, 0), (34, 25), (36, 26)),  # (-1.75, 9.75): u = 50 - 225 / 9.5 = 26.316, v = 20 + 150 / 9.5 = 35.789
+    ((7, 7), (44, 69), (45, 71)),  # (1.75, 6.25): u = 50 + 125 / 6 = 70.833, v = 45.0 exactly: devkit row 45 - 1
+])
+def test_lookup_pixels_by_hand(cell, devkit, nearest):
+    hom = road_homography(made_up_calib())
+    for lookup, (row, col) in (("devkit", devkit), ("nearest", nearest)):
+        idx, inside = bev_lookup(hom, (60, 100), **GRID, lookup=lookup)
+        k = cell[0] * 8 + cell[1]
+        assert inside[k] and divmod(int(idx[k]), 100) == (row, col), lookup
+
+
+@pytest.mark.parametrize("lookup, kept", [("devkit", 53), ("nearest", 52)])
+def test_cells_outside_the_image_are_dont_care(lookup, kept):
+    # Same grid and road frame, image 60 x 60: v = 150 / (z - .25) + 20 is in 35.8 .. 45 on every row, inside.
+    # u = 100 (x - .5) / (z - .25) + 50: columns 0-5 (x - .5 <= .25) give u <= 50 + 25 / 6 = 54.2, inside on all 8
+    # rows; column 7 (x - .5 = 1.25) gives u >= 50 + 125 / 9.5 = 63.2, outside on all. Column 6 (x - .5 = .75):
+    # u = 57.9, 58.3, 58.8, 59.4 (z - .25 = 9.5, 9, 8.5, 8), then exactly 60.0 (z - .25 = 7.5), then 60.7, ...
+    #   devkit: kept while u <= W = 60 (read 1-based): 5 rows, the fifth at pixel int(60.0) - 1 = 59; 48 + 5 = 53.
+    #   nearest: kept while rint(u) < 60, i.e. u < 59.5: 4 rows; 48 + 4 = 52.
+    metric = RoadMaxF(**GRID, lookup=lookup)
     metric.update(torch.ones(60, 60), torch.zeros(60, 60), calib=made_up_calib())
-    assert metric.fp.tolist() == [52] * 256 and metric.tp.sum() == metric.fn.sum() == 0
+    assert metric.fp.tolist() == [kept] * 256 and metric.tp.sum() == metric.fn.sum() == 0
+    idx, inside = bev_lookup(road_homography(made_up_calib()), (60, 60), **GRID, lookup=lookup)
+    assert inside.reshape(8, 8)[:, 6].sum() == kept - 48
+    if lookup == "devkit":
+        assert divmod(int(idx[4 * 8 + 6]), 60) == (39, 59)  # (x, z) = (1.25, 7.75): u = 60.0, v = 40.0
     # Ground 9.75 m behind the camera projects into the image (v = 20 + 150 / -10 = 5) but is not seen.
     behind = RoadMaxF(res=1.0, x_range=(-1.0, 1.0), z_range=(-10.0, -9.0))
     behind.update(torch.ones(60, 100), torch.zeros(60, 100), calib=made_up_calib())
@@ -200,31 +228,97 @@ def um_000000(kitti_root):
     return Calibration.from_file(root / "calib" / "um_000000.txt"), road, valid
 
 
-def test_real_calibration_round_trip(um_000000):
+@pytest.mark.parametrize("lookup, offset", [("devkit", 1.5), ("nearest", 0.0)])
+def test_real_calibration_round_trip(um_000000, lookup, offset):
     calib, road, valid = um_000000
     assert -calib.Tr_cam_to_road[1, 3] == pytest.approx(1.6, abs=0.1)  # the camera is ~1.6 m above the road
     hom = road_homography(calib)
     for x, z in ((0.0, 10.0), (-5.0, 30.0)):  # the fitted plane (pitched ~0.6 deg, origin 0.28 m ahead of the
         a, b = hom @ [x, z, 1], road_homography(calib, 1.6) @ [x, z, 1]  # camera) and a level one at 1.6 m:
         assert np.abs(a[:2] / a[2] - b[:2] / b[2]).max() < 15  # within ~10 px
-    idx, inside = bev_lookup(hom, road.shape)
+    idx, inside = bev_lookup(hom, road.shape, lookup=lookup)
     inside = inside.reshape(800, 400)
     assert not inside[-1, 0] and not inside[-1, -1] and inside[:700, 200].all()  # a trapezoid
     bev = road.ravel()[idx].reshape(800, 400) & inside
     assert bev[700, 200] and 0.15 < bev[inside].mean() < 0.5  # the car stands on the road
-    # back into the image: each road-plane pixel inside the grid reads the BEV cell it falls into
+    # back into the image: each road-plane pixel inside the grid reads the BEV cell it falls into, the pixel
+    # (v, u) read from the image point (u, v) by the nearest pixel, from (u + 1.5, v + 1.5) by the devkit
+    # (1-based, truncated: the projections in [u + 1, u + 2) take pixel u)
     v, u = np.nonzero(valid)
-    xz = np.linalg.solve(hom, np.stack([u, v, np.ones_like(u)]).astype(float))
+    xz = np.linalg.solve(hom, np.stack([u + offset, v + offset, np.ones_like(u)]).astype(float))
     x, z = xz[0] / xz[2], xz[1] / xz[2]
     row, col = np.floor((46 - z) / 0.05).astype(int), np.floor((x + 10) / 0.05).astype(int)
     ok = (xz[2] > 0) & (row >= 0) & (row < 800) & (col >= 0) & (col < 400)
     ok &= inside[row.clip(0, 799), col.clip(0, 399)]
     assert ok.sum() > 50_000
     assert (bev[row[ok], col[ok]] == road[v[ok], u[ok]]).mean() > 0.98
-    metric = RoadMaxF()  # the ground truth as a prediction, warped with the calibration
+    metric = RoadMaxF(lookup=lookup)  # the ground truth as a prediction, warped with the calibration
     metric.update(torch.from_numpy(road).float(), torch.from_numpy(road), torch.from_numpy(valid), calib=calib)
     check(metric.compute(), {"max_f": 100, "ap": 100, "pre": 100, "rec": 100})
     assert metric.tp[0].item() == (bev & valid.ravel()[idx].reshape(800, 400)).sum()  # valid road cells
+
+
+def devkit_bev(image: np.ndarray, calib: Calibration) -> np.ndarray:
+    """The road devkit's transform2BEV of ``image`` (H, W) on its default grid, step by step as
+    BirdsEyeView.computeBEVLookUpTable and transformImage2BEV take them: cell centres from np.arange, cast to
+    float32, in column-major order; projected by columns (x, z, 1) of P2 . R0_rect . Tr_cam_to_road^-1; kept where
+    1 <= u <= W and 1 <= v <= H; the cell (1-based z, x index) takes pixel (v - 1, u - 1), truncated. 0 elsewhere."""
+    res, (x0, x1), (z0, z1) = 0.05, (-10.0, 10.0), (6.0, 46.0)
+    xs, zs = np.meshgrid(np.arange(x0 + res / 2, x1, res), np.arange(z1 - res / 2, z0, -res))
+    rows, cols = xs.shape
+    x, z = xs.ravel(order="F").astype(np.float32), zs.ravel(order="F").astype(np.float32)
+    rect, to_road = np.eye(4), np.eye(4)
+    rect[:3, :3], to_road[:3] = calib.R0_rect, calib.Tr_cam_to_road
+    tr33 = (calib.P2 @ rect @ np.linalg.inv(to_road))[:, [0, 2, 3]]
+    uvw = tr33 @ np.vstack([x, z, np.ones_like(z)])
+    u, v = uvw[0] / uvw[2], uvw[1] / uvw[2]
+    h, w = image.shape
+    keep = (v >= 1) & (u >= 1) & (v <= h) & (u <= w)
+    z_ind, x_ind = np.mgrid[1:rows + 1, 1:cols + 1]
+    z_ind, x_ind = z_ind.ravel(order="F")[keep], x_ind.ravel(order="F")[keep]
+    out = np.zeros((rows, cols), image.dtype)
+    out[z_ind - 1, x_ind - 1] = image[v[keep].astype(np.uint32) - 1, u[keep].astype(np.uint32) - 1]
+    return out
+
+
+def test_lookup_is_the_devkit_transform_on_a_real_frame(um_000000):
+    calib, road, _ = um_000000
+    pixel_ids = np.arange(1, road.size + 1).reshape(road.shape)  # each pixel its own value: which one a cell reads
+    expected = devkit_bev(pixel_ids, calib)
+    assert (expected > 0).sum() > 300_000
+    for lookup, same in (("devkit", True), ("nearest", False)):
+        idx, inside = bev_lookup(road_homography(calib), road.shape, lookup=lookup)
+        got = np.where(inside, idx + 1, 0).reshape(800, 400)
+        assert (got == expected).all() == same, lookup
+    # the nearest pixel's centre is 1 to 2 px below and right of the devkit's, on every cell both keep
+    near = np.where(inside, idx + 1, 0).reshape(800, 400)
+    both = (near > 0) & (expected > 0)
+    dv, du = np.divmod(near[both] - 1, road.shape[1]) - np.stack(np.divmod(expected[both] - 1, road.shape[1]))
+    assert set(np.unique(dv)) <= {1, 2} and set(np.unique(du)) <= {1, 2}
+
+
+def test_one_road_pixel_lands_in_the_devkit_cells(um_000000):
+    calib, road, _ = um_000000
+    pred = np.zeros(road.shape, np.float32)
+    pred[250, 700] = 1.0  # road on one pixel, about 16 m ahead and 1.9 m to the right
+    cells = np.flatnonzero(devkit_bev(pred, calib))
+    assert len(cells) == 3  # the devkit's transform2BEV puts it in 3 cells
+    metric = RoadMaxF()
+    metric.update(torch.from_numpy(pred), torch.zeros(road.shape, dtype=torch.bool), calib=calib)
+    assert metric.fp[1].item() == 3 and metric.fp[256 - 1].item() == 3
+    for lookup in ("devkit", "nearest"):
+        idx, inside = bev_lookup(road_homography(calib), road.shape, lookup=lookup)
+        found = np.flatnonzero(inside & (idx == 250 * road.shape[1] + 700))
+        assert (found.tolist() == cells.tolist()) == (lookup == "devkit"), lookup
+
+
+def test_lookup_option_and_evaluator():
+    assert RoadMaxF().evaluator == "kitti_road_devkit"
+    assert RoadMaxF(lookup="nearest").evaluator == "kitti_road_nearest_pixel"
+    with pytest.raises(ValueError, match=r"RoadMaxF: lookup must be one of \['devkit', 'nearest'\], got 'bilinear'"):
+        RoadMaxF(lookup="bilinear")
+    with pytest.raises(ValueError, match="lookup must be one of"):
+        bev_lookup(np.eye(3), (10, 10), lookup="Devkit")
 
 
 def test_bev_centres_orientation():
