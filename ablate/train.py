@@ -172,6 +172,7 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     tracker.log_metrics(run_id, metrics, step=trainer.global_step)
     tracker.set_tags(run_id, {"device": str(next(task.model.parameters()).device),
                               "threads": str(torch.get_num_threads())})
+    tracker.set_tags(run_id, {"evaluator": task.evaluator} if getattr(task, "evaluator", None) else {})
     for method, name in (("figure", "predictions.png"), ("gate_figure", "gates.png")):
         figure = getattr(task, method, lambda _: None)(sample)
         if figure is not None:

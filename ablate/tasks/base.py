@@ -206,6 +206,13 @@ class FusionTask(L.LightningModule):
         """A matplotlib figure of predictions on ``batch`` (fixed test frames), or None."""
         return None
 
+    @property
+    def evaluator(self) -> str | None:
+        """The evaluators its metrics follow (their ``evaluator``, e.g. ``kitti_object_devkit_2017``; see
+        :mod:`ablate.metrics`), comma-separated: the run's ``evaluator`` tag. None when no metric names one."""
+        names = {getattr(m, "evaluator", None) for m in self.modules() if isinstance(m, Metric)}
+        return ", ".join(sorted(names - {None})) or None
+
 
 def _plain(value: Any) -> Any:
     """OmegaConf containers as plain dicts and lists."""

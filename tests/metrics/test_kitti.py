@@ -8,6 +8,7 @@ import torch
 
 from ablate.data.dataset import CLASSES
 from ablate.data.kitti import Object3D
+from ablate.metrics import EVALUATORS
 from ablate.metrics.kitti import LABEL_NAMES, KittiAP, thresholds
 
 
@@ -438,6 +439,11 @@ def test_difficulty_input_equals_occlusion_and_truncation():
 
 
 # ---- accumulation, sync, edge cases ----
+def test_evaluator_names_the_devkit():
+    assert KittiAP().evaluator == EVALUATORS["ablate.metrics.kitti"] == "kitti_object_devkit_2017"
+    assert KittiAP(devkit="2d_2012").evaluator == "kitti_object_devkit_2d_2012"
+
+
 def test_two_updates_equal_one_update_and_gathered_states_equal_all_ranks():
     frames = [image(g, d) for g, d in random_frames(4, n_images=20)]
     one, two = KittiAP(), KittiAP()

@@ -9,6 +9,7 @@ import torch
 
 from ablate.data import DataError
 from ablate.data.kitti import Calibration, read_road_gt
+from ablate.metrics import EVALUATORS
 from ablate.metrics.road import RoadMaxF, bev_centres, bev_lookup, road_homography, road_scores
 
 SMALL = {"res": 1.0, "x_range": (-2.0, 2.0), "z_range": (6.0, 10.0)}  # a 4 x 4 BEV grid
@@ -313,7 +314,7 @@ def test_one_road_pixel_lands_in_the_devkit_cells(um_000000):
 
 
 def test_lookup_option_and_evaluator():
-    assert RoadMaxF().evaluator == "kitti_road_devkit"
+    assert RoadMaxF().evaluator == EVALUATORS["ablate.metrics.road"] == "kitti_road_devkit"
     assert RoadMaxF(lookup="nearest").evaluator == "kitti_road_nearest_pixel"
     with pytest.raises(ValueError, match=r"RoadMaxF: lookup must be one of \['devkit', 'nearest'\], got 'bilinear'"):
         RoadMaxF(lookup="bilinear")

@@ -33,6 +33,7 @@ from ablate.tasks.yolact.task import select, task_head
 _DECODE_OPTIONS = tuple(p for p in inspect.signature(decode).parameters if p not in ("outputs", "image_size",
                                                                                       "anchors"))
 _LOSS_OPTIONS = tuple(p for p in inspect.signature(SSDLoss).parameters if p not in ("anchors", "num_classes"))
+_METRIC_OPTIONS = ("devkit", "min_overlap")
 
 
 class DetectionTask(FusionTask):
@@ -40,21 +41,23 @@ class DetectionTask(FusionTask):
     (:class:`~ablate.tasks.ssd.head.SSDHead`: on DGFN's VGG maps or a FusionModel's FPN).
 
     ``loss``: options of :class:`SSDLoss`; ``decode``: options of :func:`decode`; ``classes``: the classes
-    evaluated (KITTI names among the head's). ``train_corruptions``, ``eval_*``: see
+    evaluated (KITTI names among the head's); ``metric``: options of :class:`KittiAP` (``devkit``: ``"2017"``, its
+    default, or ``"2d_2012"``; ``min_overlap``). ``train_corruptions``, ``eval_*``: see
     :class:`~ablate.tasks.base.FusionTask`.
     """
 
     def __init__(self, model: nn.Module, optimizer, scheduler=None, monitor: str = "val/ap11",
                  loss: dict | None = None, decode: dict | None = None,
                  classes: list[str] | tuple[str, ...] = ("Car", "Pedestrian"), figure_frames: int = 4,
-                 **conditions) -> None:
+                 metric: dict | None = None, **conditions) -> None:
         super().__init__(model, optimizer, scheduler, monitor, **conditions)
         head = task_head(model)
         if getattr(head, "anchors", None) is None or getattr(head, "num_classes", None) is None:
             raise ValueError(f"DetectionTask needs a detection head with `anchors` and `num_classes` (head="
                              f"ablate.tasks.detection.SSDHead); got {type(head).__name__}")
         self.anchors, self.num_classes = head.anchors, int(head.num_classes)
-        for option, given, valid in (("task.loss", loss, _LOSS_OPTIONS), ("task.decode", decode, _DECODE_OPTIONS)):
+        for option, given, valid in (("task.loss", loss, _LOSS_OPTIONS), ("task.decode", decode, _DECODE_OPTIONS),
+                                     ("task.metric", metric, _METRIC_OPTIONS)):
             if bad := sorted(set(given or {}) - set(valid)):
                 raise ValueError(f"{option}: unknown option(s) {bad}; valid: {list(valid)}")
         self.criterion = SSDLoss(self.anchors, self.num_classes, **dict(loss or {}))
@@ -63,7 +66,7 @@ class DetectionTask(FusionTask):
         if bad := [c for c in self.classes if c not in CLASSES[:self.num_classes]]:
             raise ValueError(f"task.classes: {bad} not among the head's classes {list(CLASSES[:self.num_classes])}")
         self.figure_frames = figure_frames
-        self.val_ap, self.test_ap = KittiAP(self.classes), KittiAP(self.classes)
+        self.val_ap, self.test_ap = (KittiAP(self.classes, **dict(metric or {})) for _ in range(2))
         fused = hasattr(model, "fusion_modules") and model.fusion_modules()
         if fused:
             self.test_gates = nn.ModuleDict({m: MeanMetric() for m in model.modalities})
