@@ -10,7 +10,8 @@ for other importers): those count where a module names the package itself (``fro
 a ChiNet run, which imports ``ablate.nn.unet``, does not depend on the VGG-16 it never builds. A file of that set
 changed between the run's commit and the working tree makes the run *stale*: its numbers may not be what the code
 gives today. Config files are covered by the config hash: a row whose config changed gets a new hash and is trained
-again.
+again. A metric whose rule changed is named outright (:func:`evaluators`): a run records the evaluator it was
+scored with as its ``evaluator`` tag, and :data:`ablate.metrics.EVALUATORS` names today's.
 """
 from __future__ import annotations
 
@@ -91,3 +92,12 @@ def stale(commits: set[str], targets: set[str], root: Path = ROOT, package: str 
         elif hit := sorted(str(p.relative_to(root)) for p in changed & deps):
             out[commit] = hit
     return out
+
+
+def evaluators(targets: set[str], root: Path = ROOT, package: str = "ablate") -> dict[str, str]:
+    """{metric module: today's evaluator} (:data:`ablate.metrics.EVALUATORS`) for the metric modules that the
+    dotted ``targets`` import, transitively (:func:`dependencies`)."""
+    from ablate.metrics import EVALUATORS
+
+    deps = {p.resolve() for p in dependencies(targets, package, root)}
+    return {m: e for m, e in sorted(EVALUATORS.items()) if (f := module_file(m, root)) and f.resolve() in deps}

@@ -27,7 +27,7 @@ import pandas as pd  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from scipy.stats import kendalltau  # noqa: E402
 
-from ablate.provenance import stale  # noqa: E402
+from ablate.provenance import evaluators, stale  # noqa: E402
 from ablate.significance import BOOTSTRAP_FROM, COLLAPSE_RATIO, RESAMPLES, difference, disagreeing_seeds, \
     mean_ci  # noqa: E402
 from ablate.tracking import KIND_JOB, KIND_SWEEP, Tracker, retry  # noqa: E402
@@ -52,6 +52,7 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     records = [{"row": r.data.tags.get("row", "?"), "seed": r.data.tags.get("seed", "?"),
                 "scale": r.data.tags.get("scale", "?"), "config_hash": r.data.tags.get("config_hash", r.info.run_id),
                 "git_commit": r.data.tags.get("git_commit", "unknown"), "run_id": r.info.run_id,
+                "evaluator": r.data.tags.get("evaluator", ""),
                 "targets": " ".join(sorted({v for k, v in r.data.params.items() if k.endswith("_target_")})),
                 "start": r.info.start_time, **r.data.metrics} for r in runs]
     if not records:
@@ -245,6 +246,23 @@ def provenance(runs: pd.DataFrame) -> list[str]:
                      + f" in what its runs build: {shown}; their numbers may not be what the code gives today.")
     if targets and not changed:
         lines.append("No code the runs build has changed since their commits.")
+    return lines + metric_changed(runs, targets)
+
+
+def metric_changed(runs: pd.DataFrame, targets: set[str]) -> list[str]:
+    """A line per metric the runs' code builds whose evaluator today (``ablate.provenance.evaluators``) is not the
+    one some runs were scored with (their ``evaluator`` tag; none on runs made before the tag)."""
+    used = runs["evaluator"].fillna("") if "evaluator" in runs else pd.Series([""] * len(runs), dtype=str)
+    lines = []
+    for module, current in (evaluators(targets) if targets else {}).items():
+        off = used[[current not in tag.split(", ") for tag in used]]
+        if off.empty:
+            continue
+        counts = off.value_counts().sort_index()
+        was = ", ".join(f"{tag or 'no recorded evaluator'}: {n}" for tag, n in counts.items())
+        lines.append(f"**Metric changed since these runs**: {module} now follows {current} "
+                     f"(ablate/metrics/__init__.py), and {len(off)} of {len(runs)} runs were scored otherwise ({was}); "
+                     "rerun them (`force=true`) to compare with the paper.")
     return lines
 
 
