@@ -21,6 +21,7 @@ cut 4489/1496/1496 when all 7481 KITTI object frames are present (SMoE §3.3), e
 """
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
@@ -58,8 +59,14 @@ def ensure_synth(data_dir: str | Path, params: dict | None) -> Path:
                         "only (check out an older ablate for older generated data)")
     out = synth_dir(data_dir, params)
     if not (out / "synth.json").is_file():  # written last, so its presence means a complete dataset
-        generate(out, params["frames"], params["seed"], params["height"], params["width"],
-                 workers=min(2, os.cpu_count() or 1))
+        out.parent.mkdir(parents=True, exist_ok=True)
+        # the jobs of a parallel sweep start together on a fresh machine: one generates, the others wait for it
+        # (two writers of one frame's files would let a reader see a file half rewritten)
+        with open(out.parent / f"{out.name}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not (out / "synth.json").is_file():
+                generate(out, params["frames"], params["seed"], params["height"], params["width"],
+                         workers=min(2, os.cpu_count() or 1))
     return out
 
 

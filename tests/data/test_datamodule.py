@@ -103,3 +103,30 @@ def test_an_empty_split_is_one_clear_error_naming_it(dm):
     with pytest.raises(DataError, match=r"the val split has no frames \(8 in all, data.limit_frames.val=0\); "
                                         r"list them in .*ImageSets/val.txt"):
         small.val_dataloader()
+
+
+def test_jobs_starting_together_generate_the_dataset_once(tmp_path, monkeypatch):
+    """The jobs of a parallel sweep on a fresh machine: one generates the dataset, the others wait and read it."""
+    import threading
+    import time
+
+    from ablate.data import datamodule
+
+    calls = []
+    real = datamodule.generate
+
+    def slow_generate(out, *args, **kwargs):
+        calls.append(out)
+        time.sleep(0.5)  # long enough for the other job to arrive while this one writes
+        return real(out, *args, **{**kwargs, "workers": 1, "progress": False})
+
+    monkeypatch.setattr(datamodule, "generate", slow_generate)
+    found = []
+    jobs = [threading.Thread(target=lambda: found.append(datamodule.ensure_synth(tmp_path, {"frames": 2})))
+            for _ in range(2)]
+    for job in jobs:
+        job.start()
+    for job in jobs:
+        job.join()
+    assert len(calls) == 1 and len(found) == 2 and found[0] == found[1]
+    assert (found[0] / "synth.json").is_file() and len(list((found[0] / "image_2").glob("*.png"))) == 2
