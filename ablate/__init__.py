@@ -1,6 +1,8 @@
 """ablate: ablation studies of camera + LiDAR sensor-fusion networks."""
 from omegaconf import OmegaConf
 
+from ablate.hardware import register_resolvers
+
 __version__ = "0.1.0"
 
 
@@ -15,3 +17,4 @@ def _channels(names) -> dict[str, int]:
 
 
 OmegaConf.register_new_resolver("channels", _channels, replace=True)
+register_resolvers()

@@ -25,6 +25,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from ablate import progress
 from ablate.tracking import KIND_SWEEP, Tracker, git_commit, is_server
 
 log = logging.getLogger(__name__)
@@ -154,6 +155,12 @@ def fixed_overrides(config: DictConfig) -> list[str]:
     return [o.input_line for o in parsed if not o.is_sweep_override()]
 
 
+def _parallel(config: DictConfig) -> int:
+    """How many jobs of the sweep run at once: the joblib launcher's ``n_jobs``, else 1."""
+    n_jobs = OmegaConf.select(config, "hydra.launcher.n_jobs", default=None)
+    return int(n_jobs) if isinstance(n_jobs, int) and n_jobs > 0 else 1
+
+
 class SweepCallback(Callback):
     """Creates the parent run before the jobs, and closes it, writes the table and reports failures after."""
 
@@ -183,6 +190,23 @@ class SweepCallback(Callback):
         parsed = OverridesParser.create().parse_overrides(list(config.hydra.overrides.task))
         (sdir / SWEPT_FILE).write_text(" ".join(o.get_key_element() for o in parsed if o.is_sweep_override()))
         log.info("MLflow parent run %s in experiment '%s' (%s)", run_id, config.table.name, tracker.uri)
+        planned = progress.start(sdir, config)
+        log.info("Sweep of %d job(s), %s at a time", planned, _parallel(config))
+
+    def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._job_started = time.monotonic()
+
+    def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
+        """Count the job in the sweep's progress and log the sweep's progress line with its ETA."""
+        sdir = sweep_dir()
+        if sdir is None or not hasattr(self, "_job_started"):
+            return
+        status = job_return._return_value if job_return.status.name == "COMPLETED" else "FAILED"
+        try:
+            line = progress.finished(sdir, str(status), time.monotonic() - self._job_started, _parallel(config))
+            log.info(line)
+        except Exception as err:  # progress is a convenience: never the reason a job fails
+            log.warning("Could not record the sweep's progress: %s", err)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         from ablate.report import write_table

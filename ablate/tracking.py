@@ -32,6 +32,8 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
+from ablate import hardware
+
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
@@ -40,7 +42,7 @@ T = TypeVar("T")
 #: cache of frozen experts, ablate.experts.FeatureCache, changes the speed only).
 UNHASHED = ("force", "logger", "hydra", "table", "trainer.enable_progress_bar", "data.num_workers",
             "experts.cache_features", "experts.cache_max_gb", "comp_time.threads", "comp_time.device",
-            "comp_time.after_sweep")
+            "comp_time.after_sweep", "recipe.bf16")
 #: Tags every job run carries; the report reads them.
 KIND_JOB, KIND_SWEEP = "job", "sweep"
 #: Every experiment's kind (model training, not GenAI). MLflow 3.17's UI still opens on its GenAI view until the
@@ -151,8 +153,9 @@ def artifact_location(uri: str, root: str | None) -> str | None:
 
 
 def config_hash(cfg: DictConfig) -> str:
-    """A short, stable hash of the resolved config without the keys in :data:`UNHASHED`."""
-    data = OmegaConf.to_container(cfg, resolve=True)
+    """A short, stable hash of the resolved config without the keys in :data:`UNHASHED`, its numerics resolved
+    for this machine (:func:`ablate.hardware.resolved`: ``auto`` is hashed as what it becomes here)."""
+    data = OmegaConf.to_container(hardware.resolved(cfg), resolve=True)
     for dotted in UNHASHED:
         *path, last = dotted.split(".")
         node = data

@@ -10,6 +10,7 @@ A job runs in the launch directory, whichever process runs it, so that its relat
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import re
 import shutil
@@ -30,6 +31,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException, ValidationError
 
+from ablate import hardware
 from ablate.experts import attach as attach_experts
 from ablate.experts import feature_cache
 from ablate.experts import prepare as prepare_experts
@@ -90,6 +92,7 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
     FAILED run, and re-raise an interrupt after recording KILLED. A config whose stage options no model reads
     fails first (:func:`check_stage`)."""
     check_stage(cfg)
+    numerics = hardware.resolve(cfg)  # before the hash: the resolved precision is what the hash holds
     tracker = Tracker.from_config(cfg)
     exp = tracker.experiment_id(cfg.table.name)
     chash = config_hash(cfg)
@@ -102,7 +105,7 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
         return Outcome("SKIPPED", done.info.run_id, ckpt_dir)
     parent = parent_run_id() if kind == KIND_JOB else None
     tags = {"kind": kind, "table": cfg.table.name, "row": row, "seed": str(cfg.seed),
-            "config_hash": chash, "git_commit": git_commit(), "scale": cfg.scale.name}
+            "config_hash": chash, "git_commit": git_commit(), "scale": cfg.scale.name, **hardware.tags(cfg)}
     if parent:
         tags.update({"mlflow.parentRunId": parent, "sweep_id": parent})
     source = None if cfg.force or kind != KIND_JOB else tracker.finished_elsewhere(chash)
@@ -115,6 +118,7 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
         log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, chash)
     run_id = tracker.start(exp, f"{row} seed={cfg.seed}", tags)
     log.info("MLflow run %s: %s, seed %s, config %s", run_id, row, cfg.seed, chash)
+    log.info("Numerics: %s; %s intra-op thread(s)", numerics, cfg.trainer.get("threads") or "all")
     try:
         tracker.log_params(run_id, flatten(OmegaConf.to_container(cfg, resolve=True)))
         tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
@@ -143,13 +147,22 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     *is* the expert: it is tested from the expert's checkpoint, never trained twice.
     """
     experts = prepare_experts(cfg) if cfg.get("experts") else {}
+    if cfg.trainer.get("threads"):
+        torch.set_num_threads(int(cfg.trainer.threads))
     L.seed_everything(cfg.seed, workers=True)
     datamodule = instantiate(cfg.data)
     model = instantiate(cfg.model)
     task = instantiate(cfg.task, model=model)
     checkpoint = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor=task.monitor, mode="max",
                                  save_last=True, save_top_k=1)
-    trainer = instantiate(cfg.trainer, logger=RunLogger(tracker, run_id), callbacks=[checkpoint],
+    if cfg.trainer.get("channels_last"):
+        model.to(memory_format=torch.channels_last)
+    if cfg.trainer.get("compile"):  # in place: the state dict, and so the checkpoints, keep their keys
+        backend = cfg.trainer.compile
+        model.compile(**({"backend": backend} if isinstance(backend, str) else {}))
+    lightning_options = {k: v for k, v in OmegaConf.to_container(cfg.trainer, resolve=True).items()
+                         if k not in hardware.OPTIONS}
+    trainer = instantiate(lightning_options, logger=RunLogger(tracker, run_id), callbacks=[checkpoint],
                           default_root_dir=str(ckpt_dir))
     best = attach_experts(cfg, model, experts, tracker, run_id) if cfg.get("experts") else None
     if best is None:
@@ -171,7 +184,7 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     metrics["params_m"] = sum(p.numel() for p in task.model.parameters()) / 1e6
     tracker.log_metrics(run_id, metrics, step=trainer.global_step)
     tracker.set_tags(run_id, {"device": str(next(task.model.parameters()).device),
-                              "threads": str(torch.get_num_threads())})
+                              "threads_used": str(torch.get_num_threads())})
     tracker.set_tags(run_id, {"evaluator": task.evaluator} if getattr(task, "evaluator", None) else {})
     for method, name in (("figure", "predictions.png"), ("gate_figure", "gates.png")):
         figure = getattr(task, method, lambda _: None)(sample)
@@ -206,9 +219,18 @@ def in_launch_dir() -> Iterator[Path]:
         os.chdir(here)
 
 
+def standard_start_method() -> None:
+    """Workaround for a job in a loky worker (``hydra/launcher=parallel``, joblib): loky makes its own start method
+    the worker's default, and a process that the job spawns through multiprocessing (DDP, ``trainer=ddp_cpu``)
+    then fails at start-up with "cannot find context for 'loky'". Such a job spawns with multiprocessing's own."""
+    if multiprocessing.get_start_method(allow_none=True) not in (None, "fork", "spawn", "forkserver"):
+        multiprocessing.set_start_method("spawn", force=True)
+
+
 def main(cfg: DictConfig) -> str:
     """Hydra task function, run in the launch directory. In a multirun a failed job is noted for the end-of-sweep
     summary and the other jobs go on; a failed single run exits with status 1 and one clear line."""
+    standard_start_method()
     try:
         with in_launch_dir():
             return run(cfg).status

@@ -42,6 +42,19 @@ def poly_lr(optimizer: torch.optim.Optimizer, total_steps: int, power: float = 0
     return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
 
 
+def to_float32(tree: Any) -> Any:
+    """``tree`` (tensors in dicts, lists, tuples) with every lower-precision floating tensor cast to fp32."""
+    if isinstance(tree, torch.Tensor):
+        return tree.float() if tree.is_floating_point() and tree.dtype in (torch.bfloat16, torch.float16) else tree
+    if isinstance(tree, dict):
+        return {key: to_float32(value) for key, value in tree.items()}
+    if isinstance(tree, tuple) and hasattr(tree, "_fields"):  # a named tuple
+        return type(tree)(*(to_float32(value) for value in tree))
+    if isinstance(tree, (list, tuple)):
+        return type(tree)(to_float32(value) for value in tree)
+    return tree
+
+
 class FusionTask(L.LightningModule):
     """Base LightningModule: ``model`` maps a batch dict to a dict of raw outputs; subclasses add loss and metrics.
 
@@ -84,9 +97,11 @@ class FusionTask(L.LightningModule):
         self._condition_metrics: dict[str, dict[str, nn.Module]] = {}
 
     def forward(self, batch: dict) -> dict:
+        """The model's outputs, in fp32 whatever the autocast precision (ablate.hardware): losses, metrics and NMS
+        scores read them in fp32."""
         if self.feature_cache is not None:
-            return self.model(batch, features=self.feature_cache(self.model, batch))
-        return self.model(batch)
+            return to_float32(self.model(batch, features=self.feature_cache(self.model, batch)))
+        return to_float32(self.model(batch))
 
     def check_finite(self, loss: torch.Tensor) -> torch.Tensor:
         """Raise :class:`NonFiniteLossError` naming the epoch and step if ``loss`` is NaN or infinite."""

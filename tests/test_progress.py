@@ -1,0 +1,44 @@
+"""A sweep's overall progress (ablate.progress): jobs finished of planned, and the ETA from finished jobs."""
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+
+from ablate.progress import finished, planned_jobs, start, summary
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+def sweep_config(*overrides: str):
+    """The config a multirun's callback sees: its base config, the command line's overrides in
+    hydra.overrides.task (swept ones included, which a single composition does not take)."""
+    fixed = [o for o in overrides if "," not in o]
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        config = compose("config", overrides=fixed, return_hydra_config=True)
+    config.hydra.overrides.task = list(overrides)
+    return config
+
+
+def test_the_plan_multiplies_the_tables_rows_seeds_and_the_command_lines_sweeps():
+    assert planned_jobs(sweep_config("experiment=chinet_table2")) == 9  # 3 rows x 3 seeds at the cpu scale
+    assert planned_jobs(sweep_config("experiment=chinet_table2", "scale=smoke")) == 3  # 1 seed
+    assert planned_jobs(sweep_config("fusion=sum,max,sharpen,smoe")) == 4
+    # a key on the command line replaces the table's own sweep of it
+    assert planned_jobs(sweep_config("experiment=chinet_table2", "row=chinet,unet", "seed=0")) == 2
+
+
+def test_the_eta_comes_from_the_trained_jobs_durations_and_the_jobs_at_a_time():
+    records = [{"status": "FINISHED", "seconds": 600}, {"status": "SKIPPED", "seconds": 2},
+               {"status": "FINISHED", "seconds": 840}]
+    line = summary(records, 9, parallel=2)
+    # 6 to go, 2 at a time: 3 rounds of the trained jobs' mean, 720 s
+    assert line == ("Sweep progress: 3/9 jobs finished (1 skipped), 6 to go, ETA 36.0 min "
+                    "(12.0 min per trained job, 2 at a time)")
+    assert summary([{"status": "SKIPPED", "seconds": 1}], 2) == "Sweep progress: 1/2 jobs finished (1 skipped), 1 to go"
+    assert summary(records, 3) == "Sweep progress: 3/3 jobs finished (1 skipped)"
+
+
+def test_every_finished_job_is_counted_once_in_the_sweep_directory(tmp_path):
+    assert start(tmp_path, sweep_config("experiment=chinet_table2", "scale=smoke")) == 3
+    finished(tmp_path, "FINISHED", 30.0)
+    line = finished(tmp_path, "FAILED", 10.0, parallel=2)
+    assert line == "Sweep progress: 2/3 jobs finished (1 failed), 1 to go, ETA 20 s (20 s per trained job, 2 at a time)"
