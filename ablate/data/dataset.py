@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import uuid
 import zlib
 from dataclasses import replace
 from pathlib import Path
@@ -106,7 +108,8 @@ class KittiDataset(Dataset):
         self.cache_misses += 1
         value = compute()
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{np.random.randint(1 << 30)}.tmp.npy")
+        # a name of this process's own: parallel jobs seeded alike draw the same numbers from numpy's global rng
+        tmp = path.with_name(f"{path.stem}.{os.getpid()}.{uuid.uuid4().hex}.tmp.npy")
         np.save(tmp, value)
         tmp.replace(path)
         return value

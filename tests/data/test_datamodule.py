@@ -130,3 +130,42 @@ def test_jobs_starting_together_generate_the_dataset_once(tmp_path, monkeypatch)
         job.join()
     assert len(calls) == 1 and len(found) == 2 and found[0] == found[1]
     assert (found[0] / "synth.json").is_file() and len(list((found[0] / "image_2").glob("*.png"))) == 2
+
+
+def _fill_cache(cache_dir, seed, out):
+    """One job's first use of a cache entry, numpy's global rng seeded as ``L.seed_everything`` seeds it."""
+    import time
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from ablate.data.dataset import KittiDataset
+
+    np.random.seed(seed)
+    job = SimpleNamespace(cache_dir=cache_dir, cache_hits=0, cache_misses=0)
+
+    def compute():
+        time.sleep(0.3)  # both jobs compute before either stores; 32 MB take long enough to write to overlap
+        return np.full(4_000_000, 7.0)
+
+    try:
+        value = KittiDataset._cached(job, "000006", "dense_depth", {"shape": [2, 2]}, compute)
+        out.put([value.size, float(value.min()), float(value.max())])
+    except Exception as err:
+        out.put(repr(err))
+
+
+def test_parallel_jobs_seeded_alike_store_one_cache_entry_without_clashing(tmp_path):
+    """Two jobs of a parallel sweep, seeded alike, fill the same cache entry at once: each writes its own temporary
+    file and renames it into place, so neither finds its file taken by the other."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    jobs = [ctx.Process(target=_fill_cache, args=(tmp_path, 0, out)) for _ in range(2)]
+    for job in jobs:
+        job.start()
+    for job in jobs:
+        job.join(30)
+    assert [out.get(timeout=5) for _ in jobs] == [[4_000_000, 7.0, 7.0]] * 2
+    assert [p.name for p in tmp_path.rglob("*.npy")] == ["000006.npy"]
