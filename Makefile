@@ -18,8 +18,10 @@ setup: $(VENV)/.installed
 run: setup
 	$(PY) -m ablate -m experiment=chinet_table2
 
+# the test files spread over every core, one file per worker at a time (module fixtures are built once; the Ray and
+# PostgreSQL tests of one file never run beside each other)
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 bench: setup
 	for f in bench/bench_*.py; do echo "== $$f"; $(PY) $$f || exit 1; done

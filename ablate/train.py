@@ -155,16 +155,16 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     task = instantiate(cfg.task, model=model)
     checkpoint = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor=task.monitor, mode="max",
                                  save_last=True, save_top_k=1)
-    if cfg.trainer.get("channels_last"):
-        model.to(memory_format=torch.channels_last)
-    if cfg.trainer.get("compile"):  # in place: the state dict, and so the checkpoints, keep their keys
-        backend = cfg.trainer.compile
-        model.compile(**({"backend": backend} if isinstance(backend, str) else {}))
     lightning_options = {k: v for k, v in OmegaConf.to_container(cfg.trainer, resolve=True).items()
                          if k not in hardware.OPTIONS}
     trainer = instantiate(lightning_options, logger=RunLogger(tracker, run_id), callbacks=[checkpoint],
                           default_root_dir=str(ckpt_dir))
     best = attach_experts(cfg, model, experts, tracker, run_id) if cfg.get("experts") else None
+    if cfg.trainer.get("channels_last"):  # after the experts' weights are in
+        model.to(memory_format=torch.channels_last)
+    if cfg.trainer.get("compile"):  # in place: the state dict, and so the checkpoints, keep their keys
+        backend = cfg.trainer.compile
+        model.compile(**({"backend": backend} if isinstance(backend, str) else {}))
     if best is None:
         last = ckpt_dir / "last.ckpt"
         if cfg.force and ckpt_dir.exists():  # a forced rerun trains afresh

@@ -146,10 +146,15 @@ def bench(family: str, threads: int, steps: int, bf16_mode: str, has_bf16: bool,
     variants = [Variant(name, task, batch) for name in names]
     train: dict[str, list[float]] = {v.name: [] for v in variants}
     infer: dict[str, list[float]] = {v.name: [] for v in variants}
-    first_train, first_infer = {}, {}
-    for v in variants:  # warm-up; compile's first calls are its compile time
-        first_train[v.name] = v.train_step()
-        first_infer[v.name] = v.infer(channels_last(sample) if v.cl else sample)
+    first_train, first_infer, failed = {}, {}, {}
+    for v in list(variants):  # warm-up; compile's first calls are its compile time
+        try:
+            first_train[v.name] = v.train_step()
+            first_infer[v.name] = v.infer(channels_last(sample) if v.cl else sample)
+        except Exception as err:  # torch.compile can fail on a model: say so and time the others
+            failed[v.name] = f"{type(err).__name__}: {str(err).splitlines()[0][:160]}"
+            variants.remove(v)
+            del train[v.name], infer[v.name]
     for i in range(steps):
         order = variants[i % len(variants):] + variants[:i % len(variants)]
         for v in order:
@@ -165,6 +170,8 @@ def bench(family: str, threads: int, steps: int, bf16_mode: str, has_bf16: bool,
         t, f = statistics.median(train[v.name]), statistics.median(infer[v.name])
         print(f"  {v.name:<20} {t:9.3f} s {base_t / t:8.2f}x {6 * mac * n / t / 1e9:8.1f}   {1000 * f:7.1f} ms "
               f"{base_i / f:8.2f}x {2 * mac / f / 1e9:8.1f}")
+    for name, error in failed.items():
+        print(f"  {name:<20} failed: {error}")
     if "compile" in train:
         compile_s = first_train["compile"] - statistics.median(train["compile"])
         steps_per_job = job_steps(cfg)
