@@ -32,6 +32,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch.utils.flop_counter import FlopCounterMode
 
+from ablate import hardware
 from ablate.experts import expert_config, load_model
 from ablate.tracking import Tracker, retry
 
@@ -66,8 +67,7 @@ def quartiles(times: list[float]) -> tuple[float, float, float]:
 
 def machine_load() -> tuple[float, int]:
     """The 1-minute load average and the cores this process may use."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return os.getloadavg()[0], cores
+    return os.getloadavg()[0], hardware.cores()
 
 
 def macs(model: torch.nn.Module, sample: dict) -> int:
