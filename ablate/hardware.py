@@ -2,15 +2,16 @@
 
 The CPUs that run this project differ. On one with bf16 in hardware (AMX, or AVX-512 BF16) bf16 autocast with
 channels_last tensors trains the ChiNet family about 2.5x faster than fp32; on one with AVX2 only, bf16 autocast is
-emulated and about 30x slower, and channels_last gains nothing (``bench/bench_precision.py`` measures both). So the
-precision follows the hardware: ``trainer.precision: auto`` is resolved when a job starts (:func:`resolve`), and the
-resolved value, never ``auto``, goes into the job's config, its config hash, its params and its tags.
+emulated and 9-33x slower, and channels_last alone gains 7-13 % on some families and loses 12 % on ChiNet
+(``bench/bench_precision.py``; README.md, "Numerics and throughput"). So the precision follows the hardware:
+``trainer.precision: auto`` is resolved when a job starts (:func:`resolve`), and the resolved value, never
+``auto``, goes into the job's config, its config hash, its params and its tags.
 
 The trainer options read here (conf/trainer/default.yaml), beside Lightning's own:
 
 * ``precision``: Lightning's (``32-true``, ``bf16-mixed``, ...), or ``auto``: ``bf16-mixed`` where the CPU has bf16
-  in hardware *and* the task family's bf16 parity has been measured (``recipe.bf16: true``; results/README.md says
-  where), else ``32-true``. On a GPU (``trainer=gpu``, ``ddp_gpu``) it is ``bf16-mixed``, set in their configs.
+  in hardware *and* the task family's bf16 parity with fp32 has been measured (``recipe.bf16: true``), else
+  ``32-true``. On a GPU (``trainer=gpu``, ``ddp_gpu``) it is ``bf16-mixed``, set in their configs.
 * ``channels_last``: the model's memory format; ``auto`` follows the precision (channels_last with bf16).
 * ``compile``: ``torch.compile`` the model in place, so that checkpoints keep their keys: ``true`` (inductor) or a
   backend's name.
@@ -23,7 +24,6 @@ keeps fp32 running statistics and weights.
 """
 from __future__ import annotations
 
-import logging
 import os
 import platform
 import warnings
@@ -32,8 +32,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 from omegaconf import DictConfig, OmegaConf, open_dict
-
-log = logging.getLogger(__name__)
 
 #: CPU flags (``/proc/cpuinfo``) that mean bf16 arithmetic in hardware.
 BF16_FLAGS = ("amx_bf16", "avx512_bf16")

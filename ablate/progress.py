@@ -8,7 +8,6 @@ Hydra's basic sweeper does); every job, in whichever process runs it, appends it
 from __future__ import annotations
 
 import json
-import logging
 import math
 from pathlib import Path
 
@@ -18,7 +17,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from ablate.tracking import file_lock
 
-log = logging.getLogger(__name__)
 PLANNED_FILE = ".planned"
 PROGRESS_FILE = ".progress"
 
