@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf.errors import ValidationError
 
 #: CPU flags (``/proc/cpuinfo``) that mean bf16 arithmetic in hardware.
 BF16_FLAGS = ("amx_bf16", "avx512_bf16")
@@ -101,6 +102,18 @@ def _on_gpu(trainer: DictConfig) -> bool:
     return str(trainer.get("accelerator", "auto")) in ("gpu", "cuda")
 
 
+def check(trainer: DictConfig) -> None:
+    """Raise a ValidationError naming ``trainer.threads`` or ``trainer.channels_last`` when its value is not one
+    these options take."""
+    threads = trainer.get("threads")
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise ValidationError(f"trainer.threads={threads!r}: expected a whole number of threads >= 1, or null "
+                              "(torch's default: every core)")
+    channels_last = trainer.get("channels_last", "auto")
+    if channels_last != "auto" and not isinstance(channels_last, bool):
+        raise ValidationError(f"trainer.channels_last={channels_last!r}: expected true, false or auto")
+
+
 def resolve(cfg: DictConfig, machine: Cpu | None = None, quiet: bool = False) -> str:
     """Resolve ``trainer.precision`` and ``trainer.channels_last`` in place (``auto`` -> a value); return why, in
     one sentence for the job's log. An explicit bf16 precision on a CPU without bf16 in hardware warns (once),
@@ -109,6 +122,7 @@ def resolve(cfg: DictConfig, machine: Cpu | None = None, quiet: bool = False) ->
     trainer = cfg.get("trainer")
     if not isinstance(trainer, DictConfig):
         return "no trainer"
+    check(trainer)
     precision = str(trainer.get("precision", "32-true"))
     family_ok = bool(OmegaConf.select(cfg, "recipe.bf16", default=False))
     if precision != "auto":

@@ -110,3 +110,13 @@ def test_a_config_hashes_as_its_numerics_resolve_on_this_machine():
     resolve(job_cfg)
     assert fresh.trainer.precision == "auto" and config_hash(fresh) == config_hash(job_cfg)
     assert fresh.trainer.precision == "auto"  # hashing leaves the config as it was
+
+
+@pytest.mark.parametrize("override, named", [("trainer.threads=0", "trainer.threads=0"),
+                                             ("trainer.threads=two", "trainer.threads='two'"),
+                                             ("trainer.channels_last=maybe", "trainer.channels_last='maybe'")])
+def test_a_bad_numerics_option_is_one_error_naming_it(override, named):
+    from omegaconf.errors import ValidationError
+
+    with pytest.raises(ValidationError, match=named.replace(".", r"\.")):
+        resolve(job(override), EPYC)
