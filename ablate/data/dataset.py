@@ -1,5 +1,6 @@
 """Torch dataset over a KITTI-layout folder: network-ready modalities, targets, conditions and an on-disk cache
-of the derived LiDAR modalities (keyed by folder, frame and parameters, so the second epoch does no LiDAR work)."""
+of the derived LiDAR modalities (keyed by folder, frame, parameters and the size and modification time of the
+files they come from, so the second epoch does no LiDAR work and a file replaced since is read again)."""
 from __future__ import annotations
 
 import hashlib
@@ -43,6 +44,20 @@ def spread(frames: list[str], names: list[str], seed: int, *salt: int) -> dict[s
 
 def _key(obj) -> str:
     return hashlib.sha1(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:10]
+
+
+def _sources(*paths: Path) -> list:
+    """[size, mtime_ns] of each file (None where there is none): part of a cache key, so that an entry derived from a
+    file is never served for another one written in its place (a damaged scan repaired, a frame replaced)."""
+    out: list = []
+    for path in paths:
+        try:
+            st = path.stat()
+        except FileNotFoundError:
+            out.append(None)
+            continue
+        out.append([st.st_size, st.st_mtime_ns])
+    return out
 
 
 class KittiDataset(Dataset):
@@ -97,11 +112,14 @@ class KittiDataset(Dataset):
     def __len__(self) -> int:
         return len(self.frames)
 
-    def _cached(self, frame: str, name: str, params: dict, compute):
+    def _cached(self, frame: str, name: str, params: dict, compute, sources: list | None = None):
+        """``compute()``'s value for ``frame``, from the cache when there; ``sources`` (:func:`_sources` of the files
+        it reads) is in the entry's name, so an entry is only ever served for the files it was derived from."""
         if self.cache_dir is None:
             self.cache_misses += 1
             return compute()
-        path = self.cache_dir / f"{name}-{_key(params)}" / f"{frame}.npy"
+        stem = frame if sources is None else f"{frame}-{_key(sources)}"
+        path = self.cache_dir / f"{name}-{_key(params)}" / f"{stem}.npy"
         if path.is_file():
             self.cache_hits += 1
             return np.load(path)
@@ -121,6 +139,7 @@ class KittiDataset(Dataset):
         weather = self.lidar_condition.get(frame, "clear")
         key = {"weather": weather, "severity": self.severity} if weather != "clear" else {}
         key.update({"flip": True} if flip else {})
+        sources = _sources(paths["velodyne"], paths["calib"])
 
         def calib():
             c = kitti.Calibration.from_file(paths["calib"])
@@ -135,26 +154,27 @@ class KittiDataset(Dataset):
 
         if name == "sparse_depth":
             return self._cached(frame, name, {"shape": shape, **key},
-                                lambda: lidar.sparse_depth(points(), calib(), shape))
+                                lambda: lidar.sparse_depth(points(), calib(), shape), sources)
         if name == "dense_depth":
             return self._cached(frame, name, {"shape": shape, **key},
-                                lambda: lidar.dense_depth(self.lidar(frame, "sparse_depth", shape, flip)))
+                                lambda: lidar.dense_depth(self.lidar(frame, "sparse_depth", shape, flip)), sources)
         if name == "dhi":
-            return self._cached(frame, name, {"shape": shape, **key}, lambda: lidar.dhi_image(points(), calib(), shape))
+            return self._cached(frame, name, {"shape": shape, **key},
+                                lambda: lidar.dhi_image(points(), calib(), shape), sources)
         grid = {k: self.bev[k] for k in ("x_range", "y_range", "cell")}
         if name == "height_image":
             opts = {k: v for k, v in self.heights.items() if k == "window"}
             return self._cached(frame, name, {"shape": shape, **opts, **key},
-                                lambda: lidar.perspective_height(points(), calib(), shape, **opts))
+                                lambda: lidar.perspective_height(points(), calib(), shape, **opts), sources)
         if name == "height_bev":
             opts = {k: v for k, v in self.heights.items() if k == "azimuth_res"}
             return self._cached(frame, name, {**grid, **opts, **key},
-                                lambda: lidar.bev_height(points(), **grid, **opts))
+                                lambda: lidar.bev_height(points(), **grid, **opts), sources)
         if name == "lidar_points":
             opts = {k: v for k, v in self.heights.items() if k == "max_points"}
             return self._cached(frame, name, {**grid, **opts, **key},
-                                lambda: lidar.bev_points(points(), **grid, **opts))
-        return self._cached(frame, name, {**self.bev, **key}, lambda: lidar.bev_image(points(), **self.bev))
+                                lambda: lidar.bev_points(points(), **grid, **opts), sources)
+        return self._cached(frame, name, {**self.bev, **key}, lambda: lidar.bev_image(points(), **self.bev), sources)
 
     def lidar_instances(self, frame: str, labels: list, shape: tuple[int, int]) -> np.ndarray:
         """(H,W) uint16 instance map in instance_2's encoding from ``ablate.data.masks.from_lidar`` of the clean
@@ -163,7 +183,7 @@ class KittiDataset(Dataset):
         return self._cached(frame, "instances", {"shape": shape, "margin": masks.MARGIN, "ground": masks.GROUND},
                             lambda: masks.instance_map(masks.from_lidar(
                                 kitti.read_velodyne(paths["velodyne"]), kitti.Calibration.from_file(paths["calib"]),
-                                labels, shape)))
+                                labels, shape)), _sources(paths["velodyne"], paths["calib"], paths["label"]))
 
     def __getitem__(self, i: int) -> dict:
         frame = self.frames[i]

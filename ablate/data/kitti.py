@@ -13,9 +13,13 @@ Road layout (KITTI road benchmark)::
     ROOT/gt_image_2/um_road_000000.png   magenta (255,0,255) road, red (255,0,0) not road, black void
 
 ``ROOT`` may be the benchmark folder itself or its parent holding ``training/``.
+
+:func:`check_frame` is the cheap check of one frame's files that ``ablate.data.datamodule`` runs when it indexes its
+splits (what it checks, and what only fails when a file is read, is said there).
 """
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -129,10 +133,14 @@ def read_velodyne(path: str | Path) -> np.ndarray:
         raw = path.read_bytes()
     except OSError as err:
         raise DataError(f"{path}: cannot read velodyne scan ({err.strerror})") from err
-    if len(raw) == 0 or len(raw) % 16:
-        raise DataError(f"{path}: truncated velodyne scan, {len(raw)} bytes is not a positive multiple of 16 "
-                        "(4 float32 per point)")
+    _check_scan_size(path, len(raw))
     return np.frombuffer(raw, dtype=np.float32).reshape(-1, 4).copy()
+
+
+def _check_scan_size(path: Path, size: int) -> None:
+    if size == 0 or size % 16:
+        raise DataError(f"{path}: truncated velodyne scan, {size} bytes is not a positive multiple of 16 "
+                        "(4 float32 per point)")
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -265,11 +273,70 @@ def frame_paths(split_dir: Path, frame: str) -> dict[str, Path]:
     return paths
 
 
-def list_frames(split_dir: Path) -> list[str]:
-    """Sorted frame ids of ``split_dir``/image_2; every image must have its calib."""
+def list_frames(split_dir: Path, check: bool = True) -> list[str]:
+    """Sorted frame ids of ``split_dir``/image_2; with ``check``, every image must have its calib."""
     frames = sorted(p.stem for p in (split_dir / "image_2").glob("*.png"))
     if not frames:
         raise DataError(f"{split_dir / 'image_2'}: no .png images")
-    for f in frames:
+    for f in frames if check else ():
         frame_paths(split_dir, f)
     return frames
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def check_png(path: Path, what: str = "image") -> tuple[int, int]:
+    """(height, width) of a PNG from its header, after checking that it starts as a PNG (signature, IHDR chunk)
+    and ends as one (the IEND chunk): a DataError naming ``path`` if not. Reads 36 bytes, never the pixels."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+            size = f.seek(0, 2)
+            f.seek(max(size - 12, 0))
+            tail = f.read(12)
+    except FileNotFoundError:
+        raise DataError(f"{path}: {what} is missing") from None
+    except OSError as err:
+        raise DataError(f"{path}: cannot read {what} ({err.strerror})") from None
+    if head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise DataError(f"{path}: {what} is not a PNG (it starts with {head[:8]!r})")
+    width, height = struct.unpack(">II", head[16:24])
+    if not width or not height:
+        raise DataError(f"{path}: {what} is {width}x{height} pixels")
+    if tail[4:8] != b"IEND":
+        raise DataError(f"{path}: {what} is a PNG cut short ({size} bytes, no IEND chunk at its end)")
+    return height, width
+
+
+def check_frame(split_dir: Path, frame: str) -> None:
+    """The cheap check of one frame's files, at most a few hundred bytes of binary read from each: a DataError
+    naming the file and what is wrong with it.
+
+    - the image exists and has a PNG's header and end (:func:`check_png`), as has the road ground truth and the
+      instance map where the frame has one;
+    - the calibration exists and parses, with P2, R0_rect and Tr_velo_to_cam of the right sizes;
+    - the velodyne scan exists (where the data has ``velodyne/``) and its size is a positive multiple of 16 bytes;
+    - the labels, where the frame has a label file, parse: 15 fields per line, numeric.
+
+    Not checked (they fail when the file is read, each as one DataError naming it): a PNG whose compressed pixels
+    are corrupt between an intact header and end, and a scan cut at a multiple of 16 bytes (its points read fine).
+    """
+    image = split_dir / "image_2" / f"{frame}.png"
+    if not image.is_file():
+        calib = "" if (split_dir / "calib" / f"{frame}.txt").is_file() else "; so is its calibration"
+        raise DataError(f"{image}: the frame's image is missing{calib}")
+    paths = frame_paths(split_dir, frame)
+    check_png(image)
+    Calibration.from_file(paths["calib"])
+    if paths["velodyne"].parent.is_dir():
+        try:
+            size = paths["velodyne"].stat().st_size
+        except FileNotFoundError:
+            raise DataError(f"{paths['velodyne']}: velodyne scan is missing") from None
+        _check_scan_size(paths["velodyne"], size)
+    if paths["label"].is_file():
+        read_labels(paths["label"])
+    for key, what in (("road_gt", "road ground truth"), ("instance", "instance map")):
+        if paths[key].is_file():
+            check_png(paths[key], what)
