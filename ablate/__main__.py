@@ -2,7 +2,7 @@
 import hydra
 from omegaconf import DictConfig
 
-from ablate.train import main as run_job
+from ablate.run.job import main as run_job
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")

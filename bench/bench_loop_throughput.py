@@ -21,7 +21,7 @@ import torch
 
 from ablate.nn.chinet import build
 from ablate.tasks.semantic import SemanticTask
-from ablate.tracking import RunLogger, Tracker
+from ablate.store.tracker import RunLogger, Tracker
 
 warnings.filterwarnings("ignore")
 

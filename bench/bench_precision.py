@@ -36,9 +36,9 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from ablate.experts import expert_config, needed
+from ablate.run.experts import expert_config, needed
 from ablate.hardware import cpu
-from ablate.latency import macs
+from ablate.run.latency import macs
 
 warnings.filterwarnings("ignore")
 CONF = Path(__file__).resolve().parents[1] / "conf"

@@ -90,7 +90,7 @@ def test_the_table2_follow_up_reuses_every_row_but_its_clean_trained_dgfn():
     from omegaconf import OmegaConf
     from test_cli import REPO
 
-    from ablate.tracking import config_hash
+    from ablate.store import config_hash
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         def cfg(experiment, row):

@@ -1,4 +1,4 @@
-"""The frozen experts' feature cache of two-stage training (ablate.experts.FeatureCache, SMoE §4.3): same loss,
+"""The frozen experts' feature cache of two-stage training (ablate.run.experts.FeatureCache, SMoE §4.3): same loss,
 outputs and gradients as running the experts, the experts not run on a cached step, and on only where valid."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from ablate.experts import FeatureCache, feature_cache
+from ablate.run.experts import FeatureCache, feature_cache
 from ablate.fusion import FusionModel, build
 from ablate.tasks.instance import InstanceTask, YolactHead
 
@@ -25,7 +25,7 @@ def tiny(stage: str, single: str | None = None) -> FusionModel:
 
 
 def stage2(stage: str, freeze: bool = True) -> FusionModel:
-    """A fused model on experts that differ from its own initialisation, loaded as in ablate.experts.attach."""
+    """A fused model on experts that differ from its own initialisation, loaded as in ablate.run.experts.attach."""
     torch.manual_seed(0)
     model = tiny(stage)
     for m in MODALITIES:

@@ -8,7 +8,7 @@ from hydra import compose, initialize_config_dir
 
 from ablate.hardware import Cpu, cpu, parallel_jobs, resolve, tags
 from ablate.tasks.base import to_float32
-from ablate.tracking import config_hash
+from ablate.store import config_hash
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 XEON = Cpu("Intel(R) Xeon(R) Platinum 8488C", frozenset({"avx2", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16"}))

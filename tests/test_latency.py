@@ -4,8 +4,9 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from ablate.latency import interleaved, macs, machine_load, quartiles
-from ablate.report import summarise, to_markdown
+from ablate.run.latency import interleaved, macs, machine_load, quartiles
+from ablate.tables.rows import to_markdown
+from ablate.tables.summary import summarise
 
 
 class FakeClock:
@@ -100,8 +101,8 @@ def test_a_loaded_machine_is_flagged_under_the_table():
 
 
 def test_a_reused_run_is_timed_from_its_source_runs_checkpoint(tmp_path, monkeypatch):
-    from ablate.latency import row_checkpoint
-    from ablate.tracking import Tracker
+    from ablate.run.latency import row_checkpoint
+    from ablate.store.tracker import Tracker
 
     monkeypatch.chdir(tmp_path)
     tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))

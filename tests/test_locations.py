@@ -13,9 +13,10 @@ from hydra.core.hydra_config import HydraConfig
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf, open_dict
 
-from ablate.sweep import STORE_FILE, check_launcher, ray_driver_auth
-from ablate.tracking import EXPERIMENT_KIND, Tracker, artifact_location, resolve_uri, tracking_uri
-from ablate.train import JobFailed, in_launch_dir
+from ablate.run.sweep import check_launcher, ray_driver_auth
+from ablate.store.sweepdir import STORE_FILE
+from ablate.store.tracker import EXPERIMENT_KIND, Tracker, artifact_location, resolve_uri, tracking_uri
+from ablate.run.job import JobFailed, in_launch_dir
 from tests.scaleout import REPO, need
 
 

@@ -1,5 +1,5 @@
 """End to end in a browser: after a smoke sweep, plain ``mlflow ui`` in the launch directory shows the sweep's parent
-run with its jobs and the table's metric columns, through the link the sweep prints (ablate.tracking.runs_link) and
+run with its jobs and the table's metric columns, through the link the sweep prints (ablate.store.tracker.runs_link) and
 through the clicks a user makes from the home page.
 
 Needs Debian's Chromium (``apt-get install chromium``; .ci/run installs it) and Playwright's Python driver (the

@@ -1,7 +1,7 @@
 """Stale runs: the modules a run's config builds, their imports, and what changed since the run's commit."""
 import subprocess
 
-from ablate.provenance import ROOT, dependencies, stale
+from ablate.tables.provenance import ROOT, dependencies, stale
 
 
 def test_dependencies_follow_imports_from_the_config_targets():

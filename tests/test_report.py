@@ -4,8 +4,9 @@ import math
 import pytest
 from omegaconf import OmegaConf
 
-from ablate.report import collect, kendall, summarise, write_table
-from ablate.tracking import KIND_JOB, Tracker
+from ablate.tables import collect, write_table
+from ablate.tables.summary import kendall, summarise
+from ablate.store.tracker import KIND_JOB, Tracker
 
 TABLE = OmegaConf.create({"table": {
     "name": "t2", "title": "Table II", "primary": "det_rate",

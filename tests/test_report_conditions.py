@@ -3,8 +3,8 @@ condition (DGFN Table II), from hand-made runs."""
 import pytest
 from omegaconf import OmegaConf
 
-from ablate.report import write_table
-from ablate.tracking import KIND_JOB, Tracker
+from ablate.tables import write_table
+from ablate.store.tracker import KIND_JOB, Tracker
 
 CONDITIONS = [
     {"condition": "full", "name": "Full", "paper": {"gfu": {"car_easy": 90.0, "car_moderate": 80.0},
@@ -80,8 +80,8 @@ def test_rows_are_conditions_columns_model_by_metric_with_the_paper_and_tau(trac
 
 
 def test_robustness_curves_run_from_the_normal_input_through_the_severities(tracker):
-    from ablate.report import collect, table_spec
-    from ablate.report_conditions import curves
+    from ablate.tables import collect, table_spec
+    from ablate.tables.conditions import curves
 
     table = table_spec(TABLE1)
     data = curves(collect(tracker, "t1"), table, dict(TABLE1.task.eval_conditions))

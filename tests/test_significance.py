@@ -6,8 +6,8 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
-from ablate.report import to_markdown
-from ablate.significance import difference, disagreeing_seeds, mean_ci
+from ablate.tables.rows import to_markdown
+from ablate.tables.significance import difference, disagreeing_seeds, mean_ci
 
 T_975_DF2 = 4.302653  # Student's t, 97.5 % quantile, 2 degrees of freedom (any t table)
 
@@ -79,7 +79,7 @@ def test_table_marks_significant_rows_names_the_reference_and_flags_commits():
         [{"row": r, "seed": str(s), "scale": "cpu", "git_commit": "a" * 40 if r != "max" else "b" * 40 + "-dirty",
           "ap": v + s, "iou": 50.0 if (r, s) != ("max", 2) else 0.5}
          for r, v in [("rgb", 10.0), ("ddm", 20.0), ("sum", 25.0), ("max", 20.2)] for s in range(3)])
-    from ablate.report import summarise
+    from ablate.tables.summary import summarise
     text = to_markdown(summarise(runs, table), runs, table)
     rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")}
     assert "AP 95% CI" in text and "Δ AP vs DDM [95% CI]" in text  # the better of the two experts

@@ -1,11 +1,11 @@
-"""Config hashing, param flattening and the SQLite retry of ablate.tracking."""
+"""Config hashing, param flattening and the SQLite retry of ablate.store.tracker."""
 import sqlite3
 
 import pytest
 from omegaconf import OmegaConf
 
-from ablate.tracking import SHARED_VIEW_KEY, SHARED_VIEW_TAG, Tracker, config_hash, flatten, git_commit, retry, \
-    runs_link
+from ablate.store import config_hash, flatten, git_commit
+from ablate.store.tracker import SHARED_VIEW_KEY, SHARED_VIEW_TAG, Tracker, retry, runs_link
 
 
 def _cfg(**over):
@@ -79,8 +79,8 @@ def test_sweeps_whose_process_died_are_closed_as_killed(tmp_path):
     import subprocess
     import sys
 
-    from ablate.sweep import close_dead_sweeps
-    from ablate.tracking import KIND_SWEEP
+    from ablate.run.sweep import close_dead_sweeps
+    from ablate.store.tracker import KIND_SWEEP
 
     tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
     exp = tracker.experiment_id("table")

@@ -5,7 +5,7 @@ import multiprocessing as mp
 
 def _job(args):
     uri, k = args
-    from ablate.tracking import Tracker, retry
+    from ablate.store.tracker import Tracker, retry
 
     tracker = Tracker(uri)
     run = retry(tracker.client.create_run, tracker.experiment_id("race"), tags={"k": str(k)})
@@ -17,7 +17,7 @@ def test_four_processes_on_a_fresh_sqlite_store_lose_no_run(tmp_path):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     with mp.get_context("spawn").Pool(4) as pool:  # without the lock: "duplicate column name: step" and kin
         ids = pool.map(_job, [(uri, k) for k in range(4)], chunksize=1)
-    from ablate.tracking import Tracker
+    from ablate.store.tracker import Tracker
 
     tracker = Tracker(uri)
     runs = tracker.client.search_runs([tracker.experiment_id("race")])

@@ -4,7 +4,7 @@ object, does the LiDAR return from it, and does it stand out in the camera image
 ``python -m ablate.data stats --root DIR --out results/NAME [--frames N]`` writes NAME.md and NAME.png.
 
 - **Objects**: Car and Pedestrian (DontCare and the other classes are skipped) at least 25 px tall at KITTI's
-  375-row scale (:func:`ablate.metrics.coco.counted`, the rule the AP counts by). Distance: the horizontal range
+  375-row scale (:func:`ablate.data.difficulty.counted`, the rule the AP counts by). Distance: the horizontal range
   ``hypot(x, z)`` of the box's bottom centre from the camera.
 - **LiDAR hit**: at least ``MIN_RETURNS`` velodyne returns inside the object's 3D box (velodyne -> rectified camera
   frame through ``Tr_velo_to_cam`` and ``R0_rect``), the box enlarged by ``MARGIN`` on its four sides and at its top
@@ -84,7 +84,7 @@ def contrast(lab: np.ndarray, bbox, mask: np.ndarray | None = None, shrink: floa
 def frame_objects(split_dir: Path, frame: str, conditions=tuple(CONDITIONS), seed: int = 0,
                   severity: float = 1.0) -> list[dict]:
     """One record per counted object of ``frame`` and condition: class, distance, height, returns, ΔE, threshold."""
-    from ablate.metrics.coco import counted
+    from ablate.data.difficulty import counted
 
     paths = kitti.frame_paths(split_dir, frame)
     image = kitti.read_image(paths["image"]).astype(np.float32) / 255.0

@@ -22,6 +22,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from ablate.fusion.ops import FusionOp
 from ablate.nn.fpn import FPN
+from ablate.nn.frozen import FreezableModel
 from ablate.nn.resnet import ResNet
 
 STAGES = ("early", "backbone", "fpn", "late", "single")
@@ -29,7 +30,7 @@ NUM_LEVELS = 5  # P3..P7
 BACKBONE_KEYS = ("depth", "width", "weights")
 
 
-class FusionModel(nn.Module):
+class FusionModel(FreezableModel):
     """A task network whose modalities are fused at ``stage`` by the operator ``fusion`` builds.
 
     ``fusion``: called as ``fusion(channels=C, num_inputs=N)`` (a partial of ``ablate.fusion.build``);
@@ -63,7 +64,6 @@ class FusionModel(nn.Module):
         self.stage, self.modalities = stage, modalities
         self.single = single if stage == "single" else None
         self.backbone_options, self.fpn_channels = backbone, fpn_channels
-        self._frozen: list[nn.Module] = []
         n = len(modalities)
         self.encoders = nn.ModuleDict()
         if stage == "early":
@@ -105,7 +105,7 @@ class FusionModel(nn.Module):
 
     def forward(self, inputs: dict[str, Tensor], features: dict | None = None) -> dict[str, Tensor | list[Tensor]]:
         """The head's outputs for ``inputs``. ``features``: :meth:`frozen_features` of these inputs, computed
-        before (a cache of them, :class:`ablate.experts.FeatureCache`); the per-modality parts are then not run."""
+        before (a cache of them, :class:`ablate.run.experts.FeatureCache`); the per-modality parts are then not run."""
         if features is None:
             x = self._inputs(inputs)
             if self.stage == "early":
@@ -208,12 +208,4 @@ class FusionModel(nn.Module):
         for mine, theirs in zip(self._branch_parts(modality), (expert.encoders[modality], expert.fpn, expert.head)):
             mine.load_state_dict(theirs.state_dict())
             if freeze:
-                mine.requires_grad_(False)
-                self._frozen.append(mine)
-        self.train(self.training)
-
-    def train(self, mode: bool = True) -> FusionModel:
-        super().train(mode)
-        for part in self._frozen:
-            part.eval()
-        return self
+                self.freeze(mine)

@@ -22,11 +22,11 @@
 
 Each job records the evaluator its test metrics follow as the run's ``evaluator`` tag
 (:attr:`ablate.tasks.base.FusionTask.evaluator`). :data:`EVALUATORS` names today's default of each metric module
-whose rule has changed since runs were made; the report (:func:`ablate.report.provenance`) says so under a table
+whose rule has changed since runs were made; the report (:func:`ablate.tables.provenance.provenance`) says so under a table
 whose runs import such a module but did not record that evaluator. results/README.md lists the same per table.
 """
 
 #: Today's evaluator, by metric module: the ``evaluator`` tag a run of a task that builds the module's metric with
-#: its defaults records. A run whose code imports the module (``ablate.provenance.dependencies``) and whose tag
+#: its defaults records. A run whose code imports the module (``ablate.tables.provenance.dependencies``) and whose tag
 #: differs, or that has none (made before the tag), was scored by another rule.
 EVALUATORS = {"ablate.metrics.kitti": "kitti_object_devkit_2017", "ablate.metrics.road": "kitti_road_devkit"}

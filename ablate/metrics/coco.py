@@ -36,6 +36,8 @@ from torch import Tensor
 from torchmetrics import Metric
 from torchmetrics.utilities import dim_zero_cat
 
+from ablate.data.difficulty import MIN_HEIGHT, REFERENCE_HEIGHT, counted
+
 _STATES = (
     "img_sizes", "pred_counts", "gt_counts",
     "pred_scores", "pred_labels", "pred_boxes", "pred_rle", "pred_rle_len",
@@ -58,17 +60,6 @@ def _encode(masks: Tensor) -> tuple[list[dict], Tensor, Tensor]:
 def _xyxy_to_xywh(boxes: Tensor) -> Tensor:
     boxes = boxes.detach().cpu().double().reshape(-1, 4)
     return torch.cat([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]], dim=1)
-
-
-#: SMoE §5 / KITTI moderate: objects at least this many px tall at ``REFERENCE_HEIGHT`` count.
-MIN_HEIGHT, REFERENCE_HEIGHT = 25.0, 375.0
-
-
-def counted(heights: Tensor, image_height: int, min_height: float = MIN_HEIGHT,
-            reference_height: float = REFERENCE_HEIGHT) -> Tensor:
-    """Which ground truths of box heights ``heights`` (px) count in an image ``image_height`` px tall: the
-    threshold ``min_height`` scales with ``image_height / reference_height``."""
-    return heights >= min_height * image_height / reference_height
 
 
 class MaskAP(Metric):

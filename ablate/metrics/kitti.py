@@ -67,7 +67,7 @@ from torchmetrics import Metric
 from torchmetrics.utilities import dim_zero_cat
 
 from ablate.data.dataset import CLASSES
-from ablate.metrics.coco import REFERENCE_HEIGHT, counted
+from ablate.data.difficulty import REFERENCE_HEIGHT, counted
 
 LEVELS = ("easy", "moderate", "hard")
 MIN_HEIGHT, MAX_OCCLUSION, MAX_TRUNCATION = (40.0, 25.0, 25.0), (0, 1, 2), (0.15, 0.30, 0.50)

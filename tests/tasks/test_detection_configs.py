@@ -5,7 +5,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from ablate.tracking import config_hash
+from ablate.store import config_hash
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 

@@ -99,8 +99,8 @@ def test_paper_numbers_match_the_paper_text(table, title):
 
 
 def test_followup_rows_change_only_epochs_or_freezing_and_share_their_experts():
-    from ablate.experts import expert_config
-    from ablate.tracking import config_hash
+    from ablate.run.experts import expert_config
+    from ablate.store import config_hash
 
     rows = table_rows("smoe_table1_followup")
     cfgs = {r: compose_row("smoe_table1_followup", r, "scale=cpu") for r in rows}

@@ -15,7 +15,7 @@ BEV raster (``bev``) lives in BEV space, every other modality in the camera's pe
   - two camera-space modalities (LidCamNet and PLARD, §V-F, fusing LiDAR projected into the image): the operator
     fuses them directly at each level into the first modality's branch; outputs ``road_cam``.
 
-Two-stage training (BiFNet §V-B "the two networks are trained separately first"; :mod:`ablate.experts`):
+Two-stage training (BiFNet §V-B "the two networks are trained separately first"; :mod:`ablate.run.experts`):
 :meth:`load_expert` copies a trained single-modal branch in (its encoder frozen with ``freeze``; its decoder and
 head, which see the fused features afterwards, as a trainable start).
 """
@@ -30,6 +30,7 @@ from ablate.fusion.bidirectional import BidirectionalFusion, fusion_op
 from ablate.fusion.geometry import BevGrid, Geometry
 from ablate.fusion.space import build_space
 from ablate.nn.fpn import FPN
+from ablate.nn.frozen import FreezableModel
 from ablate.nn.resnet import ResNet
 
 BEV_MODALITIES = ("bev",)
@@ -58,7 +59,7 @@ class Branch(nn.Module):
         return self.head(self.decoder(features)[0])
 
 
-class RoadNet(nn.Module):
+class RoadNet(FreezableModel):
     """Road segmentation in camera and BEV space; ``forward(batch) -> {"road_cam"?: [B,1,H/4,W/4], "road_bev"?:
     [B,1,Hb/4,Wb/4]}`` (logits). The batch holds the modalities and, for a bidirectional model, the geometry of
     :class:`~ablate.fusion.geometry.Geometry` (``calib``, ``height_image``, ``height_bev``, ``lidar_points``).
@@ -89,7 +90,6 @@ class RoadNet(nn.Module):
         first = next(iter(modalities))
         self.branches = nn.ModuleDict({m: Branch(c, backbone, fpn_channels, decoder=self.mode != "perspective"
                                                  or m == first) for m, c in modalities.items()})
-        self._frozen: list[nn.Module] = []
         if self.mode == "single":
             return
         if fusion is None:
@@ -178,15 +178,7 @@ class RoadNet(nn.Module):
             mine.decoder.load_state_dict(theirs.decoder.state_dict())
             mine.head.load_state_dict(theirs.head.state_dict())
         if freeze:
-            mine.encoder.requires_grad_(False)
-            self._frozen.append(mine.encoder)
-        self.train(self.training)
-
-    def train(self, mode: bool = True) -> RoadNet:
-        super().train(mode)
-        for part in self._frozen:
-            part.eval()
-        return self
+            self.freeze(mine.encoder)
 
     def fusion_modules(self) -> list[nn.Module]:
         """The operators in forward order (per level: camera group, then BEV group); [] for a single branch."""

@@ -15,7 +15,7 @@ from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
-from ablate.tracking import file_lock
+from ablate.store import file_lock
 
 PLANNED_FILE = ".planned"
 PROGRESS_FILE = ".progress"

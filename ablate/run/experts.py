@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from ablate.tracking import Tracker, config_hash, file_lock
+from ablate.store import Tracker, config_hash, file_lock
 
 log = logging.getLogger(__name__)
 EXPERTS_TABLE = "experts"
@@ -47,10 +47,14 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
     return ecfg
 
 
-def ensure_expert(cfg: DictConfig, modality: str) -> tuple[Path, str]:
-    """The best checkpoint and MLflow run id of ``modality``'s expert, training it first if there is none."""
-    from ablate.train import run
+#: How stage 1 runs an expert's job: ``run(cfg, kind=..., row=...) -> Outcome`` with ``ckpt_dir`` and ``run_id``
+#: (:func:`ablate.run.job.run`, which passes itself in: this module never imports the job back).
+RunJob = Callable[..., Any]
 
+
+def ensure_expert(cfg: DictConfig, modality: str, run: RunJob) -> tuple[Path, str]:
+    """The best checkpoint and MLflow run id of ``modality``'s expert, training it first (with ``run``) if there is
+    none."""
     ecfg = expert_config(cfg, modality)
     chash = config_hash(ecfg)
     with file_lock(Path("checkpoints") / EXPERTS_TABLE / f"{chash}.lock"):
@@ -80,9 +84,10 @@ def needed(cfg: DictConfig) -> list[str]:
     return [cfg.stage.modality] if stage == "single" else list(cfg.modalities)
 
 
-def prepare(cfg: DictConfig) -> dict[str, tuple[Path, str]]:
-    """Stage 1: every expert the job needs, trained now if missing -> {modality: (checkpoint, run id)}."""
-    return {m: ensure_expert(cfg, m) for m in needed(cfg)}
+def prepare(cfg: DictConfig, run: RunJob) -> dict[str, tuple[Path, str]]:
+    """Stage 1: every expert the job needs, trained now with ``run`` if missing -> {modality: (checkpoint, run
+    id)}."""
+    return {m: ensure_expert(cfg, m, run) for m in needed(cfg)}
 
 
 def attach(cfg: DictConfig, model: torch.nn.Module, experts: dict[str, tuple[Path, str]], tracker: Tracker,

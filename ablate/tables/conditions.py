@@ -28,8 +28,11 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
-from ablate.report import COSTS, _fmt, costs, kendall, provenance, significance, summarise  # noqa: E402
-from ablate.tracking import Tracker, retry  # noqa: E402
+from ablate.store import Tracker, retry  # noqa: E402
+from ablate.tables.columns import costs, significance  # noqa: E402
+from ablate.tables.provenance import provenance  # noqa: E402
+from ablate.tables.spec import COSTS  # noqa: E402
+from ablate.tables.summary import fmt, kendall, summarise  # noqa: E402
 
 VARIANT = re.compile(r"^(?P<condition>.+)-s(?P<severity>[0-9.]+(?:e[-+]?[0-9]+)?)/(?P<metric>.+)$")
 
@@ -72,10 +75,10 @@ def condition_rows(summary: pd.DataFrame, table: DictConfig, bold: bool = True) 
                 mean, std = rec.get(f"{key}_mean", np.nan), rec.get(f"{key}_std", np.nan)
                 rivals = [summary[f"{key}_mean"].max()] if f"{key}_mean" in summary else [np.nan]
                 best = bold and len(models) > 1 and not np.isnan(mean) and mean == rivals[0]
-                cells.append(_fmt(mean, std, best))
+                cells.append(fmt(mean, std, best))
                 ours.append(mean)
                 paper.append(rec.get(f"{key}_paper", np.nan))
-                pcells.append(_fmt(paper[-1], np.nan, False))
+                pcells.append(fmt(paper[-1], np.nan, False))
             tau, n = kendall(pd.DataFrame({f"{k}_mean": ours, f"{k}_paper": paper}), k)
             frame[f"{name}: {label} (ours)"] = cells + (["n/a" if np.isnan(tau) else f"{tau:.2f} ({n})"]
                                                          if with_paper else [])

@@ -1,4 +1,4 @@
-"""Is a table's code still the code of its runs? Checks for ``ablate.report``'s footer.
+"""Is a table's code still the code of its runs? Checks for the tables' footers.
 
 A run records the commit it was made at (``git_commit`` tag, ``-dirty`` when the tree had changes) and its
 resolved config, whose ``_target_`` entries name the classes and functions it built. The code a run depends on
@@ -19,7 +19,11 @@ import ast
 import subprocess
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+import pandas as pd
+
+from ablate.metrics import EVALUATORS
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def module_file(name: str, root: Path = ROOT) -> Path | None:
@@ -97,7 +101,47 @@ def stale(commits: set[str], targets: set[str], root: Path = ROOT, package: str 
 def evaluators(targets: set[str], root: Path = ROOT, package: str = "ablate") -> dict[str, str]:
     """{metric module: today's evaluator} (:data:`ablate.metrics.EVALUATORS`) for the metric modules that the
     dotted ``targets`` import, transitively (:func:`dependencies`)."""
-    from ablate.metrics import EVALUATORS
-
     deps = {p.resolve() for p in dependencies(targets, package, root)}
     return {m: e for m, e in sorted(EVALUATORS.items()) if (f := module_file(m, root)) and f.resolve() in deps}
+
+
+def provenance(runs: pd.DataFrame) -> list[str]:
+    """The commits the table's runs were made at (the ``git_commit`` tag), a warning when they differ, and one
+    when code the runs' configs build (this module) changed since a run's commit."""
+    if not len(runs) or "git_commit" not in runs:
+        return []
+    counts = runs["git_commit"].fillna("unknown").value_counts().sort_index()
+    named = ", ".join(f"{c[:12]}{'-dirty' if c.endswith('-dirty') else ''} ({n} runs)" for c, n in counts.items())
+    lines = [f"Runs made at commit {named}."]
+    if len(counts) > 1:
+        lines.append(f"**Mixed commits**: the rows come from {len(counts)} commits.")
+    targets = set(" ".join(runs["targets"].fillna("")).split()) if "targets" in runs else set()
+    shas = {c.removesuffix("-dirty") for c in counts.index} - {"unknown"}
+    changed = stale(shas, targets) if targets else {}
+    for sha, files in changed.items():
+        dirty = any(c == f"{sha}-dirty" for c in counts.index)
+        shown = ", ".join(files[:6]) + (f" and {len(files) - 6} more" if len(files) > 6 else "")
+        lines.append(f"**Code changed since {sha[:12]}**" + (" (some runs made with uncommitted changes on top)"
+                                                            if dirty else "")
+                     + f" in what its runs build: {shown}; their numbers may not be what the code gives today.")
+    if targets and not changed:
+        lines.append("No code the runs build has changed since their commits.")
+    return lines + metric_changed(runs, targets)
+
+
+def metric_changed(runs: pd.DataFrame, targets: set[str]) -> list[str]:
+    """A line per metric the runs' code builds whose evaluator today (:func:`evaluators`) is not the
+    one some runs were scored with (their ``evaluator`` tag; none on runs made before the tag)."""
+    used = runs["evaluator"].fillna("") if "evaluator" in runs else pd.Series([""] * len(runs), dtype=str)
+    lines = []
+    for module, current in (evaluators(targets) if targets else {}).items():
+        off = used[[current not in tag.split(", ") for tag in used]]
+        if off.empty:
+            continue
+        counts = off.value_counts().sort_index()
+        was = ", ".join(f"{tag or 'no recorded evaluator'}: {n}" for tag, n in counts.items())
+        lines.append(f"**Metric changed since these runs**: {module} now follows {current} "
+                     f"(ablate/metrics/__init__.py), and {len(off)} of {len(runs)} runs were scored otherwise ({was}); "
+                     "rerun them (`force=true`) to compare with the paper.")
+    return lines
+

@@ -1,10 +1,7 @@
 """A Hydra callback that turns a multirun into one MLflow parent run, and regenerates its table at the end.
 
-Jobs find the parent through a file in the sweep directory (``.parent_run``), and the store it lives in through
-another (``.tracking.json``), which works for every launcher whose jobs see the sweep directory: the basic one,
-joblib, submitit (local or SLURM, on a shared filesystem) and Ray (the sweep directory is absolute, under the launch
-directory). A job so writes to its parent's store even where its own environment names no store (a Ray worker does
-not inherit the driver's ``MLFLOW_TRACKING_URI``). A job that fails leaves a note in ``<sweep dir>/failures/``; the
+It records the sweep's store and parent run in the sweep directory, where every job finds them
+(:mod:`ablate.store.sweepdir`). A job that fails leaves a note in ``<sweep dir>/failures/``; the
 callback lists those notes at the end, marks the parent FAILED and exits with status 1 after the other jobs have run.
 """
 from __future__ import annotations
@@ -20,19 +17,18 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from ablate import progress
-from ablate.tracking import KIND_SWEEP, Tracker, git_commit, is_server
+from ablate.run import progress
+from ablate.run.latency import measure
+from ablate.config import compose
+from ablate.store import KIND_SWEEP, Tracker, is_server, provenance_tags, sweep_dir
+from ablate.store.sweepdir import FAILURES, PARENT_FILE, STORE_FILE, SWEPT_FILE
+from ablate.tables import COSTS, table_spec, write_table
 
 log = logging.getLogger(__name__)
-PARENT_FILE = ".parent_run"
-SWEPT_FILE = ".swept_keys"
-STORE_FILE = ".tracking.json"
-FAILURES = "failures"
 
 # conf/hydra/launcher/ray.yaml and submitit_local.yaml replace the plugins' configs of the same names, holding
 # exactly their keys. Hydra 1.3 still validates a file against a ConfigStore entry of the same name and warns that
@@ -42,45 +38,6 @@ FAILURES = "failures"
 # composes (in the launching process and in every submitit job).
 warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/(ray|submitit_local)' is validated against ConfigStore")
 
-
-def sweep_dir() -> Path | None:
-    """The sweep directory of the running multirun job (a relative one resolved against the launch directory,
-    ``hydra.runtime.cwd``), or None for a single run."""
-    if not HydraConfig.initialized():
-        return None
-    hc = HydraConfig.get()
-    if hc.mode is None or hc.mode.name != "MULTIRUN":
-        return None
-    return Path(hc.runtime.cwd) / hc.sweep.dir
-
-
-def sweep_store() -> dict[str, str | None] | None:
-    """The tracking store the running multirun recorded (``uri``, ``artifact_location``), or None."""
-    sdir = sweep_dir()
-    path = sdir / STORE_FILE if sdir else None
-    return json.loads(path.read_text()) if path and path.exists() else None
-
-
-def parent_run_id() -> str | None:
-    """The MLflow parent run of the running multirun job, if any."""
-    sdir = sweep_dir()
-    path = sdir / PARENT_FILE if sdir else None
-    return path.read_text().strip() if path and path.exists() else None
-
-
-def swept_keys() -> list[str] | None:
-    """The config keys the running multirun sweeps over (``fusion`` in ``fusion=sum,max``), or None."""
-    sdir = sweep_dir()
-    path = sdir / SWEPT_FILE if sdir else None
-    return path.read_text().split() if path and path.exists() else None
-
-
-def record_failure(job: str, message: str) -> None:
-    """Leave a note that ``job`` failed, for the end-of-sweep summary."""
-    sdir = sweep_dir()
-    if sdir is not None:
-        (sdir / FAILURES).mkdir(parents=True, exist_ok=True)
-        (sdir / FAILURES / f"{job}.txt").write_text(message)
 
 
 def close_dead_sweeps(tracker: Tracker, experiment_id: str) -> int:
@@ -184,7 +141,7 @@ class SweepCallback(Callback):
         close_dead_sweeps(tracker, exp)
         overrides = " ".join(config.hydra.overrides.task)
         run_id = tracker.start(exp, f"sweep {time.strftime('%Y-%m-%d %H:%M:%S')}", {
-            "kind": KIND_SWEEP, "table": config.table.name, "overrides": overrides, "git_commit": git_commit(),
+            "kind": KIND_SWEEP, "table": config.table.name, "overrides": overrides, **provenance_tags(),
             "sweep_dir": str(sdir), "host": socket.gethostname(), "pid": str(os.getpid())})
         (sdir / PARENT_FILE).write_text(run_id)
         parsed = OverridesParser.create().parse_overrides(list(config.hydra.overrides.task))
@@ -209,16 +166,11 @@ class SweepCallback(Callback):
             log.warning("Could not record the sweep's progress: %s", err)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        from ablate.report import write_table
-
         sdir = Path(str(config.hydra.runtime.cwd)) / str(config.hydra.sweep.dir)
         tracker = Tracker.from_config(config)
         parent = (sdir / PARENT_FILE).read_text().strip() if (sdir / PARENT_FILE).exists() else None
         failures = sorted((sdir / FAILURES).glob("*.txt")) if (sdir / FAILURES).is_dir() else []
         if config.get("comp_time", {}).get("after_sweep") and config.table.rows:
-            from ablate.latency import measure
-            from ablate.report import compose
-
             try:
                 measure(config, tracker, compose, fixed_overrides(config), only_if_missing=True)
             except Exception as err:  # the table is written all the same, its latency column empty
@@ -232,8 +184,6 @@ class SweepCallback(Callback):
         if parent:
             tracker.end(parent, "FAILED" if failures else "FINISHED")
             try:
-                from ablate.report import COSTS, table_spec
-
                 spec = table_spec(config)
                 cond = spec.get("primary_condition")  # a rows table read under one test condition
                 metrics = [f"{cond}/{m}" if cond and m not in COSTS else m for m in spec.metrics]

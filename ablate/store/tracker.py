@@ -13,12 +13,10 @@ and experiment creation tolerates a concurrent creator.
 from __future__ import annotations
 
 import fcntl
-import hashlib
 import json
 import logging
 import os
 import random
-import subprocess
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -30,19 +28,14 @@ from lightning.pytorch.utilities import rank_zero_only
 from mlflow.entities import Metric, Param, RunTag
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from ablate import hardware
+from ablate.store.identity import resolve_path
+from ablate.store.sweepdir import sweep_store
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
-#: Config keys that do not change a result, so they are left out of the config hash (``table`` holds only
-#: the paper's numbers and row names; the experiment a run lands in already separates tables; the float32 feature
-#: cache of frozen experts, ablate.experts.FeatureCache, changes the speed only).
-UNHASHED = ("force", "logger", "hydra", "table", "trainer.enable_progress_bar", "data.num_workers",
-            "experts.cache_features", "experts.cache_max_gb", "comp_time.threads", "comp_time.device",
-            "comp_time.after_sweep", "recipe.bf16")
 #: Tags every job run carries; the report reads them.
 KIND_JOB, KIND_SWEEP = "job", "sweep"
 #: Every experiment's kind (model training, not GenAI). MLflow 3.17's UI still opens on its GenAI view until the
@@ -80,26 +73,6 @@ def retry(fn: Callable[..., T], *args: Any, attempts: int = 12, **kwargs: Any) -
             time.sleep(min(0.1 * 2**i, 5.0) * (0.5 + random.random()))
     raise AssertionError("unreachable")
 
-
-def launch_dir() -> Path:
-    """The directory the command was launched from: Hydra's original working directory
-    (``hydra.utils.get_original_cwd()``, the config's ``hydra.runtime.cwd``), else the current one.
-
-    Hydra sets ``hydra.runtime.cwd`` where it composes a job's config (``ConfigLoaderImpl.load_configuration``):
-    hydra-ray-launcher composes every job in the driver before shipping it, so a Ray job on a cluster started
-    elsewhere still sees the driver's directory; submitit composes in the job, which starts in the submitting
-    directory (SLURM's default working directory is the one ``sbatch`` ran in).
-    """
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.utils import get_original_cwd
-
-    return Path(get_original_cwd() if HydraConfig.initialized() else os.getcwd())
-
-
-def resolve_path(path: str | Path) -> Path:
-    """``path`` with ``~`` expanded, made absolute against :func:`launch_dir` if it is relative."""
-    path = Path(os.path.expanduser(str(path)))
-    return path if path.is_absolute() else launch_dir() / path
 
 
 def resolve_uri(uri: str) -> str:
@@ -152,44 +125,6 @@ def artifact_location(uri: str, root: str | None) -> str | None:
     return resolve_path(local).as_uri()
 
 
-def config_hash(cfg: DictConfig) -> str:
-    """A short, stable hash of the resolved config without the keys in :data:`UNHASHED`, its numerics resolved
-    for this machine (:func:`ablate.hardware.resolved`: ``auto`` is hashed as what it becomes here)."""
-    data = OmegaConf.to_container(hardware.resolved(cfg), resolve=True)
-    for dotted in UNHASHED:
-        *path, last = dotted.split(".")
-        node = data
-        for key in path:
-            node = node.get(key) if isinstance(node, dict) else None
-        if isinstance(node, dict):
-            node.pop(last, None)
-    return hashlib.sha1(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:12]
-
-
-def flatten(data: Any, prefix: str = "") -> dict[str, str]:
-    """Flatten nested dicts / lists into ``a.b.0.c -> str(value)``, as MLflow params."""
-    out: dict[str, str] = {}
-    items = data.items() if isinstance(data, dict) else enumerate(data) if isinstance(data, list) else None
-    if items is None:
-        return {prefix: str(data)}
-    for key, value in items:
-        name = f"{prefix}.{key}" if prefix else str(key)
-        out.update(flatten(value, name))
-    return out
-
-
-def git_commit() -> str:
-    """The current git commit (with ``-dirty`` when tracked files have changes), or ``unknown`` outside a checkout.
-    ``results/`` does not count: the tables a sweep writes there are outputs, and would otherwise mark every run of
-    the next sweep dirty."""
-    try:
-        sha = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":!results"],
-                               capture_output=True, text=True, check=True).stdout.strip()
-        return sha + ("-dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
 
 class Tracker:
     """A thin, retrying wrapper over :class:`MlflowClient` for the run lifecycle of a table.
@@ -220,8 +155,6 @@ class Tracker:
     def from_config(cls, cfg: DictConfig) -> "Tracker":
         """The store of ``cfg``; inside a multirun, the store its sweep recorded (where its parent run is), whatever
         this process's environment says."""
-        from ablate.sweep import sweep_store
-
         recorded = sweep_store()
         if recorded is not None:
             return cls(recorded["uri"], recorded["artifact_location"])

@@ -32,11 +32,11 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException, ValidationError
 
 from ablate import hardware
-from ablate.experts import attach as attach_experts
-from ablate.experts import feature_cache
-from ablate.experts import prepare as prepare_experts
-from ablate.sweep import parent_run_id, record_failure, swept_keys, sweep_dir
-from ablate.tracking import KIND_JOB, RunLogger, Tracker, config_hash, flatten, git_commit, launch_dir
+from ablate.run.experts import attach as attach_experts
+from ablate.run.experts import feature_cache
+from ablate.run.experts import prepare as prepare_experts
+from ablate.store import (KIND_JOB, RunLogger, Tracker, config_hash, flatten, launch_dir, parent_run_id,
+                          provenance_tags, record_failure, swept_keys, sweep_dir)
 
 log = logging.getLogger(__name__)
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
@@ -105,12 +105,12 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
         return Outcome("SKIPPED", done.info.run_id, ckpt_dir)
     parent = parent_run_id() if kind == KIND_JOB else None
     tags = {"kind": kind, "table": cfg.table.name, "row": row, "seed": str(cfg.seed),
-            "config_hash": chash, "git_commit": git_commit(), "scale": cfg.scale.name, **hardware.tags(cfg)}
+            "config_hash": chash, **provenance_tags(), "scale": cfg.scale.name, **hardware.tags(cfg)}
     if parent:
         tags.update({"mlflow.parentRunId": parent, "sweep_id": parent})
     source = None if cfg.force or kind != KIND_JOB else tracker.finished_elsewhere(chash)
     if source is not None:
-        run_id = tracker.copy_run(source, exp, {k: v for k, v in tags.items() if k not in ("git_commit",)})
+        run_id = tracker.copy_run(source, exp, {k: v for k, v in tags.items() if k not in ("git_commit", "ablate_version", "launch_commit")})
         log.info("Reusing %s (seed %s): the same config finished as run %s of another table; copied as %s",
                  row, cfg.seed, source.info.run_id, run_id)
         return Outcome("SKIPPED", run_id, Path("checkpoints") / source.data.tags.get("table", "") / chash)
@@ -146,7 +146,7 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     per frame are computed once and cached for the fit with ``experts.cache_features``), and a single-modal job
     *is* the expert: it is tested from the expert's checkpoint, never trained twice.
     """
-    experts = prepare_experts(cfg) if cfg.get("experts") else {}
+    experts = prepare_experts(cfg, run) if cfg.get("experts") else {}
     if cfg.trainer.get("threads"):
         torch.set_num_threads(int(cfg.trainer.threads))
     L.seed_everything(cfg.seed, workers=True)
@@ -197,7 +197,7 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
 
 @contextmanager
 def in_launch_dir() -> Iterator[Path]:
-    """Run the block in the launch directory (:func:`ablate.tracking.launch_dir`), then go back.
+    """Run the block in the launch directory (:func:`ablate.store.launch_dir`), then go back.
 
     Workaround for ``hydra/launcher=ray``: a Ray task runs in the directory its cluster was started in, so the
     relative paths of a job (``checkpoints/``, ``data/``, the expert locks, ``mlflow.db``) would land there, beside

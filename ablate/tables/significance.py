@@ -1,4 +1,4 @@
-"""Confidence intervals and significance over seeds, for the tables of ``ablate.report``.
+"""Confidence intervals and significance over seeds, for the tables (:mod:`ablate.tables`).
 
 * :func:`mean_ci` — a 95 % confidence interval for a row's mean over its seeds: Student's t for n < 5 (the
   bootstrap's percentiles are too coarse on 2-4 values), a percentile bootstrap over seeds from n = 5 on
