@@ -1,12 +1,20 @@
 """A shared store: ``mlflow server`` on PostgreSQL, started on 127.0.0.1 by scripts/tracking_server.py and stopped
-after. Parallel jobs log to it, their artifacts go through it, and skip, resume, row reuse and the report work."""
+after. Parallel jobs log to it, their artifacts go through it, and skip, resume, row reuse and the report work.
+With MLflow's basic-auth app on (``--auth``), a client without credentials gets 401 and one with them writes a run
+and reads it back; without it, an address other than loopback is refused."""
 from __future__ import annotations
 
+import base64
+import contextlib
 import json
+import re
 import shutil
+import stat
 import subprocess
 import sys
 import tempfile
+import urllib.error
+import urllib.request
 from pathlib import Path
 
 import pytest
@@ -40,21 +48,37 @@ def running(pid: int) -> bool:
     return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
-@pytest.fixture(scope="module")
-def server():
-    need("psycopg")
-    if reason := postgres_missing():
-        pytest.skip(reason)
+def test_an_address_other_than_loopback_is_refused_without_auth(tmp_path):
+    store = tmp_path / "store"
+    for host in ("0.0.0.0", "::"):
+        out = subprocess.run([sys.executable, str(SCRIPT), "start", str(store), "--host", host], capture_output=True,
+                             text=True)
+        assert out.returncode == 1 and not out.stdout
+        assert out.stderr.startswith(f"error: --host {host} is not a loopback address") and "Add --auth" in out.stderr
+        assert out.stderr.count("\n") == 1  # one line
+    assert not store.exists()  # refused before anything is created
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        from tracking_server import is_loopback
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    assert is_loopback("127.0.0.1") and is_loopback("localhost") and is_loopback("::1")
+    assert not is_loopback("0.0.0.0") and not is_loopback("::")
+
+
+@contextlib.contextmanager
+def store_server(*options: str):
+    """Start a store with scripts/tracking_server.py in a folder of its own: ``(start's stdout, store folder)``;
+    stopped and removed after, checking that nothing it started is left."""
     folder = Path(tempfile.mkdtemp(prefix="ablate-store-", dir="/tmp"))
     folder.chmod(0o755)  # PostgreSQL runs as the user postgres when we are root: it must reach its data folder
     store = folder / "store"
     started = subprocess.run([sys.executable, str(SCRIPT), "start", str(store), "--port", str(free_port()),
-                              "--pg-port", str(free_port()), "--workers", "1"], capture_output=True, text=True)
+                              "--pg-port", str(free_port()), "--workers", "1", *options], capture_output=True,
+                             text=True)
     try:
         assert started.returncode == 0, started.stderr
-        uri = started.stdout.strip().split("=", 1)[1]
-        assert uri.startswith("http://127.0.0.1:")
-        yield uri, store
+        yield started.stdout, store
     finally:
         state = json.loads((store / "server.json").read_text()) if (store / "server.json").exists() else None
         stopped = subprocess.run([sys.executable, str(SCRIPT), "stop", str(store)], capture_output=True, text=True)
@@ -63,6 +87,92 @@ def server():
         if state:  # nothing it started is left
             assert not running(state["mlflow_pid"])
             assert not (Path(state["pgdata"]) / "postmaster.pid").exists()
+
+
+@pytest.fixture(scope="module")
+def server():
+    need("psycopg")
+    if reason := postgres_missing():
+        pytest.skip(reason)
+    with store_server() as (stdout, store):
+        uri = stdout.strip().split("=", 1)[1]
+        assert uri.startswith("http://127.0.0.1:")
+        yield uri, store
+
+
+@pytest.fixture(scope="module")
+def auth_server():
+    """``(uri, store, credentials)`` of a server with MLflow's basic-auth app; the credentials are in this process's
+    environment too (for the tests' own MlflowClient) until the module ends."""
+    need("psycopg", "flask_wtf")  # flask_wtf: mlflow[auth]
+    if reason := postgres_missing():
+        pytest.skip(reason)
+    with store_server("--auth") as (stdout, store):
+        exports = dict(re.findall(r"^export (\w+)=(.*)$", stdout, re.M))
+        uri, user = exports["MLFLOW_TRACKING_URI"], exports["MLFLOW_TRACKING_USERNAME"]
+        assert uri.startswith("http://127.0.0.1:") and user == "admin"
+        assert exports["MLFLOW_TRACKING_PASSWORD"] == f'"$(cat {store / "auth.password"})"'  # the file, not the password
+        password = (store / "auth.password").read_text().strip()
+        assert len(password) >= 32 and password not in stdout
+        for name in ("auth.password", "auth.secret", "basic_auth.ini"):  # readable by the user alone
+            assert stat.S_IMODE((store / name).stat().st_mode) == 0o600, name
+        assert password not in (store / "basic_auth.ini").read_text()
+        credentials = {"MLFLOW_TRACKING_USERNAME": user, "MLFLOW_TRACKING_PASSWORD": password}
+        with pytest.MonkeyPatch.context() as env:
+            for key, value in credentials.items():
+                env.setenv(key, value)
+            yield uri, store, credentials
+
+
+def call(uri: str, path: str, body: dict | None = None, auth: tuple[str, str] | None = None) -> int:
+    """The HTTP status of a REST call: GET, or POST of ``body``; basic auth with ``auth``."""
+    request = urllib.request.Request(f"{uri}{path}", data=None if body is None else json.dumps(body).encode(),
+                                     headers={"Content-Type": "application/json"})
+    if auth:
+        request.add_header("Authorization", "Basic " + base64.b64encode(":".join(auth).encode()).decode())
+    try:
+        with urllib.request.urlopen(request, timeout=30) as answer:
+            return answer.status
+    except urllib.error.HTTPError as err:
+        return err.code
+
+
+def test_a_client_without_credentials_gets_401(auth_server, monkeypatch):
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    uri, _, credentials = auth_server
+    search = "/api/2.0/mlflow/experiments/search?max_results=5"
+    assert call(uri, "/health") == 200  # the health check stays open
+    assert call(uri, search) == 401
+    assert call(uri, "/api/2.0/mlflow/experiments/create", {"name": "intruder"}) == 401
+    assert call(uri, search, auth=("admin", "wrong")) == 401
+    assert call(uri, search, auth=tuple(credentials.values())) == 200
+    for key in credentials:
+        monkeypatch.delenv(key)
+    with pytest.raises(MlflowException, match="401"):
+        MlflowClient(uri).search_experiments()
+
+
+def test_with_credentials_a_run_is_written_and_read_back(auth_server, tmp_path):
+    from mlflow.tracking import MlflowClient
+
+    uri, store, _ = auth_server
+    client = MlflowClient(uri)  # MLFLOW_TRACKING_USERNAME / _PASSWORD from the environment
+    exp = client.create_experiment("auth_roundtrip")
+    run = client.create_run(exp, tags={"row": "chinet"})
+    for step, value in enumerate((0.5, 0.7)):
+        client.log_metric(run.info.run_id, "val/iou", value, step=step)
+    client.log_param(run.info.run_id, "seed", "0")
+    (tmp_path / "note.txt").write_text("through the server\n")
+    client.log_artifact(run.info.run_id, str(tmp_path / "note.txt"))
+    client.set_terminated(run.info.run_id)
+    back = MlflowClient(uri).get_run(run.info.run_id)
+    assert back.info.status == "FINISHED" and back.data.params == {"seed": "0"} and back.data.tags["row"] == "chinet"
+    assert [m.value for m in client.get_metric_history(run.info.run_id, "val/iou")] == [0.5, 0.7]
+    fetched = client.download_artifacts(run.info.run_id, "note.txt", str(tmp_path / "back"))
+    assert Path(fetched).read_text() == "through the server\n"
+    assert (store / "artifacts" / exp / run.info.run_id / "artifacts" / "note.txt").is_file()
 
 
 @pytest.fixture(scope="module")
