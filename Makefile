@@ -3,7 +3,7 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup run test bench
+.PHONY: setup run test lint bench
 
 $(VENV)/.installed: pyproject.toml
 	python3 -m venv $(VENV)
@@ -22,6 +22,12 @@ run: setup
 # PostgreSQL tests of one file never run beside each other)
 test: setup
 	$(PY) -m pytest -q -n auto --dist loadfile
+
+# ruff (lint and format) on everything; mypy on the store and the tables, whose public functions are annotated
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy ablate/store ablate/tables
 
 bench: setup
 	for f in bench/bench_*.py; do echo "== $$f"; $(PY) $$f || exit 1; done

@@ -1,4 +1,5 @@
 """ablate: ablation studies of camera + LiDAR sensor-fusion networks."""
+
 from omegaconf import OmegaConf
 
 from ablate.hardware import register_resolvers

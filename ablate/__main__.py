@@ -1,4 +1,5 @@
 """`python -m ablate [-m] key=value ...`: run one job, or a Hydra multirun sweep of jobs."""
+
 import hydra
 from omegaconf import DictConfig
 

@@ -1,5 +1,6 @@
 """The root config of ``python -m ablate`` (``conf/``), composed outside a Hydra app: for the report, the latency
 timing and the diagnosis, which run after the jobs."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -19,5 +20,3 @@ def compose(overrides: list[str]) -> DictConfig:
         return hydra_compose("config", overrides=overrides)
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         return hydra_compose("config", overrides=overrides)
-
-

@@ -1,5 +1,6 @@
 """``python -m ablate.diagnose [experiment=<table>] [experts_only=true]``: where fusion can gain over the single-modal
 experts, and where its gates look (:mod:`ablate.run.diagnose`)."""
+
 from ablate.run.diagnose import main
 
 if __name__ == "__main__":

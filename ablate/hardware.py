@@ -22,6 +22,7 @@ Losses, metric accumulation, NMS scores and BatchNorm statistics stay in fp32 un
 outputs are cast to fp32 before anything reads them (:func:`ablate.tasks.base.FusionTask.forward`), and BatchNorm
 keeps fp32 running statistics and weights.
 """
+
 from __future__ import annotations
 
 import os
@@ -107,8 +108,10 @@ def check(trainer: DictConfig) -> None:
     these options take."""
     threads = trainer.get("threads")
     if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
-        raise ValidationError(f"trainer.threads={threads!r}: expected a whole number of threads >= 1, or null "
-                              "(torch's default: every core)")
+        raise ValidationError(
+            f"trainer.threads={threads!r}: expected a whole number of threads >= 1, or null "
+            "(torch's default: every core)"
+        )
     channels_last = trainer.get("channels_last", "auto")
     if channels_last != "auto" and not isinstance(channels_last, bool):
         raise ValidationError(f"trainer.channels_last={channels_last!r}: expected true, false or auto")
@@ -128,17 +131,21 @@ def resolve(cfg: DictConfig, machine: Cpu | None = None, quiet: bool = False) ->
     if precision != "auto":
         why = f"precision {precision} as configured"
         if precision in BF16 and not _on_gpu(trainer) and not machine.has_bf16 and not quiet:
-            warnings.warn(f"trainer.precision={precision} on a CPU without bf16 in hardware ({machine.model}: "
-                          f"{machine.isa}): bf16 is emulated there and training is far slower (about 30x); "
-                          "trainer.precision=auto chooses fp32 on such a CPU", stacklevel=2)
+            warnings.warn(
+                f"trainer.precision={precision} on a CPU without bf16 in hardware ({machine.model}: "
+                f"{machine.isa}): bf16 is emulated there and training is far slower (about 30x); "
+                "trainer.precision=auto chooses fp32 on such a CPU",
+                stacklevel=2,
+            )
     elif _on_gpu(trainer):
         precision, why = "bf16-mixed", "precision bf16-mixed: a GPU"
     elif machine.has_bf16 and family_ok:
         precision, why = "bf16-mixed", f"precision bf16-mixed: {machine.model} has {machine.isa}"
     elif machine.has_bf16:
         precision = "32-true"
-        why = ("precision 32-true: the CPU has bf16, but this task's bf16 parity is not measured (recipe.bf16 is "
-               "not true)")
+        why = (
+            "precision 32-true: the CPU has bf16, but this task's bf16 parity is not measured (recipe.bf16 is not true)"
+        )
     else:
         precision = "32-true"
         why = f"precision 32-true: {machine.model} has no bf16 in hardware ({machine.isa})"
@@ -166,9 +173,14 @@ def tags(cfg: DictConfig) -> dict[str, str]:
     """The numerics and the machine, as run tags: resolved precision, memory format, threads, compile, CPU, ISA."""
     machine = cpu()
     trainer = cfg.trainer
-    return {"precision": str(trainer.get("precision")), "channels_last": str(trainer.get("channels_last")),
-            "threads": str(trainer.get("threads")), "compile": str(trainer.get("compile", False)),
-            "cpu": machine.model, "cpu_isa": machine.isa}
+    return {
+        "precision": str(trainer.get("precision")),
+        "channels_last": str(trainer.get("channels_last")),
+        "threads": str(trainer.get("threads")),
+        "compile": str(trainer.get("compile", False)),
+        "cpu": machine.model,
+        "cpu_isa": machine.isa,
+    }
 
 
 def register_resolvers() -> None:

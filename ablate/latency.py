@@ -1,4 +1,5 @@
 """``python -m ablate.latency experiment=<table>``: time every row of a table side by side (:mod:`ablate.run.latency`)."""
+
 import logging
 
 from ablate.run.latency import main

@@ -1,11 +1,13 @@
 """``python -m ablate.report``: regenerate every table that has runs under ``results/``; ``python -m ablate.report
 experiment=chinet_table2`` just one (other ``key=value`` overrides, e.g. ``logger.tracking_uri=...``, apply too).
 A multirun writes its table at the end by itself. The tables are built by :mod:`ablate.tables`."""
+
 from __future__ import annotations
 
 import sys
 
 from ablate.config import CONF, compose
+from ablate.run.fingerprint import compute as fingerprint
 from ablate.store import KIND_SWEEP, Tracker, retry
 from ablate.tables import write_table
 
@@ -27,9 +29,13 @@ def main(argv: list[str] | None = None) -> int:
             continue
         sweeps = tracker.runs(exp.experiment_id, f"tags.kind = '{KIND_SWEEP}'")
         parent = max(sweeps, key=lambda r: r.info.start_time).info.run_id if sweeps else None
-        for path in write_table(cfg, tracker, parent_run=parent):
+        for path in write_table(cfg, tracker, parent_run=parent, fingerprint=fingerprint):
             print(path)
         written += 1
     if not written:
         print(f"No tables written: no runs in {Tracker.from_config(compose(rest)).uri}", file=sys.stderr)
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -4,6 +4,7 @@ SciPy pipeline (Delaunay + LinearNDInterpolator + NearestNDInterpolator), interl
 Prints per frame the median time of each, their ratio and the work buffers dense_depth holds after the frame;
 then the median ratio over the frames, the memory a call takes (peak RSS growth over the first calls, traced
 peak of one call) and the machine's load average before and after."""
+
 from __future__ import annotations
 
 import os
@@ -83,15 +84,24 @@ def main() -> None:
         a, b = np.median(t_ours[frame]), np.median(t_ref[frame])
         ratios.append(b / a)
         diff = np.abs(ours[frame] - dense_ref)[hull]
-        print(f"{frame} {sp.shape[1]}x{sp.shape[0]} lidar px {int((sp > 0).sum())}: ours {a * 1e3:.1f} ms, "
-              f"scipy {b * 1e3:.0f} ms (medians of {REPS_OURS} / {REPS_SCIPY}), ratio {b / a:.1f}x; "
-              f"buffers held after the frame {held[frame]:.1f} MB; inside hull |diff| median "
-              f"{np.median(diff):.2e} m, mean {diff.mean():.3f} m, p90 {np.percentile(diff, 90):.3f} m")
+        print(
+            f"{frame} {sp.shape[1]}x{sp.shape[0]} lidar px {int((sp > 0).sum())}: ours {a * 1e3:.1f} ms, "
+            f"scipy {b * 1e3:.0f} ms (medians of {REPS_OURS} / {REPS_SCIPY}), ratio {b / a:.1f}x; "
+            f"buffers held after the frame {held[frame]:.1f} MB; inside hull |diff| median "
+            f"{np.median(diff):.2e} m, mean {diff.mean():.3f} m, p90 {np.percentile(diff, 90):.3f} m"
+        )
     print(f"ratio over frames: median {np.median(ratios):.1f}x, min {min(ratios):.1f}x (target >= 10x)")
-    print(f"memory: peak RSS growth over the first {len(FRAMES)} calls {rss_growth:.1f} MB, traced peak of one call "
-          f"(NumPy allocations, buffers already held) {traced_peak:.1f} MB")
-    print("load average (1, 5, 15 min) before " + " ".join(f"{x:.2f}" for x in load[0])
-          + ", after " + " ".join(f"{x:.2f}" for x in load[1]) + f" on {os.cpu_count()} CPUs")
+    print(
+        f"memory: peak RSS growth over the first {len(FRAMES)} calls {rss_growth:.1f} MB, traced peak of one call "
+        f"(NumPy allocations, buffers already held) {traced_peak:.1f} MB"
+    )
+    print(
+        "load average (1, 5, 15 min) before "
+        + " ".join(f"{x:.2f}" for x in load[0])
+        + ", after "
+        + " ".join(f"{x:.2f}" for x in load[1])
+        + f" on {os.cpu_count()} CPUs"
+    )
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ With ``--set model.batch_norm=true`` (ScratchDet's BatchNorm in the trunk, ablat
 300 updates 477 s (1.59 s per update), loss 0.03, Car moderate 63.6 %, mean 45.5 %: the cpu recipe now has it
 (conf/recipe/detection_cpu.yaml).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,9 +36,16 @@ def measure(row: str, frames: int, steps: int, seed: int, overrides: list[str] =
     import ablate  # noqa: F401  (registers the config resolvers)
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[f"row={row}", "task=detection", f"seed={seed}",
-                                           f"+data.limit_frames={{train:{frames},val:{frames},test:{frames}}}",
-                                           *overrides])
+        cfg = compose(
+            "config",
+            overrides=[
+                f"row={row}",
+                "task=detection",
+                f"seed={seed}",
+                f"+data.limit_frames={{train:{frames},val:{frames},test:{frames}}}",
+                *overrides,
+            ],
+        )
     L.seed_everything(seed, workers=True)
     data = instantiate(cfg.data)
     data.prepare_data()
@@ -45,16 +53,28 @@ def measure(row: str, frames: int, steps: int, seed: int, overrides: list[str] =
     data.val_dataloader = data.train_dataloader
     data.test_dataloader = lambda: data._loader("train", False)  # the memorised frames, in order
     task = instantiate(cfg.task, model=instantiate(cfg.model))
-    trainer = L.Trainer(max_steps=steps, max_epochs=-1, logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0,
-                        limit_val_batches=0)
+    trainer = L.Trainer(
+        max_steps=steps,
+        max_epochs=-1,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+        limit_val_batches=0,
+    )
     start = time.perf_counter()
     trainer.fit(task, datamodule=data)
     wall = time.perf_counter() - start
     loss = float(trainer.logged_metrics.get("train/loss", float("nan")))
     test = trainer.test(task, datamodule=data, verbose=False)[0]
-    return {"wall_s": wall, "s_per_update": wall / steps, "loss": loss,
-            "car_moderate": float(test["test/car_moderate"]), "ap11": float(test["test/ap11"])}
+    return {
+        "wall_s": wall,
+        "s_per_update": wall / steps,
+        "loss": loss,
+        "car_moderate": float(test["test/car_moderate"]),
+        "ap11": float(test["test/ap11"]),
+    }
 
 
 def main() -> None:
@@ -66,13 +86,17 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a config override")
     args = parser.parse_args()
     os.chdir(REPO)
-    print(f"row {args.row} {' '.join(args.set)}, {args.frames} frames, {torch.get_num_threads()} thread(s), "
-          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    print(
+        f"row {args.row} {' '.join(args.set)}, {args.frames} frames, {torch.get_num_threads()} thread(s), "
+        f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+    )
     print("updates  wall s  s/update  loss   Car moderate %  AP moderate %")
     for steps in (int(s) for s in args.steps.split(",")):
         r = measure(args.row, args.frames, steps, args.seed, args.set)
-        print(f"{steps:7d}  {r['wall_s']:6.0f}  {r['s_per_update']:8.2f}  {r['loss']:5.2f}  "
-              f"{r['car_moderate']:14.1f}  {r['ap11']:13.1f}")
+        print(
+            f"{steps:7d}  {r['wall_s']:6.0f}  {r['s_per_update']:8.2f}  {r['loss']:5.2f}  "
+            f"{r['car_moderate']:14.1f}  {r['ap11']:13.1f}"
+        )
 
 
 if __name__ == "__main__":

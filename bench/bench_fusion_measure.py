@@ -5,6 +5,7 @@ Peak memory: from the CPU allocator events that torch.profiler (profile_memory=T
 run, the peak of the bytes allocated in that run and still live (activations, outputs, gradients); what
 existed before (inputs, parameters) is not counted.
 """
+
 from __future__ import annotations
 
 import gc
@@ -13,7 +14,7 @@ import os
 import statistics
 import tempfile
 import time
-from typing import Callable
+from collections.abc import Callable
 
 from torch.profiler import ProfilerActivity, profile
 
@@ -39,7 +40,9 @@ def measure(step: Callable[[], None], repeats: int = 3) -> tuple[float, int]:
 
 def peak_bytes(events: list[dict]) -> int:
     """Peak of the bytes allocated within the trace and still live; frees of older blocks are ignored."""
-    mem = sorted((e["ts"], e["args"]) for e in events if e.get("name") == "[memory]" and e["args"].get("Device Type") == 0)
+    mem = sorted(
+        (e["ts"], e["args"]) for e in events if e.get("name") == "[memory]" and e["args"].get("Device Type") == 0
+    )
     live: dict[int, int] = {}
     now = peak = 0
     for _, a in mem:
@@ -59,6 +62,12 @@ def table(rows: list[tuple[str, float, int]], reference: str, extra: dict[str, l
     head = ["name", "fwd+bwd ms", f"x {reference}", "peak MiB", f"x {reference}"] + list(extra)
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for i, (name, t, m) in enumerate(rows):
-        cells = [name, f"{t * 1e3:.1f}", f"{t / ref[0]:.2f}", f"{m / 2**20:.1f}", f"{m / ref[1]:.2f}" if ref[1] else "-"]
+        cells = [
+            name,
+            f"{t * 1e3:.1f}",
+            f"{t / ref[0]:.2f}",
+            f"{m / 2**20:.1f}",
+            f"{m / ref[1]:.2f}" if ref[1] else "-",
+        ]
         lines.append("| " + " | ".join(cells + [v[i] for v in extra.values()]) + " |")
     return "\n".join(lines)

@@ -4,6 +4,7 @@ Usage: python bench/bench_fusion_ops.py [--shape 8 256 48 160] [--inputs 2] [--t
 Two inputs of --shape (default: SMoE's batch of 8, 256 FPN channels, a 48 x 160 level); the loss is the
 sum of the output. Memory and time method: bench_fusion_measure.py.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -43,8 +44,10 @@ def main() -> None:
         rows.append((name, *measure(step, args.repeats)))
         params.append(str(sum(p.numel() for p in op.parameters())))
         print(f"{name}: {rows[-1][1] * 1e3:.1f} ms, {rows[-1][2] / 2**20:.1f} MiB", file=sys.stderr, flush=True)
-    print(f"fusion operators, {args.inputs} inputs of {args.shape}, CPU, {args.threads} thread(s), "
-          f"median of {args.repeats}; torch {torch.__version__}")
+    print(
+        f"fusion operators, {args.inputs} inputs of {args.shape}, CPU, {args.threads} thread(s), "
+        f"median of {args.repeats}; torch {torch.__version__}"
+    )
     print(table(rows, "sum", {"params": params}))
 
 

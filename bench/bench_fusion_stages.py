@@ -6,6 +6,7 @@ Modalities rgb (3 channels) and dense_depth (1 channel); `single` uses rgb. The 
 3x3 conv per FPN level (classes + box maps, as an SSD/YOLACT prediction layer); the loss is the sum of all
 maps. Also prints parameters and MACs (FusionModel.macs, batch 1). Method: bench_fusion_measure.py.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,7 +36,7 @@ class SharedHead(nn.Module):
 
     def forward(self, levels: list[torch.Tensor]) -> dict[str, list[torch.Tensor]]:
         maps = [self.conv(p) for p in levels]
-        return {"cls": [m[:, : self.classes] for m in maps], "box": [m[:, self.classes:] for m in maps]}
+        return {"cls": [m[:, : self.classes] for m in maps], "box": [m[:, self.classes :] for m in maps]}
 
 
 def main() -> None:
@@ -57,9 +58,15 @@ def main() -> None:
     rows, params, macs = [], [], []
     stages = ["single"] + [s for s in args.stages if s != "single"]
     for stage in stages:
-        model = FusionModel(stage=stage, modalities=MODALITIES, head=SharedHead, single="rgb",
-                            fusion=functools.partial(build, name=args.op), fpn_channels=args.fpn,
-                            backbone={"depth": args.depth, "width": args.width})
+        model = FusionModel(
+            stage=stage,
+            modalities=MODALITIES,
+            head=SharedHead,
+            single="rgb",
+            fusion=functools.partial(build, name=args.op),
+            fpn_channels=args.fpn,
+            backbone={"depth": args.depth, "width": args.width},
+        )
 
         def step() -> None:
             model.zero_grad(set_to_none=True)
@@ -69,8 +76,10 @@ def main() -> None:
         params.append(f"{model.num_parameters():,}")
         macs.append(f"{model.macs({m: (c, h, w) for m, c in MODALITIES.items()}) / 1e9:.3f}")
         print(f"{stage}: {rows[-1][1] * 1e3:.1f} ms, {rows[-1][2] / 2**20:.1f} MiB", file=sys.stderr, flush=True)
-    print(f"fusion stages with `{args.op}`, ResNet-{args.depth} x{args.width}, FPN {args.fpn}, batch {args.batch} of "
-          f"{h}x{w}, CPU, {args.threads} thread(s), median of {args.repeats}; torch {torch.__version__}")
+    print(
+        f"fusion stages with `{args.op}`, ResNet-{args.depth} x{args.width}, FPN {args.fpn}, batch {args.batch} of "
+        f"{h}x{w}, CPU, {args.threads} thread(s), median of {args.repeats}; torch {torch.__version__}"
+    )
     print(table(rows, "single", {"params": params, "GMACs (B=1)": macs}))
 
 

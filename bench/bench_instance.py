@@ -3,6 +3,7 @@ of a 128x416 input with C=64 channels. Prints milliseconds per batch (median of 
 
     PYTHONPATH=. python bench/bench_instance.py [--repeats 5] [--objects 6] [--threads 1]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -64,16 +65,17 @@ def main() -> None:
     ms_step, _ = timed(train_step, args.repeats)
     with torch.no_grad():
         outputs = head(feats)
-    ms_dec, dets = timed(lambda: decode(outputs, IMAGE, score_thresh=0.05, nms_iou=0.5, top_k=200),
-                         args.repeats)
+    ms_dec, dets = timed(lambda: decode(outputs, IMAGE, score_thresh=0.05, nms_iou=0.5, top_k=200), args.repeats)
     metric = MaskAP()
     ms_ap, _ = timed(lambda: (metric.reset(), metric.update(dets, targets), metric.compute()), args.repeats)
 
     n_params = sum(p.numel() for p in head.parameters())
     n_anchors = sum(h * w for h, w in LEVELS) * head.anchors.num_per_location
-    print(f"YOLACT head, batch {BATCH}, input {IMAGE[0]}x{IMAGE[1]}, C={CHANNELS}, k={head.num_prototypes}, "
-          f"{n_anchors} anchors, {n_params / 1e6:.2f} M params, {args.objects} GT/image, "
-          f"{torch.get_num_threads()} threads")
+    print(
+        f"YOLACT head, batch {BATCH}, input {IMAGE[0]}x{IMAGE[1]}, C={CHANNELS}, k={head.num_prototypes}, "
+        f"{n_anchors} anchors, {n_params / 1e6:.2f} M params, {args.objects} GT/image, "
+        f"{torch.get_num_threads()} threads"
+    )
     print(f"  head forward                 {ms_fwd:8.1f} ms")
     print(f"  loss forward                 {ms_loss:8.1f} ms")
     print(f"  forward + loss + backward    {ms_step:8.1f} ms")

@@ -13,6 +13,7 @@
 
 Prints seconds, and the load average: the machine is shared, and anything else running stretches every figure.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,8 +41,9 @@ def sweep(cwd: Path, *args: str) -> float:
     env = {**os.environ, "PYTHONPATH": str(REPO), "RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_TOKEN": TOKEN}
     env.pop("MLFLOW_TRACKING_URI", None)
     start = time.perf_counter()
-    out = subprocess.run([sys.executable, "-m", "ablate", "-m", *args], cwd=cwd, env=env, capture_output=True,
-                         text=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "ablate", "-m", *args], cwd=cwd, env=env, capture_output=True, text=True
+    )
     seconds = time.perf_counter() - start
     if out.returncode != 0:
         raise SystemExit(f"failed: {' '.join(args)}\n{out.stdout[-3000:]}\n{out.stderr[-3000:]}")
@@ -57,17 +59,27 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-launchers-") as tmp:
         tmp = Path(tmp)
         seeds = ",".join(str(s) for s in range(args.seeds))
-        table = ["experiment=chinet_table2", "scale=smoke", f"seed={seeds}", f"data.synth.frames={args.frames}",
-                 f"data.data_dir={tmp / 'data'}", "trainer.enable_progress_bar=false", "comp_time.repeats=2"]
+        table = [
+            "experiment=chinet_table2",
+            "scale=smoke",
+            f"seed={seeds}",
+            f"data.synth.frames={args.frames}",
+            f"data.data_dir={tmp / 'data'}",
+            "trainer.enable_progress_bar=false",
+            "comp_time.repeats=2",
+        ]
         n_jobs = 3 * args.seeds
-        print(f"chinet_table2 at scale=smoke, {n_jobs} jobs; {os.cpu_count()} cores; load average at start "
-              f"{os.getloadavg()[0]:.1f}")
+        print(
+            f"chinet_table2 at scale=smoke, {n_jobs} jobs; {os.cpu_count()} cores; load average at start "
+            f"{os.getloadavg()[0]:.1f}"
+        )
         sweep(tmp, *table[:2], "row=unet", "seed=0", *table[3:])  # generates the dataset once, for every sweep
         walls = {}
         for workers in (1, 2):
             (tmp / f"w{workers}").mkdir()
-            walls[workers] = sweep(tmp / f"w{workers}", *table, "hydra/launcher=joblib",
-                                   f"hydra.launcher.n_jobs={workers}")
+            walls[workers] = sweep(
+                tmp / f"w{workers}", *table, "hydra/launcher=joblib", f"hydra.launcher.n_jobs={workers}"
+            )
             print(f"  {workers} worker(s): {walls[workers]:7.1f} s")
         print(f"  1 / 2 workers: {walls[1] / walls[2]:.2f}x   (load average now {os.getloadavg()[0]:.1f})")
         print(f"\nstart-up per job (all {n_jobs} jobs FINISHED, so skipped; one at a time):")

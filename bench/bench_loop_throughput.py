@@ -7,6 +7,7 @@ Both loops read the same pre-loaded batches (data loading is measured by bench_d
 what the framework adds per step: Lightning's loop, logging, the progress bar and the NaN check. Both are timed
 from the first step's start to the last step's end (the Trainer's one-time set-up is not a per-step cost).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,8 +21,8 @@ import lightning as L
 import torch
 
 from ablate.nn.chinet import build
-from ablate.tasks.semantic import SemanticTask
 from ablate.store.tracker import RunLogger, Tracker
+from ablate.tasks.semantic import SemanticTask
 
 warnings.filterwarnings("ignore")
 
@@ -31,9 +32,15 @@ def make_batches(n: int, batch: int, h: int, w: int) -> list[dict]:
     out = []
     for _ in range(n):
         sem = torch.randint(0, 3, (batch, h, w), generator=g)
-        out.append({"intensity": torch.rand(batch, 1, h, w, generator=g),
-                    "dense_depth": torch.rand(batch, 1, h, w, generator=g), "semantic": sem,
-                    "free_space": (sem == 1).float()[:, None], "road_objects": (sem == 2).float()[:, None]})
+        out.append(
+            {
+                "intensity": torch.rand(batch, 1, h, w, generator=g),
+                "dense_depth": torch.rand(batch, 1, h, w, generator=g),
+                "semantic": sem,
+                "free_space": (sem == 1).float()[:, None],
+                "road_objects": (sem == 2).float()[:, None],
+            }
+        )
     return out
 
 
@@ -71,9 +78,17 @@ def framework(batches: list[dict], tracker: Tracker) -> float:
     task = new_task()
     clock = StepClock()
     run = tracker.start(tracker.experiment_id("bench"), "bench", {})
-    trainer = L.Trainer(max_epochs=1, logger=RunLogger(tracker, run), enable_checkpointing=False,
-                        enable_model_summary=False, log_every_n_steps=5, num_sanity_val_steps=0,
-                        enable_progress_bar=True, accelerator="cpu", callbacks=[clock])
+    trainer = L.Trainer(
+        max_epochs=1,
+        logger=RunLogger(tracker, run),
+        enable_checkpointing=False,
+        enable_model_summary=False,
+        log_every_n_steps=5,
+        num_sanity_val_steps=0,
+        enable_progress_bar=True,
+        accelerator="cpu",
+        callbacks=[clock],
+    )
     loader = torch.utils.data.DataLoader(batches, batch_size=None, shuffle=False)
     trainer.fit(task, train_dataloaders=loader)
     return len(batches) / (clock.end - clock.start)
@@ -94,7 +109,9 @@ def main() -> None:
             results["bare"].append(bare(batches))
             results["framework"].append(framework(batches, tracker))
     b, f = statistics.median(results["bare"]), statistics.median(results["framework"])
-    print(f"\nthreads={torch.get_num_threads()} steps={args.steps} batch={args.batch} input=128x416 model=ChiNet[16..128]")
+    print(
+        f"\nthreads={torch.get_num_threads()} steps={args.steps} batch={args.batch} input=128x416 model=ChiNet[16..128]"
+    )
     print(f"bare PyTorch loop : {b:7.2f} steps/s  (runs: {', '.join(f'{x:.2f}' for x in results['bare'])})")
     print(f"framework         : {f:7.2f} steps/s  (runs: {', '.join(f'{x:.2f}' for x in results['framework'])})")
     print(f"ratio framework/bare: {f / b:.3f}  (target >= 0.97)")

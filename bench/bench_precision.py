@@ -18,6 +18,7 @@ On a CPU without bf16 in hardware bf16 autocast is emulated and about 30x slower
 for one step at batch 1 only, beside fp32 at batch 1 (``--bf16 full`` times them in full anyway, ``skip`` not at
 all).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,8 +37,8 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from ablate.run.experts import expert_config, needed
 from ablate.hardware import cpu
+from ablate.run.experts import expert_config, needed
 from ablate.run.latency import macs
 
 warnings.filterwarnings("ignore")
@@ -65,8 +66,9 @@ def build(family: str):
     model = instantiate(cfg.model)
     if cfg.get("experts") and cfg.stage.get("name") != "single":
         for modality in needed(cfg):  # random experts: their cost, not their weights, is measured
-            model.load_expert(modality, instantiate(expert_config(cfg, modality).model),
-                              freeze=cfg.experts.get("freeze", True))
+            model.load_expert(
+                modality, instantiate(expert_config(cfg, modality).model), freeze=cfg.experts.get("freeze", True)
+            )
     task = instantiate(cfg.task, model=model)
     task.log = lambda *args, **kwargs: None  # training_step outside a Trainer
     datamodule = instantiate(cfg.data)
@@ -89,8 +91,10 @@ def first(batch: dict, n: int) -> dict:
 
 
 def channels_last(batch: dict) -> dict:
-    return {k: v.contiguous(memory_format=torch.channels_last) if torch.is_tensor(v) and v.ndim == 4 else v
-            for k, v in batch.items()}
+    return {
+        k: v.contiguous(memory_format=torch.channels_last) if torch.is_tensor(v) and v.ndim == 4 else v
+        for k, v in batch.items()
+    }
 
 
 class Variant:
@@ -132,8 +136,9 @@ class Variant:
         return time.perf_counter() - t0
 
 
-def bench(family: str, threads: int, steps: int, bf16_mode: str, has_bf16: bool,
-          wanted: tuple[str, ...] = VARIANTS) -> None:
+def bench(
+    family: str, threads: int, steps: int, bf16_mode: str, has_bf16: bool, wanted: tuple[str, ...] = VARIANTS
+) -> None:
     torch.set_num_threads(threads)
     task, batch, cfg = build(family)
     sample = first(batch, 1)
@@ -156,61 +161,78 @@ def bench(family: str, threads: int, steps: int, bf16_mode: str, has_bf16: bool,
             variants.remove(v)
             del train[v.name], infer[v.name]
     for i in range(steps):
-        order = variants[i % len(variants):] + variants[:i % len(variants)]
+        order = variants[i % len(variants) :] + variants[: i % len(variants)]
         for v in order:
             train[v.name].append(v.train_step())
             infer[v.name].append(v.infer(channels_last(sample) if v.cl else sample))
     params = sum(p.numel() for p in task.model.parameters()) / 1e6
-    print(f"\n{family}: batch {n} at {cfg.data.synth.height}x{cfg.data.synth.width}, {params:.2f} M params, "
-          f"{mac / 1e9:.2f} GMACs per frame (forward), {threads} thread(s), median of {steps}")
-    print(f"  {'variant':<20} {'train step':>11} {'speed-up':>9} {'GFLOP/s':>8}   {'inference':>10} {'speed-up':>9} "
-          f"{'GFLOP/s':>8}")
+    print(
+        f"\n{family}: batch {n} at {cfg.data.synth.height}x{cfg.data.synth.width}, {params:.2f} M params, "
+        f"{mac / 1e9:.2f} GMACs per frame (forward), {threads} thread(s), median of {steps}"
+    )
+    print(
+        f"  {'variant':<20} {'train step':>11} {'speed-up':>9} {'GFLOP/s':>8}   {'inference':>10} {'speed-up':>9} "
+        f"{'GFLOP/s':>8}"
+    )
     base_t, base_i = statistics.median(train["fp32"]), statistics.median(infer["fp32"])
     for v in variants:
         t, f = statistics.median(train[v.name]), statistics.median(infer[v.name])
-        print(f"  {v.name:<20} {t:9.3f} s {base_t / t:8.2f}x {6 * mac * n / t / 1e9:8.1f}   {1000 * f:7.1f} ms "
-              f"{base_i / f:8.2f}x {2 * mac / f / 1e9:8.1f}")
+        print(
+            f"  {v.name:<20} {t:9.3f} s {base_t / t:8.2f}x {6 * mac * n / t / 1e9:8.1f}   {1000 * f:7.1f} ms "
+            f"{base_i / f:8.2f}x {2 * mac / f / 1e9:8.1f}"
+        )
     for name, error in failed.items():
         print(f"  {name:<20} failed: {error}")
     if "compile" in train:
         compile_s = first_train["compile"] - statistics.median(train["compile"])
         steps_per_job = job_steps(cfg)
         net = steps_per_job * (base_t - statistics.median(train["compile"])) - compile_s
-        print(f"  compile time: {compile_s:.1f} s (training), "
-              f"{first_infer['compile'] - statistics.median(infer['compile']):.1f} s (inference); over a cpu-scale "
-              f"job's {steps_per_job} training steps compile {'saves' if net > 0 else 'costs'} {abs(net):.0f} s")
+        print(
+            f"  compile time: {compile_s:.1f} s (training), "
+            f"{first_infer['compile'] - statistics.median(infer['compile']):.1f} s (inference); over a cpu-scale "
+            f"job's {steps_per_job} training steps compile {'saves' if net > 0 else 'costs'} {abs(net):.0f} s"
+        )
     if slow_bf16 and bf16_mode == "once" and any(v.startswith("bf16") for v in wanted):
         one = first(batch, 1)
         fp32, bf16 = Variant("fp32", task, one), Variant("bf16", task, one)
         fp32.train_step(), bf16.train_step()  # warm-up: one step each
         t32, t16 = fp32.train_step(), bf16.train_step()
-        print(f"  bf16 autocast, no bf16 in hardware: one training step at batch 1 takes {t16:.2f} s against "
-              f"{t32:.2f} s in fp32 ({t16 / t32:.1f}x slower); not timed at full batch")
+        print(
+            f"  bf16 autocast, no bf16 in hardware: one training step at batch 1 takes {t16:.2f} s against "
+            f"{t32:.2f} s in fp32 ({t16 / t32:.1f}x slower); not timed at full batch"
+        )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--families", default=",".join(FAMILIES), help="comma-separated: " + ", ".join(FAMILIES))
     parser.add_argument("--threads", default="1,2", help="comma-separated intra-op thread counts")
-    parser.add_argument("--variants", default=",".join(VARIANTS),
-                        help="comma-separated: " + ", ".join(VARIANTS) + " (fp32, the baseline, always runs)")
+    parser.add_argument(
+        "--variants",
+        default=",".join(VARIANTS),
+        help="comma-separated: " + ", ".join(VARIANTS) + " (fp32, the baseline, always runs)",
+    )
     parser.add_argument("--steps", type=int, default=3, help="timed steps per variant, after one warm-up step")
-    parser.add_argument("--bf16", choices=("once", "full", "skip"), default="once",
-                        help="bf16 variants on a CPU without bf16 in hardware: one step at batch 1 (once), in full, "
-                             "or not at all")
+    parser.add_argument(
+        "--bf16",
+        choices=("once", "full", "skip"),
+        default="once",
+        help="bf16 variants on a CPU without bf16 in hardware: one step at batch 1 (once), in full, or not at all",
+    )
     args = parser.parse_args()
     machine = cpu()
-    print(f"CPU: {machine.model}; {os.cpu_count()} cores; ISA: {machine.isa}; bf16 in hardware: "
-          f"{'yes' if machine.has_bf16 else 'no'}; torch {torch.__version__}, "
-          f"{torch.backends.cpu.get_cpu_capability()} kernels")
+    print(
+        f"CPU: {machine.model}; {os.cpu_count()} cores; ISA: {machine.isa}; bf16 in hardware: "
+        f"{'yes' if machine.has_bf16 else 'no'}; torch {torch.__version__}, "
+        f"{torch.backends.cpu.get_cpu_capability()} kernels"
+    )
     with tempfile.TemporaryDirectory() as scratch:  # the generated frames
         here = os.getcwd()
         os.chdir(scratch)
         try:
             for family in args.families.split(","):
                 for threads in (int(t) for t in args.threads.split(",")):
-                    bench(family, threads, args.steps, args.bf16, machine.has_bf16,
-                          tuple(args.variants.split(",")))
+                    bench(family, threads, args.steps, args.bf16, machine.has_bf16, tuple(args.variants.split(",")))
         finally:
             os.chdir(here)
 

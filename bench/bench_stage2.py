@@ -9,6 +9,7 @@ The variants (no cache; an empty cache that the step fills; the cache filled by 
 same model on the same batches, interleaved in one process (the machine is shared). Synthetic inputs and targets:
 the experts' cost does not depend on them.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,11 +39,15 @@ def synthetic_batch(frames: list[str], size: tuple[int, int], n_objects: int, ge
         masks = torch.zeros(n_objects, h, w, dtype=torch.bool)
         for i, (a, b, c, d) in enumerate(boxes.long().tolist()):
             masks[i, b:d, a:c] = True
-        instances.append({"boxes": boxes, "labels": torch.randint(0, 2, (n_objects,), generator=gen),
-                          "masks": masks})
+        instances.append({"boxes": boxes, "labels": torch.randint(0, 2, (n_objects,), generator=gen), "masks": masks})
     n = len(frames)
-    return {"rgb": torch.rand(n, 3, h, w, generator=gen), "ddm_jet": torch.rand(n, 3, h, w, generator=gen),
-            "instances": instances, "ignore": torch.zeros(n, h, w, dtype=torch.bool), "frame": frames}
+    return {
+        "rgb": torch.rand(n, 3, h, w, generator=gen),
+        "ddm_jet": torch.rand(n, 3, h, w, generator=gen),
+        "instances": instances,
+        "ignore": torch.zeros(n, h, w, dtype=torch.bool),
+        "frame": frames,
+    }
 
 
 def main() -> None:
@@ -65,8 +70,10 @@ def main() -> None:
     optimizer = task.optimizer_factory(params=[p for p in task.parameters() if p.requires_grad])
     size, batch = (cfg.data.synth.height, cfg.data.synth.width), cfg.data.batch_size
     gen = torch.Generator().manual_seed(0)
-    batches = [synthetic_batch([f"{k * batch + i:06d}" for i in range(batch)], size, args.objects, gen)
-               for k in range(args.batches)]
+    batches = [
+        synthetic_batch([f"{k * batch + i:06d}" for i in range(batch)], size, args.objects, gen)
+        for k in range(args.batches)
+    ]
     task.train()
 
     def step(b: dict, variant: str) -> float:  # "none", "cold" (fills an empty cache) or "warm"
@@ -85,24 +92,28 @@ def main() -> None:
     variants = ("none", "cold", "warm")
     times: dict[str, list[float]] = {v: [] for v in variants}
     for i in range(args.steps):
-        for variant in variants[i % 3:] + variants[:i % 3]:
+        for variant in variants[i % 3 :] + variants[: i % 3]:
             times[variant].append(step(batches[i % len(batches)], variant))
     before, cold, after = (statistics.median(times[v]) for v in variants)
     per_frame = cache.nbytes / len(cache.frames)
     frozen = sum(p.numel() for p in model.parameters() if not p.requires_grad)
     trained = sum(p.numel() for p in model.parameters() if p.requires_grad)
-    print(f"stage 2, stage {cfg.stage.name}, fusion {cfg.fusion.name}, batch {batch}, input {size[0]}x{size[1]}, "
-          f"ResNet-{cfg.model.backbone.depth} x{cfg.scale.width}, FPN {cfg.scale.fpn_channels}; "
-          f"{frozen / 1e6:.2f} M frozen + {trained / 1e6:.2f} M trained params; {args.objects} GT/image; "
-          f"{torch.get_num_threads()} threads")
+    print(
+        f"stage 2, stage {cfg.stage.name}, fusion {cfg.fusion.name}, batch {batch}, input {size[0]}x{size[1]}, "
+        f"ResNet-{cfg.model.backbone.depth} x{cfg.scale.width}, FPN {cfg.scale.fpn_channels}; "
+        f"{frozen / 1e6:.2f} M frozen + {trained / 1e6:.2f} M trained params; {args.objects} GT/image; "
+        f"{torch.get_num_threads()} threads"
+    )
     print(f"  step, experts run (no cache)   {before:8.1f} ms   (median of {args.steps})")
     print(f"  step, features cached (warm)   {after:8.1f} ms   (median of {args.steps})   x{before / after:.2f}")
     print(f"  step that fills the cache      {cold:8.1f} ms   (median of {args.steps})")
     fit_frames = round(FIT_SHARE * cfg.data.synth.frames)
-    print(f"  cache: {per_frame / 2**10:.0f} KiB per frame (float32, P3..P7 x 2 modalities); "
-          f"{cache.nbytes / 2**20:.1f} MiB for these {len(cache.frames)} frames; "
-          f"{per_frame * fit_frames / 2**20:.0f} MiB for the {fit_frames} train + val frames of the cpu scale's "
-          f"{cfg.data.synth.frames}")
+    print(
+        f"  cache: {per_frame / 2**10:.0f} KiB per frame (float32, P3..P7 x 2 modalities); "
+        f"{cache.nbytes / 2**20:.1f} MiB for these {len(cache.frames)} frames; "
+        f"{per_frame * fit_frames / 2**20:.0f} MiB for the {fit_frames} train + val frames of the cpu scale's "
+        f"{cfg.data.synth.frames}"
+    )
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ The families and their batches are bench_precision.py's (the cpu scale, real gen
 is profiled after one warm-up step. "Outside operators" is the step's wall time less the operators' self time: the
 host-side Python the step runs between tensor operations.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -48,11 +49,12 @@ def main() -> None:
                     wall = time.perf_counter() - t0
                 events = prof.key_averages()
                 self_total = sum(e.self_cpu_time_total for e in events) / 1e6
-                print(f"\n{family}: one training step {wall:.3f} s; operators' self time {self_total:.3f} s; "
-                      f"outside operators {max(wall - self_total, 0):.3f} s "
-                      f"({100 * max(wall - self_total, 0) / wall:.0f} %)")
-                print(events.table(sort_by="self_cpu_time_total", row_limit=args.top,
-                                   max_name_column_width=48))
+                print(
+                    f"\n{family}: one training step {wall:.3f} s; operators' self time {self_total:.3f} s; "
+                    f"outside operators {max(wall - self_total, 0):.3f} s "
+                    f"({100 * max(wall - self_total, 0) / wall:.0f} %)"
+                )
+                print(events.table(sort_by="self_cpu_time_total", row_limit=args.top, max_name_column_width=48))
         finally:
             os.chdir(here)
 

@@ -70,6 +70,7 @@ or nginx (its default Host header to the upstream is ``127.0.0.1:5000``, which M
 and jobs use ``MLFLOW_TRACKING_URI=https://mlflow.example.org`` with the same two credential variables (for a
 certificate of your own CA, ``MLFLOW_TRACKING_SERVER_CERT_PATH`` names the CA's file).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -101,8 +102,10 @@ def pg_bin(name: str) -> str:
     """A PostgreSQL program: on PATH, else in the newest /usr/lib/postgresql/*/bin (Debian's layout)."""
     found = shutil.which(name) or next(iter(sorted(glob.glob(f"/usr/lib/postgresql/*/bin/{name}"), reverse=True)), None)
     if not found:
-        raise ServerError(f"PostgreSQL's {name} was not found: install PostgreSQL (Debian: apt-get install postgresql)"
-                          " or put its bin/ folder on PATH")
+        raise ServerError(
+            f"PostgreSQL's {name} was not found: install PostgreSQL (Debian: apt-get install postgresql)"
+            " or put its bin/ folder on PATH"
+        )
     return found
 
 
@@ -134,11 +137,26 @@ def init_cluster(folder: Path, pg_port: int) -> str:
     if check.returncode != 0:
         shutil.rmtree(pgdata)
         tmp_pw.unlink()
-        raise ServerError(f"the user postgres cannot reach {pgdata}: choose a DIR whose parent folders it may enter "
-                          "(not under /root, say)")
+        raise ServerError(
+            f"the user postgres cannot reach {pgdata}: choose a DIR whose parent folders it may enter "
+            "(not under /root, say)"
+        )
     try:
-        run(as_pg_user([pg_bin("initdb"), "-D", str(pgdata), "-U", PG_USER, f"--pwfile={tmp_pw}",
-                        "--auth=scram-sha-256", "--encoding=UTF8", "--no-instructions"]))
+        run(
+            as_pg_user(
+                [
+                    pg_bin("initdb"),
+                    "-D",
+                    str(pgdata),
+                    "-U",
+                    PG_USER,
+                    f"--pwfile={tmp_pw}",
+                    "--auth=scram-sha-256",
+                    "--encoding=UTF8",
+                    "--no-instructions",
+                ]
+            )
+        )
     except ServerError:
         shutil.rmtree(pgdata, ignore_errors=True)
         raise
@@ -147,8 +165,10 @@ def init_cluster(folder: Path, pg_port: int) -> str:
     pwfile.write_text(password + "\n")
     pwfile.chmod(0o600)
     start_postgres(folder, pg_port)
-    run([pg_bin("createdb"), "-h", "127.0.0.1", "-p", str(pg_port), "-U", PG_USER, PG_DB],
-        env={**os.environ, "PGPASSWORD": password})
+    run(
+        [pg_bin("createdb"), "-h", "127.0.0.1", "-p", str(pg_port), "-U", PG_USER, PG_DB],
+        env={**os.environ, "PGPASSWORD": password},
+    )
     return password
 
 
@@ -195,8 +215,12 @@ def private_file(path: Path, make) -> str:
 
 def ensure_database(pg_port: int, password: str, name: str) -> None:
     """Create the database ``name`` in the cluster unless it exists."""
-    out = subprocess.run([pg_bin("createdb"), "-h", "127.0.0.1", "-p", str(pg_port), "-U", PG_USER, name],
-                         capture_output=True, text=True, env={**os.environ, "PGPASSWORD": password})
+    out = subprocess.run(
+        [pg_bin("createdb"), "-h", "127.0.0.1", "-p", str(pg_port), "-U", PG_USER, name],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PGPASSWORD": password},
+    )
     if out.returncode != 0 and "already exists" not in out.stderr:
         raise ServerError(f"createdb {name} failed ({out.returncode}): {out.stderr.strip()}")
 
@@ -208,14 +232,19 @@ def auth_setup(folder: Path, pg_port: int, password: str) -> dict[str, str]:
     admin = private_file(folder / AUTH_PASSWORD, lambda: secrets.token_urlsafe(24))
     secret = private_file(folder / AUTH_SECRET, lambda: secrets.token_urlsafe(32))
     ini = folder / AUTH_INI
-    ini.write_text("[mlflow]\n"
-                   "default_permission = READ\n"
-                   f"database_uri = postgresql+psycopg://{PG_USER}@127.0.0.1:{pg_port}/{AUTH_DB}\n"
-                   f"admin_username = {AUTH_USER}\n"
-                   "authorization_function = mlflow.server.auth:authenticate_request_basic_auth\n")
+    ini.write_text(
+        "[mlflow]\n"
+        "default_permission = READ\n"
+        f"database_uri = postgresql+psycopg://{PG_USER}@127.0.0.1:{pg_port}/{AUTH_DB}\n"
+        f"admin_username = {AUTH_USER}\n"
+        "authorization_function = mlflow.server.auth:authenticate_request_basic_auth\n"
+    )
     ini.chmod(0o600)
-    return {"MLFLOW_AUTH_CONFIG_PATH": str(ini), "MLFLOW_AUTH_ADMIN_PASSWORD": admin,
-            "MLFLOW_FLASK_SERVER_SECRET_KEY": secret}
+    return {
+        "MLFLOW_AUTH_CONFIG_PATH": str(ini),
+        "MLFLOW_AUTH_ADMIN_PASSWORD": admin,
+        "MLFLOW_FLASK_SERVER_SECRET_KEY": secret,
+    }
 
 
 def allowed_hosts(host: str, name: str) -> str:
@@ -252,17 +281,28 @@ def wait_healthy(url: str, proc: subprocess.Popen, log: Path, timeout_s: float =
     raise ServerError(f"mlflow server did not answer at {url} within {timeout_s:.0f} s; see {log}")
 
 
-def start(folder: Path, port: int, pg_port: int, workers: int, jobs: bool = False, host: str = "127.0.0.1",
-          auth: bool = False, allowed: str | None = None) -> dict:
+def start(
+    folder: Path,
+    port: int,
+    pg_port: int,
+    workers: int,
+    jobs: bool = False,
+    host: str = "127.0.0.1",
+    auth: bool = False,
+    allowed: str | None = None,
+) -> dict:
     """Start PostgreSQL and ``mlflow server`` on ``host``, with MLflow's basic-auth app if ``auth``; return the state
     written to ``folder/server.json``. A ``host`` that is not a loopback address is refused without ``auth``."""
     if not auth and not is_loopback(host):
-        raise ServerError(f"--host {host} is not a loopback address: without authentication anyone who can reach "
-                          f"port {port} there could read, change and delete every run. Add --auth to turn on MLflow's "
-                          "basic-auth app (admin password generated into DIR/auth.password), or serve on 127.0.0.1")
+        raise ServerError(
+            f"--host {host} is not a loopback address: without authentication anyone who can reach "
+            f"port {port} there could read, change and delete every run. Add --auth to turn on MLflow's "
+            "basic-auth app (admin password generated into DIR/auth.password), or serve on 127.0.0.1"
+        )
     if auth and importlib.util.find_spec("flask_wtf") is None:
-        raise ServerError("--auth needs MLflow's auth extra (Flask-WTF, for the app's CSRF checks): "
-                          "pip install 'mlflow[auth]'")
+        raise ServerError(
+            "--auth needs MLflow's auth extra (Flask-WTF, for the app's CSRF checks): pip install 'mlflow[auth]'"
+        )
     folder = folder.resolve()
     if (folder / STATE).exists():
         state = json.loads((folder / STATE).read_text())
@@ -277,10 +317,20 @@ def start(folder: Path, port: int, pg_port: int, workers: int, jobs: bool = Fals
     url = f"http://{netloc}:{port}"
     local = f"http://127.0.0.1:{port}" if is_wildcard(host) else url  # where this machine checks its health
     mlflow = Path(sys.executable).with_name("mlflow")
-    cmd = [str(mlflow) if mlflow.exists() else "mlflow", "server",
-           "--backend-store-uri", f"postgresql+psycopg://{PG_USER}@127.0.0.1:{pg_port}/{PG_DB}",
-           "--artifacts-destination", str(folder / "artifacts"),
-           "--host", host, "--port", str(port), "--workers", str(workers)]
+    cmd = [
+        str(mlflow) if mlflow.exists() else "mlflow",
+        "server",
+        "--backend-store-uri",
+        f"postgresql+psycopg://{PG_USER}@127.0.0.1:{pg_port}/{PG_DB}",
+        "--artifacts-destination",
+        str(folder / "artifacts"),
+        "--host",
+        host,
+        "--port",
+        str(port),
+        "--workers",
+        str(workers),
+    ]
     if allowed or not is_loopback(host):
         cmd += ["--allowed-hosts", allowed or allowed_hosts(host, name)]
     # The password reaches psycopg through libpq's PGPASSWORD, not the command line. MLflow's server-side job runner
@@ -292,9 +342,16 @@ def start(folder: Path, port: int, pg_port: int, workers: int, jobs: bool = Fals
         cmd += ["--app-name", "basic-auth"]
     with open(log, "ab") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True, env=env)
-    state = {"tracking_uri": url, "mlflow_pid": proc.pid, "port": port, "pg_port": pg_port, "host": host,
-             "pgdata": str(folder / "pgdata"), "artifacts": str(folder / "artifacts"),
-             "auth": {"username": AUTH_USER, "password_file": str(folder / AUTH_PASSWORD)} if auth else None}
+    state = {
+        "tracking_uri": url,
+        "mlflow_pid": proc.pid,
+        "port": port,
+        "pg_port": pg_port,
+        "host": host,
+        "pgdata": str(folder / "pgdata"),
+        "artifacts": str(folder / "artifacts"),
+        "auth": {"username": AUTH_USER, "password_file": str(folder / AUTH_PASSWORD)} if auth else None,
+    }
     (folder / STATE).write_text(json.dumps(state, indent=1))
     try:
         wait_healthy(local, proc, log)
@@ -339,20 +396,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("action", choices=["start", "stop", "status"])
     parser.add_argument("dir", type=Path, help="folder of the database, the artifacts, the logs and the state")
     parser.add_argument("--port", type=int, default=5000, help="mlflow server's port")
-    parser.add_argument("--host", default="127.0.0.1",
-                        help="address mlflow server listens on; one that is not loopback needs --auth")
-    parser.add_argument("--auth", action="store_true",
-                        help="serve MLflow's basic-auth app (admin password generated into DIR/auth.password)")
-    parser.add_argument("--allowed-hosts", help="Host headers mlflow server answers (default: localhost, private "
-                        "addresses and the name start prints)")
+    parser.add_argument(
+        "--host", default="127.0.0.1", help="address mlflow server listens on; one that is not loopback needs --auth"
+    )
+    parser.add_argument(
+        "--auth",
+        action="store_true",
+        help="serve MLflow's basic-auth app (admin password generated into DIR/auth.password)",
+    )
+    parser.add_argument(
+        "--allowed-hosts",
+        help="Host headers mlflow server answers (default: localhost, private addresses and the name start prints)",
+    )
     parser.add_argument("--pg-port", type=int, default=5433, help="PostgreSQL's port on 127.0.0.1")
     parser.add_argument("--workers", type=int, default=2, help="mlflow server's worker processes")
     parser.add_argument("--jobs", action="store_true", help="start MLflow's server-side job runner too")
     args = parser.parse_args(argv)
     try:
         if args.action == "start":
-            state = start(args.dir, args.port, args.pg_port, args.workers, args.jobs, args.host, args.auth,
-                          args.allowed_hosts)
+            state = start(
+                args.dir, args.port, args.pg_port, args.workers, args.jobs, args.host, args.auth, args.allowed_hosts
+            )
             print(f"export MLFLOW_TRACKING_URI={state['tracking_uri']}")
             if state["auth"]:  # the password file's path, never the password
                 print(f"export MLFLOW_TRACKING_USERNAME={state['auth']['username']}")

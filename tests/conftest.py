@@ -1,4 +1,5 @@
 """Shared fixtures. Real KITTI frames are read from ../shared/kitti, never copied into the repo."""
+
 from pathlib import Path
 
 import pytest

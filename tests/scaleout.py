@@ -1,4 +1,5 @@
 """Helpers of the scale-out tests: run ``python -m ablate`` as a user does, read a store, find a free port."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -15,16 +16,18 @@ REPO = Path(__file__).resolve().parents[1]
 TINY = ["scale=smoke", "data.synth.frames=20", "trainer.enable_progress_bar=false", "comp_time.repeats=2"]
 
 
-def ablate(cwd: Path, *args: str, module: str = "ablate", env: dict[str, str] | None = None,
-           timeout: int = 600) -> subprocess.CompletedProcess:
+def ablate(
+    cwd: Path, *args: str, module: str = "ablate", env: dict[str, str] | None = None, timeout: int = 600
+) -> subprocess.CompletedProcess:
     """``python -m MODULE ARGS`` in ``cwd``, with ``env`` added to this environment (and no tracking URI unless
     ``env`` names one)."""
     full = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
     for key in ("MLFLOW_TRACKING_URI", "RAY_AUTH_MODE", "RAY_ADDRESS"):
         full.pop(key, None)
     full.update(env or {})
-    return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=full, capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", module, *args], cwd=cwd, env=full, capture_output=True, text=True, timeout=timeout
+    )
 
 
 def output(out: subprocess.CompletedProcess) -> str:

@@ -1,5 +1,6 @@
 """BiFNet Tables IV-VI: each table's rows, paper numbers and recipe, every row's network, and Table IV end to end at
 smoke scale (a sweep regenerating results/bifnet_table4.md in a temporary directory)."""
+
 from __future__ import annotations
 
 import pytest
@@ -34,8 +35,16 @@ def test_each_table_sweeps_its_rows_with_the_papers_numbers(table):
 def test_paper_numbers_are_the_papers():
     t4, t5, t6 = (config(f"experiment={t}").table.rows for t in sorted(TABLES))
     assert [r["paper"]["max_f"] for r in t4] == [93.01, 94.30, 95.57, 96.21]
-    assert dict(t5[1]["paper"]) == {"cam_max_f": 92.87, "cam_ap": 93.53, "cam_pre": 91.85, "cam_rec": 93.75,
-                                    "bev_max_f": 95.11, "bev_ap": 94.99, "bev_pre": 95.14, "bev_rec": 95.08}
+    assert dict(t5[1]["paper"]) == {
+        "cam_max_f": 92.87,
+        "cam_ap": 93.53,
+        "cam_pre": 91.85,
+        "cam_rec": 93.75,
+        "bev_max_f": 95.11,
+        "bev_ap": 94.99,
+        "bev_pre": 95.14,
+        "bev_rec": 95.08,
+    }
     assert [r["paper"]["ap"] for r in t6] == [93.29, 93.97, 94.52, 94.33]
 
 
@@ -62,9 +71,10 @@ def test_experts_are_shared_by_dst_and_shpl_rows():
         assert config_hash(expert_config(dst, m)) == config_hash(expert_config(shpl, m))
 
 
-@pytest.mark.parametrize("scale,lr,epochs,expert_epochs,freeze", [("smoke", 0.001, 1, None, True),
-                                                                  ("cpu", 0.001, 3, 6, True),
-                                                                  ("paper", 0.01, -1, None, False)])
+@pytest.mark.parametrize(
+    "scale,lr,epochs,expert_epochs,freeze",
+    [("smoke", 0.001, 1, None, True), ("cpu", 0.001, 3, 6, True), ("paper", 0.01, -1, None, False)],
+)
 def test_recipes(scale, lr, epochs, expert_epochs, freeze):
     cfg = config("experiment=bifnet_table4", f"scale={scale}")
     opt = cfg.task.optimizer
@@ -97,15 +107,22 @@ def test_table4_end_to_end_at_smoke_scale(tmp_path):
     assert {"config.yaml", "predictions.png", "gates.png"} <= artifacts
     text = (tmp_path / "results" / "bifnet_table4.md").read_text()
     rows = [line for line in text.splitlines() if line.startswith("| ")][1:]
-    assert [r.split("|")[1].strip() for r in rows] == ["Image", "LiDAR BEV", "Image + LiDAR BEV + DST (addition)",
-                                                       "Image + LiDAR BEV + DST + CBF"]
+    assert [r.split("|")[1].strip() for r in rows] == [
+        "Image",
+        "LiDAR BEV",
+        "Image + LiDAR BEV + DST (addition)",
+        "Image + LiDAR BEV + DST + CBF",
+    ]
     assert "MaxF (paper)" in text and "96.21" in text and "AP (paper)" in text and "PRE (ours)" in text
 
 
-@pytest.mark.parametrize("overrides, option", [
-    (["row=bifnet_shpl_sum", "+stage.spcae=dst"], "stage.spcae"),  # meant DST; would silently stay SHPL
-    (["+stage.space=shpl"], "stage.space"),                        # the SMoE fusion model has no space transform
-])
+@pytest.mark.parametrize(
+    "overrides, option",
+    [
+        (["row=bifnet_shpl_sum", "+stage.spcae=dst"], "stage.spcae"),  # meant DST; would silently stay SHPL
+        (["+stage.space=shpl"], "stage.space"),  # the SMoE fusion model has no space transform
+    ],
+)
 def test_a_stage_option_the_model_does_not_read_is_refused_by_name(overrides, option):
     from omegaconf.errors import ValidationError
 
@@ -135,14 +152,22 @@ def test_the_image_row_runs_on_a_real_kitti_road_frame(kitti_root, tmp_path):
     for split in ("train", "val", "test"):
         (root / "ImageSets" / f"{split}.txt").write_text("um_000000\n")
     camera_only = ["modalities=[rgb]", "targets=[free_space,road_valid,road_bev,road_bev_valid,calib]"]
-    out = ablate(tmp_path, "experiment=bifnet_table4", "row=bifnet_image", "data=kitti", f"data.root={root.parent}",
-                 *camera_only, *TINY)
+    out = ablate(
+        tmp_path,
+        "experiment=bifnet_table4",
+        "row=bifnet_image",
+        "data=kitti",
+        f"data.root={root.parent}",
+        *camera_only,
+        *TINY,
+    )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     _, (job,) = runs(tmp_path, "bifnet_table4")
     assert job.info.status == "FINISHED" and 0 <= job.data.metrics["max_f"] <= 100
     assert job.data.metrics["rec"] > 0  # the real frame's road, warped into the devkit's metric BEV, is scored
-    fused = ablate(tmp_path, "experiment=bifnet_table4", "row=bifnet_dst_cbf", "data=kitti",
-                   f"data.root={root.parent}", *TINY)
+    fused = ablate(
+        tmp_path, "experiment=bifnet_table4", "row=bifnet_dst_cbf", "data=kitti", f"data.root={root.parent}", *TINY
+    )
     assert fused.returncode != 0 and "cannot provide 'bev': this data has no velodyne" in fused.stdout + fused.stderr
     _, jobs = runs(tmp_path, "bifnet_table4")
     assert {r.data.tags["row"]: r.info.status for r in jobs}["bifnet_dst_cbf"] == "FAILED"

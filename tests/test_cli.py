@@ -1,4 +1,6 @@
 """`python -m ablate` end to end at scale=smoke, as a user runs it: sweeps, tables, skip, failure and resume."""
+
+import json
 import os
 import subprocess
 import sys
@@ -14,8 +16,9 @@ TINY = ["scale=smoke", "data.synth.frames=20", "trainer.enable_progress_bar=fals
 def ablate(cwd: Path, *args: str, module: str = "ablate") -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
     env.pop("MLFLOW_TRACKING_URI", None)
-    return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
 
 
 def runs(cwd: Path, experiment: str, kind: str = "job"):
@@ -41,8 +44,11 @@ def test_a_table_sweep_leaves_one_parent_with_a_finished_child_per_row(table2):
     assert len(sweeps) == 1 and sweeps[0].info.status == "FINISHED"
     assert {r.data.tags["mlflow.parentRunId"] for r in jobs} == {sweeps[0].info.run_id}
     job = jobs[0]
-    for tag in ("table", "row", "seed", "config_hash", "git_commit", "sweep_id"):
+    for tag in ("table", "row", "seed", "config_hash", "git_commit", "sweep_id", "ablate_version", "fingerprint"):
         assert tag in job.data.tags
+    # the commit of the ablate that ran (this checkout), though the sweep ran in a folder that is no git checkout
+    assert len(job.data.tags["git_commit"].removesuffix("-dirty")) == 40 and "launch_commit" not in job.data.tags
+    assert set(json.loads(job.data.tags["fingerprint"])) == {"data", "model", "loss", "schedule", "metric"}
     assert "det_rate" in job.data.metrics and "comp_time_ms" not in job.data.metrics  # not timed while training
     for metric in ("latency_ms", "latency_q1_ms", "latency_q3_ms", "params_m", "macs_g"):  # timed at the end
         assert job.data.metrics[metric] > 0, metric
@@ -55,8 +61,9 @@ def test_a_table_sweep_leaves_one_parent_with_a_finished_child_per_row(table2):
 def test_the_table_has_the_rows_in_paper_order_beside_the_paper(table2):
     cwd, _ = table2
     text = (cwd / "results" / "chinet_table2.md").read_text()
-    rows = [line for line in text.splitlines() if line.startswith("| ")][1:]
+    rows = [line for line in text.split("All metrics:")[0].splitlines() if line.startswith("| ")][1:]
     assert [r.split("|")[1].strip() for r in rows] == ["ChiNet", "U-Net", "FuseNet"]
+    assert len(rows[0].strip("|").split("|")) <= 10
     assert "Det. Rate % (paper)" in text and "97.35" in text and "Kendall τ" in text
     assert "Comp Time (ms) (paper)" in text and "Comp Time (ms) ratio" in text and "MACs (G)" in text
     assert "side by side" in text and "Δ Det. Rate % vs U-Net [95% CI]" in text
@@ -98,8 +105,9 @@ def test_parallel_joblib_sweep_of_fusion_operators_loses_no_run(tmp_path):
     assert {r.info.status for r in jobs} == {"FINISHED"}
     _, experts = runs(tmp_path, "experts", kind="expert")
     assert sorted(r.data.tags["row"] for r in experts) == ["expert ddm_jet", "expert rgb"]
-    assert {r.data.tags["expert_rgb"] for r in jobs} == {next(r.info.run_id for r in experts
-                                                               if r.data.tags["row"] == "expert rgb")}
+    assert {r.data.tags["expert_rgb"] for r in jobs} == {
+        next(r.info.run_id for r in experts if r.data.tags["row"] == "expert rgb")
+    }
 
 
 def test_a_killed_job_resumes_from_its_checkpoint_without_duplicates(tmp_path):
@@ -143,8 +151,9 @@ def test_smoe_table1_trains_each_expert_once_fills_eight_rows_and_is_diagnosed(t
     assert len(jobs) == 8 and {r.info.status for r in jobs} == {"FINISHED"}
     fused = [r for r in jobs if r.data.tags["row"] not in ("smoe_rgb", "smoe_ddm")]
     assert all({"expert_rgb", "expert_ddm_jet"} <= set(r.data.tags) for r in fused)
-    rows = [line for line in (tmp_path / "results" / "smoe_table1.md").read_text().splitlines()
-            if line.startswith("| ")]
+    rows = [
+        line for line in (tmp_path / "results" / "smoe_table1.md").read_text().splitlines() if line.startswith("| ")
+    ]
     assert len(rows) == 1 + 8 and "AP (paper)" in rows[0]
     diag = ablate(tmp_path, "experiment=smoe_table1", *TINY, module="ablate.diagnose")
     assert diag.returncode == 0, diag.stdout[-3000:] + diag.stderr[-3000:]

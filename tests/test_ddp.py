@@ -1,4 +1,5 @@
 """trainer=ddp_cpu inside a multirun: 2 gloo processes spawned by the job, one parent run, rank 0 logging."""
+
 from __future__ import annotations
 
 from tests.scaleout import TINY, ablate, output, runs
@@ -13,8 +14,9 @@ def test_a_ddp_job_in_a_sweep_makes_one_parent_run_and_logs_once(tmp_path):
     client, sweeps = runs(uri, "chinet_table2", kind="sweep")
     _, jobs = runs(uri, "chinet_table2")
     assert [r.info.status for r in sweeps] == ["FINISHED"]  # strategy=ddp would start the sweep again for rank 1
-    assert [r.info.status for r in jobs] == ["FINISHED"] and jobs[0].data.tags["mlflow.parentRunId"] == \
-        sweeps[0].info.run_id
+    assert [r.info.status for r in jobs] == ["FINISHED"] and jobs[0].data.tags["mlflow.parentRunId"] == sweeps[
+        0
+    ].info.run_id
     job = jobs[0]
     assert job.data.params["trainer.devices"] == "2" and job.data.params["trainer.strategy.start_method"] == "spawn"
     history = client.get_metric_history(job.info.run_id, "train/loss")

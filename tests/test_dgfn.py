@@ -1,12 +1,20 @@
 """DGFN Tables I and II end to end at scale=smoke, as a user runs them, and the detection task on real KITTI."""
+
 import math
 
 import pytest
-
 from test_cli import TINY, ablate, runs
 
-CONDITIONS = ["full", "normal", "camera_blank", "lidar_blank", "camera_occlusion", "lidar_occlusion", "camera_noise",
-              "camera_illumination"]
+CONDITIONS = [
+    "full",
+    "normal",
+    "camera_blank",
+    "lidar_blank",
+    "camera_occlusion",
+    "lidar_occlusion",
+    "camera_noise",
+    "camera_illumination",
+]
 
 
 @pytest.fixture(scope="module")
@@ -46,8 +54,16 @@ def test_table1_is_written_with_conditions_as_rows(tables):
     cwd, _, _ = tables
     text = (cwd / "results" / "dgfn_table1.md").read_text()
     assert table_rows(text.split("Per model")[0]) == [
-        "Full", "Lidar + RGB (normal)", "Lidar + RGB (blank)", "Lidar (blank) + RGB", "Lidar + RGB (occlusion)",
-        "Lidar (occlusion) + RGB", "Lidar + RGB (noise)", "Lidar + RGB (illumination)", "Kendall τ vs paper (n)"]
+        "Full",
+        "Lidar + RGB (normal)",
+        "Lidar + RGB (blank)",
+        "Lidar (blank) + RGB",
+        "Lidar + RGB (occlusion)",
+        "Lidar (occlusion) + RGB",
+        "Lidar + RGB (noise)",
+        "Lidar + RGB (illumination)",
+        "Kendall τ vs paper (n)",
+    ]
     assert "Proposed (with GFU): Easy (paper)" in text and "98.69" in text and "72.21" in text
     assert "Δ Moderate (Full) vs Baseline (without GFU) [95% CI]" in text and "side by side" in text
     gates = (cwd / "results" / "dgfn_table1_gates.md").read_text()
@@ -69,15 +85,30 @@ def test_table2_reuses_table1s_dgfn_and_lists_the_papers_other_systems(tables):
     ssd_rgb = next(r for r in jobs if r.data.tags["row"] == "ssd_rgb")
     assert ssd_rgb.data.params["model.single"] == "rgb" and ssd_rgb.data.params["task.train_corruptions"] == "None"
     text = (cwd / "results" / "dgfn_table2.md").read_text()
-    assert table_rows(text) == ["SSD* [3]", "SSD* [3]", "3DOP [18]", "Mono3D [19]", "Deep MANTA [20]", "MV3D [7]",
-                                "Our DGFN"]
+    assert table_rows(text) == [
+        "SSD* [3]",
+        "SSD* [3]",
+        "3DOP [18]",
+        "Mono3D [19]",
+        "Deep MANTA [20]",
+        "MV3D [7]",
+        "Our DGFN",
+    ]
     assert "| Stereo" in text and "paper only" in text and "97.58" in text and "Kendall τ" in text
     assert "Rows without a finished run" not in text
 
 
 def test_detection_runs_on_real_kitti_boxes(kitti_root, tmp_path):
-    out = ablate(tmp_path, "experiment=dgfn_table1", "row=dgfn", "data=kitti", f"data.root={kitti_root / 'object'}",
-                 "task.classes=[Car,Pedestrian,Cyclist]", "task.eval_severities=[]", *TINY)
+    out = ablate(
+        tmp_path,
+        "experiment=dgfn_table1",
+        "row=dgfn",
+        "data=kitti",
+        f"data.root={kitti_root / 'object'}",
+        "task.classes=[Car,Pedestrian,Cyclist]",
+        "task.eval_severities=[]",
+        *TINY,
+    )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     _, (job,) = runs(tmp_path, "dgfn_table1")
     assert job.info.status == "FINISHED" and job.data.params["data.root"].endswith("kitti/object")
@@ -93,15 +124,18 @@ def test_the_table2_follow_up_reuses_every_row_but_its_clean_trained_dgfn():
     from ablate.store import config_hash
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+
         def cfg(experiment, row):
             return compose("config", overrides=[f"experiment={experiment}", f"row={row}", "seed=1"])
 
         for row in ("dgfn", "ssd_rgb", "ssd_dhi"):
             assert config_hash(cfg("dgfn_table2_followup", row)) == config_hash(cfg("dgfn_table2", row)), row
-        assert config_hash(cfg("dgfn_table2_followup", "dgfn_baseline")) == config_hash(cfg("dgfn_table1",
-                                                                                          "dgfn_baseline"))
-        clean, dgfn = (OmegaConf.to_container(cfg("dgfn_table2_followup", r), resolve=True)
-                       for r in ("dgfn_clean", "dgfn"))
+        assert config_hash(cfg("dgfn_table2_followup", "dgfn_baseline")) == config_hash(
+            cfg("dgfn_table1", "dgfn_baseline")
+        )
+        clean, dgfn = (
+            OmegaConf.to_container(cfg("dgfn_table2_followup", r), resolve=True) for r in ("dgfn_clean", "dgfn")
+        )
     assert clean["task"].pop("train_corruptions") is None and dgfn["task"].pop("train_corruptions")
     clean.pop("table"), dgfn.pop("table")
     assert clean == dgfn  # the control differs from DGFN in its training data only

@@ -1,5 +1,6 @@
 """The frozen experts' feature cache of two-stage training (ablate.run.experts.FeatureCache, SMoE §4.3): same loss,
 outputs and gradients as running the experts, the experts not run on a cached step, and on only where valid."""
+
 from __future__ import annotations
 
 import functools
@@ -9,8 +10,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from ablate.run.experts import FeatureCache, feature_cache
 from ablate.fusion import FusionModel, build
+from ablate.run.experts import FeatureCache, feature_cache
 from ablate.tasks.instance import InstanceTask, YolactHead
 
 MODALITIES = {"rgb": 3, "ddm_jet": 3}
@@ -19,9 +20,15 @@ ADAM = functools.partial(torch.optim.Adam, lr=1e-3)
 
 
 def tiny(stage: str, single: str | None = None) -> FusionModel:
-    return FusionModel(stage=stage, modalities=MODALITIES, single=single, fusion=functools.partial(build, name="smoe"),
-                       head=functools.partial(YolactHead, num_classes=2, num_prototypes=4),
-                       backbone={"depth": 18, "width": 0.125}, fpn_channels=16)
+    return FusionModel(
+        stage=stage,
+        modalities=MODALITIES,
+        single=single,
+        fusion=functools.partial(build, name="smoe"),
+        head=functools.partial(YolactHead, num_classes=2, num_prototypes=4),
+        backbone={"depth": 18, "width": 0.125},
+        fpn_channels=16,
+    )
 
 
 def stage2(stage: str, freeze: bool = True) -> FusionModel:
@@ -42,9 +49,13 @@ def batch(frames: list[str], seed: int = 0) -> dict:
     box = torch.tensor([[8.0, 16.0, 40.0, 48.0]])
     mask = torch.zeros(1, *SIZE, dtype=torch.bool)
     mask[:, 16:48, 8:40] = True
-    return {"rgb": torch.rand(n, 3, *SIZE, generator=g), "ddm_jet": torch.rand(n, 3, *SIZE, generator=g),
-            "instances": [{"masks": mask, "labels": torch.tensor([0]), "boxes": box} for _ in range(n)],
-            "ignore": torch.zeros(n, *SIZE, dtype=torch.bool), "frame": list(frames)}
+    return {
+        "rgb": torch.rand(n, 3, *SIZE, generator=g),
+        "ddm_jet": torch.rand(n, 3, *SIZE, generator=g),
+        "instances": [{"masks": mask, "labels": torch.tensor([0]), "boxes": box} for _ in range(n)],
+        "ignore": torch.zeros(n, *SIZE, dtype=torch.bool),
+        "frame": list(frames),
+    }
 
 
 def calls(model: FusionModel) -> list[str]:
@@ -122,10 +133,18 @@ def test_frames_beyond_the_memory_cap_are_not_stored_and_run_every_step():
             torch.testing.assert_close(x, y)
 
 
-@pytest.mark.parametrize("stage,freeze,switch,on", [
-    ("fpn", True, True, True), ("backbone", True, True, True), ("late", True, True, True),
-    ("fpn", False, True, False), ("fpn", True, False, False), ("early", True, True, False),
-    ("single", True, True, False)])
+@pytest.mark.parametrize(
+    "stage,freeze,switch,on",
+    [
+        ("fpn", True, True, True),
+        ("backbone", True, True, True),
+        ("late", True, True, True),
+        ("fpn", False, True, False),
+        ("fpn", True, False, False),
+        ("early", True, True, False),
+        ("single", True, True, False),
+    ],
+)
 def test_the_cache_is_on_only_for_frozen_experts_at_a_fusion_stage(stage, freeze, switch, on):
     cfg = OmegaConf.create({"experts": {"freeze": freeze, "cache_features": switch, "cache_max_gb": 8}})
     if stage == "early":
@@ -149,9 +168,16 @@ def test_a_fit_fills_the_cache_in_the_first_epoch_and_reads_it_afterwards(tmp_pa
     task.feature_cache = FeatureCache()
     train = [batch(["t0", "t1"], 1), batch(["t2", "t3"], 2)]
     val = [batch(["v0", "v1"], 3)]
-    trainer = L.Trainer(max_epochs=2, accelerator="cpu", logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0,
-                        default_root_dir=tmp_path)
+    trainer = L.Trainer(
+        max_epochs=2,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+        default_root_dir=tmp_path,
+    )
     seen = calls(task.model)
     loader = functools.partial(torch.utils.data.DataLoader, batch_size=None)
     trainer.fit(task, loader(train), loader(val))

@@ -1,4 +1,5 @@
 """Numerics resolved per machine (ablate.hardware): precision, memory format and threads, in the config hash."""
+
 import warnings
 from pathlib import Path
 
@@ -7,8 +8,8 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from ablate.hardware import Cpu, cpu, parallel_jobs, resolve, tags
-from ablate.tasks.base import to_float32
 from ablate.store import config_hash
+from ablate.tasks.base import to_float32
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 XEON = Cpu("Intel(R) Xeon(R) Platinum 8488C", frozenset({"avx2", "avx512f", "avx512_bf16", "amx_tile", "amx_bf16"}))
@@ -87,18 +88,33 @@ def test_the_runs_tags_name_the_numerics_and_the_cpu():
 
 def test_a_sweep_runs_one_job_per_core_with_one_thread_per_job(monkeypatch):
     monkeypatch.setattr("ablate.hardware.cores", lambda: 8)
-    assert (parallel_jobs(1), parallel_jobs(2), parallel_jobs(3), parallel_jobs(None), parallel_jobs(16)) == \
-        (8, 4, 2, 1, 1)
-    assert (parallel_jobs(1, 2), parallel_jobs(1, -1), parallel_jobs(1, "auto"), parallel_jobs(1, 1, "gpu")) == \
-        (4, 1, 1, 1)
+    assert (parallel_jobs(1), parallel_jobs(2), parallel_jobs(3), parallel_jobs(None), parallel_jobs(16)) == (
+        8,
+        4,
+        2,
+        1,
+        1,
+    )
+    assert (parallel_jobs(1, 2), parallel_jobs(1, -1), parallel_jobs(1, "auto"), parallel_jobs(1, 1, "gpu")) == (
+        4,
+        1,
+        1,
+        1,
+    )
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         hydra = compose("config", overrides=["trainer.threads=4"], return_hydra_config=True).hydra
     assert hydra.launcher._target_.endswith("JoblibLauncher") and hydra.launcher.n_jobs == 2
 
 
 def test_model_outputs_reach_losses_and_metrics_in_fp32():
-    out = to_float32({"a": torch.ones(2, dtype=torch.bfloat16), "b": [torch.ones(1, dtype=torch.float16)],
-                      "c": torch.ones(1, dtype=torch.long), "d": (torch.zeros(1, dtype=torch.bfloat16),)})
+    out = to_float32(
+        {
+            "a": torch.ones(2, dtype=torch.bfloat16),
+            "b": [torch.ones(1, dtype=torch.float16)],
+            "c": torch.ones(1, dtype=torch.long),
+            "d": (torch.zeros(1, dtype=torch.bfloat16),),
+        }
+    )
     assert out["a"].dtype == out["b"][0].dtype == out["d"][0].dtype == torch.float32
     assert out["c"].dtype == torch.long
 
@@ -112,9 +128,14 @@ def test_a_config_hashes_as_its_numerics_resolve_on_this_machine():
     assert fresh.trainer.precision == "auto"  # hashing leaves the config as it was
 
 
-@pytest.mark.parametrize("override, named", [("trainer.threads=0", "trainer.threads=0"),
-                                             ("trainer.threads=two", "trainer.threads='two'"),
-                                             ("trainer.channels_last=maybe", "trainer.channels_last='maybe'")])
+@pytest.mark.parametrize(
+    "override, named",
+    [
+        ("trainer.threads=0", "trainer.threads=0"),
+        ("trainer.threads=two", "trainer.threads='two'"),
+        ("trainer.channels_last=maybe", "trainer.channels_last='maybe'"),
+    ],
+)
 def test_a_bad_numerics_option_is_one_error_naming_it(override, named):
     from omegaconf.errors import ValidationError
 

@@ -1,10 +1,11 @@
 """Side-by-side latency: interleaved rounds with a fake clock, quartiles, MACs, and the loaded-machine warning."""
+
 import pandas as pd
 import pytest
 import torch
 from omegaconf import OmegaConf
 
-from ablate.run.latency import interleaved, macs, machine_load, quartiles
+from ablate.run.latency import interleaved, machine_load, macs, quartiles
 from ablate.tables.rows import to_markdown
 from ablate.tables.summary import summarise
 
@@ -22,6 +23,7 @@ class FakeClock:
         def run():
             self.calls.append(name)
             self.now += cost + burst()
+
         return run
 
 
@@ -75,15 +77,39 @@ def test_machine_load():
 
 
 def _table_with_latency(load):
-    table = OmegaConf.create({"name": "t", "title": "T", "primary": "ap", "reference": "a",
-                              "metrics": {"ap": "AP", "latency_ms": "Comp Time (ms)", "params_m": "Params (M)",
-                                          "macs_g": "MACs (G)"},
-                              "rows": [{"row": "a", "name": "A", "paper": {"latency_ms": 82}},
-                                       {"row": "b", "name": "B", "paper": {"latency_ms": 192}}]})
+    table = OmegaConf.create(
+        {
+            "name": "t",
+            "title": "T",
+            "primary": "ap",
+            "reference": "a",
+            "metrics": {"ap": "AP", "latency_ms": "Comp Time (ms)", "params_m": "Params (M)", "macs_g": "MACs (G)"},
+            "rows": [
+                {"row": "a", "name": "A", "paper": {"latency_ms": 82}},
+                {"row": "b", "name": "B", "paper": {"latency_ms": 192}},
+            ],
+        }
+    )
     runs = pd.DataFrame.from_records(
-        [{"row": r, "seed": str(s), "scale": "cpu", "git_commit": "c" * 40, "ap": 50.0 + s, "latency_ms": ms,
-          "latency_q1_ms": ms - 1, "latency_q3_ms": ms + 2, "latency_load": load, "latency_cores": 2.0,
-          "params_m": 1.5, "macs_g": 0.25} for r, ms in [("a", 10.0), ("b", 25.0)] for s in range(2)])
+        [
+            {
+                "row": r,
+                "seed": str(s),
+                "scale": "cpu",
+                "git_commit": "c" * 40,
+                "ap": 50.0 + s,
+                "latency_ms": ms,
+                "latency_q1_ms": ms - 1,
+                "latency_q3_ms": ms + 2,
+                "latency_load": load,
+                "latency_cores": 2.0,
+                "params_m": 1.5,
+                "macs_g": 0.25,
+            }
+            for r, ms in [("a", 10.0), ("b", 25.0)]
+            for s in range(2)
+        ]
+    )
     return to_markdown(summarise(runs, table), runs, table)
 
 
@@ -106,11 +132,13 @@ def test_a_reused_run_is_timed_from_its_source_runs_checkpoint(tmp_path, monkeyp
 
     monkeypatch.chdir(tmp_path)
     tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
-    source_id = tracker.start(tracker.experiment_id("table_a"), "dgfn seed=0",
-                              {"table": "table_a", "config_hash": "abc", "kind": "job"})
+    source_id = tracker.start(
+        tracker.experiment_id("table_a"), "dgfn seed=0", {"table": "table_a", "config_hash": "abc", "kind": "job"}
+    )
     tracker.end(source_id, "FINISHED")
-    copy_id = tracker.copy_run(tracker.client.get_run(source_id), tracker.experiment_id("table_b"),
-                               {"table": "table_b"})
+    copy_id = tracker.copy_run(
+        tracker.client.get_run(source_id), tracker.experiment_id("table_b"), {"table": "table_b"}
+    )
     copy = tracker.client.get_run(copy_id)
     assert row_checkpoint(tracker, copy) is None  # neither checkpoint on this machine
     ckpt = tmp_path / "checkpoints" / "table_a" / "abc" / "best.ckpt"

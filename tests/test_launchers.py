@@ -1,5 +1,6 @@
 """Sweeps through the launchers of conf/hydra/launcher/, end to end at scale=smoke: submitit on this machine, Ray on
 a cluster that the test starts elsewhere on 127.0.0.1 with token authentication, and the SLURM config as composed."""
+
 from __future__ import annotations
 
 import os
@@ -27,8 +28,9 @@ def test_submitit_local_runs_a_table_its_jobs_at_once_on_a_fresh_sqlite_store(tm
     assert most_at_once(jobs) >= 2  # in processes of their own, at once, on a store made by this sweep
     _, (sweep,) = runs(f"sqlite:///{tmp_path / 'mlflow.db'}", "chinet_table2", kind="sweep")
     assert sweep.info.status == "FINISHED" and {r.data.tags["mlflow.parentRunId"] for r in jobs} == {sweep.info.run_id}
-    rows = [line for line in (tmp_path / "results" / "chinet_table2.md").read_text().splitlines()
-            if line.startswith("| ")]
+    rows = [
+        line for line in (tmp_path / "results" / "chinet_table2.md").read_text().splitlines() if line.startswith("| ")
+    ]
     assert len(rows) == 1 + 3
     logs = list((tmp_path / "multirun").glob("*/*/.submitit/*/*_log.out"))
     assert len(logs) == 3 and all("FINISHED" in p.read_text() for p in logs)  # one log per job, in the sweep dir
@@ -46,10 +48,25 @@ def ray_cluster(tmp_path_factory):
     env.pop("RAY_AUTH_MODE", None)  # with a token and no mode, `ray start` turns token authentication on
     log = temp / "head.log"
     with open(log, "wb") as sink:
-        head = subprocess.Popen([str(Path(sys.executable).with_name("ray")), "start", "--head", "--block",
-                                 "--node-ip-address=127.0.0.1", f"--port={port}", "--num-cpus=2",
-                                 "--include-dashboard=false", "--disable-usage-stats", f"--temp-dir={temp}"],
-                                cwd=started_in, env=env, stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
+        head = subprocess.Popen(
+            [
+                str(Path(sys.executable).with_name("ray")),
+                "start",
+                "--head",
+                "--block",
+                "--node-ip-address=127.0.0.1",
+                f"--port={port}",
+                "--num-cpus=2",
+                "--include-dashboard=false",
+                "--disable-usage-stats",
+                f"--temp-dir={temp}",
+            ],
+            cwd=started_in,
+            env=env,
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
     try:
         deadline = time.monotonic() + 120
         while "Ray runtime started" not in log.read_text(errors="replace"):
@@ -69,9 +86,15 @@ def ray_cluster(tmp_path_factory):
 
 def test_ray_on_a_cluster_started_elsewhere_writes_the_table_into_the_drivers_store(ray_cluster, tmp_path):
     address, token, started_in = ray_cluster
-    out = ablate(tmp_path, "-m", "experiment=chinet_table2", "hydra/launcher=ray",
-                 f"hydra.launcher.ray.init.address={address}", *TINY,
-                 env={"RAY_AUTH_TOKEN": token, "RAY_USAGE_STATS_ENABLED": "0"})
+    out = ablate(
+        tmp_path,
+        "-m",
+        "experiment=chinet_table2",
+        "hydra/launcher=ray",
+        f"hydra.launcher.ray.init.address={address}",
+        *TINY,
+        env={"RAY_AUTH_TOKEN": token, "RAY_USAGE_STATS_ENABLED": "0"},
+    )
     assert out.returncode == 0, output(out)
     assert "(_run_job pid=" in out.stdout + out.stderr  # the jobs ran as Ray tasks
     _, jobs = runs(f"sqlite:///{tmp_path / 'mlflow.db'}", "chinet_table2")
@@ -99,15 +122,22 @@ def test_the_slurm_launcher_is_the_plugins_schema_with_the_projects_defaults():
     hydra = compose_launcher("hydra/launcher=slurm", "hydra.launcher.partition=gpu")
     launcher = hydra.launcher
     assert launcher._target_ == "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"
-    assert (launcher.partition, launcher.gpus_per_node, launcher.tasks_per_node, launcher.timeout_min,
-            launcher.array_parallelism) == ("gpu", 1, 1, 240, 16)
+    assert (
+        launcher.partition,
+        launcher.gpus_per_node,
+        launcher.tasks_per_node,
+        launcher.timeout_min,
+        launcher.array_parallelism,
+    ) == ("gpu", 1, 1, 240, 16)
     assert launcher.submitit_folder.endswith("/.submitit/%j") and launcher.submitit_folder.startswith("/")
     assert launcher.signal_delay_s == 120  # the plugin's own keys are still there
     with pytest.raises(Exception, match="partiton"):  # a misspelt key is refused, by name
         compose_launcher("hydra/launcher=slurm", "hydra.launcher.partiton=gpu")
 
 
-@pytest.mark.filterwarnings("ignore:(?s).*validated against ConfigStore")  # pytest resets the filter of ablate.run.sweep
+@pytest.mark.filterwarnings(
+    "ignore:(?s).*validated against ConfigStore"
+)  # pytest resets the filter of ablate.run.sweep
 def test_the_ray_launcher_never_passes_an_object_store_size_to_a_running_cluster():
     need("ray", "hydra_plugins.hydra_ray_launcher")
     init = compose_launcher("hydra/launcher=ray", "hydra.launcher.ray.init.address=auto").launcher.ray.init

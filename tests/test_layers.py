@@ -1,5 +1,6 @@
 """The direction of imports in ``ablate``: every edge goes down the layers, and no module imports itself back
 through others. The imports are read from the source (:mod:`ast`), an import inside a function included."""
+
 import ast
 import subprocess
 import sys

@@ -1,5 +1,6 @@
 """Where a job's store, artifacts and files go: against the launch directory, whatever directory runs the job; the
 sweep's recorded store; artifacts through a server; experiments' kind; the Ray driver's token."""
+
 from __future__ import annotations
 
 import json
@@ -13,10 +14,10 @@ from hydra.core.hydra_config import HydraConfig
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf, open_dict
 
+from ablate.run.job import JobFailed, in_launch_dir
 from ablate.run.sweep import check_launcher, ray_driver_auth
 from ablate.store.sweepdir import STORE_FILE
 from ablate.store.tracker import EXPERIMENT_KIND, Tracker, artifact_location, resolve_uri, tracking_uri
-from ablate.run.job import JobFailed, in_launch_dir
 from tests.scaleout import REPO, need
 
 
@@ -24,6 +25,7 @@ from tests.scaleout import REPO, need
 def job_in(tmp_path):
     """A Hydra job config launched from ``tmp_path/launch`` (hydra.runtime.cwd), as a launcher sets it up; yields a
     function that installs it, with the multirun's sweep directory if asked."""
+
     def install(multirun: bool = False):
         with initialize_config_dir(str(REPO / "conf"), version_base="1.3"):
             cfg = compose("config", return_hydra_config=True)
@@ -103,9 +105,16 @@ def test_a_job_runs_in_the_launch_directory_and_goes_back(job_in, tmp_path, monk
 
 def test_the_ray_driver_takes_the_clusters_token_as_ray_start_does(monkeypatch):
     need("ray")
-    cfg = OmegaConf.create({"hydra": {"launcher": {
-        "_target_": "hydra_plugins.hydra_ray_launcher.ray_launcher.RayLauncher",
-        "ray": {"init": {"address": None}}}}})
+    cfg = OmegaConf.create(
+        {
+            "hydra": {
+                "launcher": {
+                    "_target_": "hydra_plugins.hydra_ray_launcher.ray_launcher.RayLauncher",
+                    "ray": {"init": {"address": None}},
+                }
+            }
+        }
+    )
     monkeypatch.setenv("RAY_AUTH_MODE", "")  # recorded, so that teardown removes what Ray sets
     monkeypatch.delenv("RAY_AUTH_MODE")
     monkeypatch.setenv("RAY_AUTH_TOKEN", "a" * 32)
@@ -119,8 +128,14 @@ def test_the_ray_driver_takes_the_clusters_token_as_ray_start_does(monkeypatch):
 
 
 def test_a_launcher_whose_plugin_is_missing_is_named_with_its_extra():
-    cfg = OmegaConf.create({"hydra": {"launcher": {"_target_": "hydra_plugins.hydra_nope_launcher.x.Launcher"},
-                                      "runtime": {"choices": {"hydra/launcher": "nope"}}}})
+    cfg = OmegaConf.create(
+        {
+            "hydra": {
+                "launcher": {"_target_": "hydra_plugins.hydra_nope_launcher.x.Launcher"},
+                "runtime": {"choices": {"hydra/launcher": "nope"}},
+            }
+        }
+    )
     with pytest.raises(ValueError, match="hydra/launcher=nope needs hydra_plugins.hydra_nope_launcher"):
         check_launcher(cfg)
     cfg.hydra.launcher._target_ = "hydra._internal.core_plugins.basic_launcher.BasicLauncher"

@@ -5,6 +5,7 @@ through the clicks a user makes from the home page.
 Needs Debian's Chromium (``apt-get install chromium``; .ci/run installs it) and Playwright's Python driver (the
 ``browser`` extra); it is skipped, saying which is missing, otherwise.
 """
+
 from __future__ import annotations
 
 import os
@@ -22,8 +23,16 @@ from tests.scaleout import TINY, ablate, free_port, need, output, runs
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 #: Chromium as root in a sandbox with no network: no sandbox, no GPU, none of its background connections.
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 ROWS = ("chinet seed=0", "unet seed=0", "fusenet seed=0")
 
 
@@ -43,9 +52,14 @@ def ui(tmp_path_factory) -> tuple[Path, str, str]:
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     log = cwd / "mlflow_ui.log"
     with log.open("w") as out:
-        server = subprocess.Popen([str(Path(sys.executable).parent / "mlflow"), "ui", "--host", "127.0.0.1",
-                                   "--port", str(port)], cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT,
-                                  start_new_session=True)
+        server = subprocess.Popen(
+            [str(Path(sys.executable).parent / "mlflow"), "ui", "--host", "127.0.0.1", "--port", str(port)],
+            cwd=cwd,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
     base = f"http://127.0.0.1:{port}"
     try:
         wait_healthy(base, server, log, timeout_s=120)  # fails with the UI's log if it exits or never answers

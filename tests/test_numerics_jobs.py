@@ -1,5 +1,6 @@
 """Jobs end to end with the numerics options (ablate.hardware) at scale=smoke, and a job's result whatever runs beside
 it: one pinned thread per job, jobs in parallel (conf/hydra/launcher/parallel.yaml)."""
+
 import json
 
 import pytest
@@ -7,15 +8,23 @@ import torch
 
 from tests.test_cli import TINY, ablate, runs
 
-ONE_STEP = [*TINY, "trainer.max_epochs=1", "trainer.limit_train_batches=1", "trainer.limit_val_batches=1",
-            "trainer.limit_test_batches=1"]
+ONE_STEP = [
+    *TINY,
+    "trainer.max_epochs=1",
+    "trainer.limit_train_batches=1",
+    "trainer.limit_val_batches=1",
+    "trainer.limit_test_batches=1",
+]
 
 
-@pytest.mark.parametrize("options", [
-    ["trainer.precision=bf16-mixed"],
-    ["trainer.precision=bf16-mixed", "trainer.channels_last=true"],
-    ["trainer.channels_last=true", "trainer.compile=eager"],
-])
+@pytest.mark.parametrize(
+    "options",
+    [
+        ["trainer.precision=bf16-mixed"],
+        ["trainer.precision=bf16-mixed", "trainer.channels_last=true"],
+        ["trainer.channels_last=true", "trainer.compile=eager"],
+    ],
+)
 def test_the_numerics_options_compose_and_run_a_job(tmp_path, options):
     out = ablate(tmp_path, "experiment=chinet_table2", "row=unet", *ONE_STEP, *options)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]

@@ -1,4 +1,5 @@
 """A sweep's overall progress (ablate.run.progress): jobs finished of planned, and the ETA from finished jobs."""
+
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
@@ -27,12 +28,16 @@ def test_the_plan_multiplies_the_tables_rows_seeds_and_the_command_lines_sweeps(
 
 
 def test_the_eta_comes_from_the_trained_jobs_durations_and_the_jobs_at_a_time():
-    records = [{"status": "FINISHED", "seconds": 600}, {"status": "SKIPPED", "seconds": 2},
-               {"status": "FINISHED", "seconds": 840}]
+    records = [
+        {"status": "FINISHED", "seconds": 600},
+        {"status": "SKIPPED", "seconds": 2},
+        {"status": "FINISHED", "seconds": 840},
+    ]
     line = summary(records, 9, parallel=2)
     # 6 to go, 2 at a time: 3 rounds of the trained jobs' mean, 720 s
-    assert line == ("Sweep progress: 3/9 jobs finished (1 skipped), 6 to go, ETA 36.0 min "
-                    "(12.0 min per trained job, 2 at a time)")
+    assert line == (
+        "Sweep progress: 3/9 jobs finished (1 skipped), 6 to go, ETA 36.0 min (12.0 min per trained job, 2 at a time)"
+    )
     assert summary([{"status": "SKIPPED", "seconds": 1}], 2) == "Sweep progress: 1/2 jobs finished (1 skipped), 1 to go"
     assert summary(records, 3) == "Sweep progress: 3/3 jobs finished (1 skipped)"
 

@@ -1,4 +1,5 @@
 """Stale runs: the modules a run's config builds, their imports, and what changed since the run's commit."""
+
 import subprocess
 
 from ablate.tables.provenance import ROOT, dependencies, stale
@@ -7,7 +8,7 @@ from ablate.tables.provenance import ROOT, dependencies, stale
 def test_dependencies_follow_imports_from_the_config_targets():
     files = {str(p.relative_to(ROOT)) for p in dependencies({"ablate.tasks.instance.InstanceTask"})}
     assert "ablate/tasks/instance.py" in files
-    assert "ablate/tasks/yolact/anchors.py" in files      # imported by instance.py
+    assert "ablate/tasks/yolact/anchors.py" in files  # imported by instance.py
     assert "ablate/__init__.py" in files and "ablate/tasks/__init__.py" in files
     assert "ablate/report.py" not in files and "ablate/latency.py" not in files
 
@@ -47,8 +48,13 @@ def test_a_package_on_the_way_counts_its_module_imports_not_its_re_exports(tmp_p
     (pkg / "nn" / "chinet.py").write_text("from pkg.nn.unet import Block\n")
     (pkg / "detector.py").write_text("from pkg.nn import VGG\n")
     files = lambda *t: {str(p.relative_to(tmp_path)) for p in dependencies(set(t), "pkg", tmp_path)}  # noqa: E731
-    assert files("pkg.nn.chinet.build") == {"pkg/__init__.py", "pkg/nn/__init__.py", "pkg/nn/registry.py",
-                                            "pkg/nn/chinet.py", "pkg/nn/unet.py"}
+    assert files("pkg.nn.chinet.build") == {
+        "pkg/__init__.py",
+        "pkg/nn/__init__.py",
+        "pkg/nn/registry.py",
+        "pkg/nn/chinet.py",
+        "pkg/nn/unet.py",
+    }
     assert "pkg/nn/vgg.py" in files("pkg.detector.Detector")  # names the package: its re-exports count
     assert "pkg/nn/vgg.py" in files("pkg.nn.chinet.build", "pkg.detector.Detector")
     real = {str(p.relative_to(ROOT)) for p in dependencies({"ablate.nn.chinet.build"})}

@@ -1,4 +1,5 @@
 """conf/recipe: each task's optimiser and epochs per scale, chosen by `${task}_${scale}` in the defaults list."""
+
 from __future__ import annotations
 
 import shutil
@@ -63,8 +64,10 @@ def test_a_new_scale_without_a_recipe_names_the_missing_recipe(tmp_path):
 def test_chinet_family_dropout_is_the_papers_at_paper_scale_and_off_on_the_cpu(row, scale, dropout):
     cfg = compose_with("experiment=chinet_table2", f"row={row}", f"scale={scale}")
     assert cfg.model.variant == row and cfg.model.dropout == dropout
-    assert list(cfg.model.widths) == {"smoke": [8, 16, 32], "cpu": [16, 32, 64, 128],
-                                      "paper": [64, 128, 256, 512, 1024]}[scale]
+    assert (
+        list(cfg.model.widths)
+        == {"smoke": [8, 16, 32], "cpu": [16, 32, 64, 128], "paper": [64, 128, 256, 512, 1024]}[scale]
+    )
 
 
 def test_a_chinet_model_outside_the_semantic_recipe_keeps_the_papers_dropout():

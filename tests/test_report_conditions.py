@@ -1,31 +1,54 @@
 """Tables whose rows are test conditions (DGFN Table I), and model tables with paper-only rows read under one
 condition (DGFN Table II), from hand-made runs."""
+
 import pytest
 from omegaconf import OmegaConf
 
-from ablate.tables import write_table
 from ablate.store.tracker import KIND_JOB, Tracker
+from ablate.tables import write_table
 
 CONDITIONS = [
-    {"condition": "full", "name": "Full", "paper": {"gfu": {"car_easy": 90.0, "car_moderate": 80.0},
-                                                    "base": {"car_easy": 85.0, "car_moderate": 75.0}}},
-    {"condition": "normal", "name": "Normal", "paper": {"gfu": {"car_easy": 98.0, "car_moderate": 90.0},
-                                                        "base": {"car_easy": 93.0, "car_moderate": 87.0}}},
-    {"condition": "camera_blank", "name": "RGB blank", "paper": {"gfu": {"car_easy": 88.0, "car_moderate": 78.0},
-                                                                 "base": {"car_easy": 86.0, "car_moderate": 74.0}}},
+    {
+        "condition": "full",
+        "name": "Full",
+        "paper": {"gfu": {"car_easy": 90.0, "car_moderate": 80.0}, "base": {"car_easy": 85.0, "car_moderate": 75.0}},
+    },
+    {
+        "condition": "normal",
+        "name": "Normal",
+        "paper": {"gfu": {"car_easy": 98.0, "car_moderate": 90.0}, "base": {"car_easy": 93.0, "car_moderate": 87.0}},
+    },
+    {
+        "condition": "camera_blank",
+        "name": "RGB blank",
+        "paper": {"gfu": {"car_easy": 88.0, "car_moderate": 78.0}, "base": {"car_easy": 86.0, "car_moderate": 74.0}},
+    },
     {"condition": "camera_noise", "name": "RGB noise"},
 ]
-TABLE1 = OmegaConf.create({
-    "table": {"name": "t1", "title": "Table I", "layout": "conditions", "reference": "base", "primary": "car_moderate",
-              "primary_condition": "full", "metrics": {"car_easy": "Easy", "car_moderate": "Moderate"},
-              "rows": [{"row": "gfu", "name": "Proposed"}, {"row": "base", "name": "Baseline"}],
-              "conditions": CONDITIONS,
-              "also": [{"name": "t1_gates", "title": "Gates", "metrics": {"gate_rgb": "w_C"}}]},
-    "task": {"eval_conditions": {"normal": {}, "camera_blank": {"camera": "blank"},
-                                 "camera_noise": {"camera": "noise"}}}})
+TABLE1 = OmegaConf.create(
+    {
+        "table": {
+            "name": "t1",
+            "title": "Table I",
+            "layout": "conditions",
+            "reference": "base",
+            "primary": "car_moderate",
+            "primary_condition": "full",
+            "metrics": {"car_easy": "Easy", "car_moderate": "Moderate"},
+            "rows": [{"row": "gfu", "name": "Proposed"}, {"row": "base", "name": "Baseline"}],
+            "conditions": CONDITIONS,
+            "also": [{"name": "t1_gates", "title": "Gates", "metrics": {"gate_rgb": "w_C"}}],
+        },
+        "task": {
+            "eval_conditions": {"normal": {}, "camera_blank": {"camera": "blank"}, "camera_noise": {"camera": "noise"}}
+        },
+    }
+)
 #: per row: {condition: (car_easy, car_moderate)} for seeds 0 and 1 (seed 1: + 2), and the noise severities
-OURS = {"gfu": {"full": (60, 50), "normal": (80, 70), "camera_blank": (40, 30), "camera_noise": (55, 45)},
-        "base": {"full": (50, 40), "normal": (75, 66), "camera_blank": (20, 10), "camera_noise": (45, 35)}}
+OURS = {
+    "gfu": {"full": (60, 50), "normal": (80, 70), "camera_blank": (40, 30), "camera_noise": (55, 45)},
+    "base": {"full": (50, 40), "normal": (75, 66), "camera_blank": (20, 10), "camera_noise": (45, 35)},
+}
 CURVE = {"gfu": {"0.5": 60.0, "2": 20.0}, "base": {"0.5": 50.0, "2": 5.0}}
 
 
@@ -36,10 +59,16 @@ def tracker(tmp_path):
         exp = tracker.experiment_id(table)
         for row, values in OURS.items():
             for seed in (0, 1):
-                run = tracker.start(exp, row, {"kind": KIND_JOB, "row": row, "seed": str(seed), "scale": "smoke",
-                                               "config_hash": f"{row}-{seed}"})
-                metrics = {f"{c}/{m}": v[k] + 2 * seed for c, v in values.items()
-                           for k, m in enumerate(("car_easy", "car_moderate"))}
+                run = tracker.start(
+                    exp,
+                    row,
+                    {"kind": KIND_JOB, "row": row, "seed": str(seed), "scale": "smoke", "config_hash": f"{row}-{seed}"},
+                )
+                metrics = {
+                    f"{c}/{m}": v[k] + 2 * seed
+                    for c, v in values.items()
+                    for k, m in enumerate(("car_easy", "car_moderate"))
+                }
                 metrics.update({f"camera_noise-s{s}/car_moderate": v + seed for s, v in CURVE[row].items()})
                 metrics.update({f"{c}/gate_rgb": 0.5 if row == "gfu" else 1.0 for c in values})
                 metrics["car_easy"] = -1.0  # a plain metric of the same name must not shadow the condition's
@@ -62,8 +91,12 @@ def test_rows_are_conditions_columns_model_by_metric_with_the_paper_and_tau(trac
     assert "Baseline: Moderate (paper)" in header
     assert [r[0] for r in body] == ["Full", "Normal", "RGB blank", "RGB noise", "Kendall τ vs paper (n)"]
     col = {name: [r[header.index(name)] for r in body] for name in header}
-    assert col["Proposed: Easy (ours)"][:4] == ["**61.00 ± 1.41**", "**81.00 ± 1.41**", "**41.00 ± 1.41**",
-                                                "**56.00 ± 1.41**"]
+    assert col["Proposed: Easy (ours)"][:4] == [
+        "**61.00 ± 1.41**",
+        "**81.00 ± 1.41**",
+        "**41.00 ± 1.41**",
+        "**56.00 ± 1.41**",
+    ]
     assert col["Baseline: Easy (ours)"][1] == "76.00 ± 1.41" and col["Baseline: Easy (paper)"][1] == "93.00"
     assert col["Proposed: Easy (paper)"][3] == "—"  # no paper number for noise here
     # ours orders Full, Normal, RGB blank as the paper does: tau 1 over the 3 conditions with both
@@ -99,14 +132,31 @@ def test_a_conditions_table_names_its_missing_pieces(tracker, tmp_path):
         write_table(OmegaConf.merge(TABLE1, {"table": {"layout": "columns"}}), tracker, results_dir=tmp_path)
 
 
-TABLE2 = OmegaConf.create({"table": {
-    "name": "t2", "title": "Table II", "reference": "gfu", "primary": "car_moderate", "primary_condition": "normal",
-    "metrics": {"car_easy": "Easy", "car_moderate": "Moderate"}, "text_columns": {"data": "Data"},
-    "rows": [{"row": "base", "name": "SSD", "data": "Mono", "paper": {"car_easy": 90.0, "car_moderate": 87.0}},
-             {"row": "3dop", "name": "3DOP", "data": "Stereo", "paper_only": True,
-              "paper": {"car_easy": 94.0, "car_moderate": 89.0}},
-             {"row": "ssd_dhi", "name": "SSD", "data": "Lidar", "paper": {"car_easy": 89.0, "car_moderate": 77.0}},
-             {"row": "gfu", "name": "DGFN", "data": "Lidar+Mono", "paper": {"car_easy": 98.0, "car_moderate": 90.0}}]}})
+TABLE2 = OmegaConf.create(
+    {
+        "table": {
+            "name": "t2",
+            "title": "Table II",
+            "reference": "gfu",
+            "primary": "car_moderate",
+            "primary_condition": "normal",
+            "metrics": {"car_easy": "Easy", "car_moderate": "Moderate"},
+            "text_columns": {"data": "Data"},
+            "rows": [
+                {"row": "base", "name": "SSD", "data": "Mono", "paper": {"car_easy": 90.0, "car_moderate": 87.0}},
+                {
+                    "row": "3dop",
+                    "name": "3DOP",
+                    "data": "Stereo",
+                    "paper_only": True,
+                    "paper": {"car_easy": 94.0, "car_moderate": 89.0},
+                },
+                {"row": "ssd_dhi", "name": "SSD", "data": "Lidar", "paper": {"car_easy": 89.0, "car_moderate": 77.0}},
+                {"row": "gfu", "name": "DGFN", "data": "Lidar+Mono", "paper": {"car_easy": 98.0, "car_moderate": 90.0}},
+            ],
+        }
+    }
+)
 
 
 def test_a_model_table_reads_one_condition_and_lists_paper_only_rows(tracker, tmp_path):

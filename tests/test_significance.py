@@ -1,4 +1,5 @@
 """CI arithmetic on hand-made numbers, the paired test against the unpaired one, and failed-seed flags."""
+
 import math
 
 import numpy as np
@@ -56,8 +57,9 @@ def test_pairing_removes_the_seed_to_seed_spread():
 def test_welch_interval_by_hand():
     a, b = [1.0, 2.0, 3.0], [4.0, 5.0, 6.0, 7.0]
     va, vb = 1.0 / 3, (5.0 / 3) / 4
-    dof = (va + vb) ** 2 / (va ** 2 / 2 + vb ** 2 / 3)
+    dof = (va + vb) ** 2 / (va**2 / 2 + vb**2 / 3)
     from scipy.stats import t
+
     half = t.ppf(0.975, dof) * math.sqrt(va + vb)
     d = difference(pd.Series(a, index=["0", "1", "2"]), pd.Series(b, index=["3", "4", "5", "6"]))
     assert d.delta == pytest.approx(-3.5)
@@ -71,20 +73,42 @@ def test_a_collapsed_seed_is_flagged():
 
 
 def test_table_marks_significant_rows_names_the_reference_and_flags_commits():
-    table = OmegaConf.create({"name": "t", "title": "T", "primary": "ap", "metrics": {"ap": "AP", "iou": "IoU"},
-                              "reference": ["rgb", "ddm"], "rows": [
-                                  {"row": "rgb", "name": "RGB"}, {"row": "ddm", "name": "DDM"},
-                                  {"row": "sum", "name": "Sum"}, {"row": "max", "name": "Max"}]})
+    table = OmegaConf.create(
+        {
+            "name": "t",
+            "title": "T",
+            "primary": "ap",
+            "metrics": {"ap": "AP", "iou": "IoU"},
+            "reference": ["rgb", "ddm"],
+            "rows": [
+                {"row": "rgb", "name": "RGB"},
+                {"row": "ddm", "name": "DDM"},
+                {"row": "sum", "name": "Sum"},
+                {"row": "max", "name": "Max"},
+            ],
+        }
+    )
     runs = pd.DataFrame.from_records(
-        [{"row": r, "seed": str(s), "scale": "cpu", "git_commit": "a" * 40 if r != "max" else "b" * 40 + "-dirty",
-          "ap": v + s, "iou": 50.0 if (r, s) != ("max", 2) else 0.5}
-         for r, v in [("rgb", 10.0), ("ddm", 20.0), ("sum", 25.0), ("max", 20.2)] for s in range(3)])
+        [
+            {
+                "row": r,
+                "seed": str(s),
+                "scale": "cpu",
+                "git_commit": "a" * 40 if r != "max" else "b" * 40 + "-dirty",
+                "ap": v + s,
+                "iou": 50.0 if (r, s) != ("max", 2) else 0.5,
+            }
+            for r, v in [("rgb", 10.0), ("ddm", 20.0), ("sum", 25.0), ("max", 20.2)]
+            for s in range(3)
+        ]
+    )
     from ablate.tables.summary import summarise
+
     text = to_markdown(summarise(runs, table), runs, table)
     rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")}
     assert "AP 95% CI" in text and "Δ AP vs DDM [95% CI]" in text  # the better of the two experts
     assert "reference" in rows["DDM"]
-    assert "+5.00 [+5.00, +5.00] *" in rows["Sum"]   # the same +5 on every shared seed
+    assert "+5.00 [+5.00, +5.00] *" in rows["Sum"]  # the same +5 on every shared seed
     assert "+0.20 [+0.20, +0.20] *" in rows["Max"]
     assert "[9.00, 13.00]" not in rows["RGB"] and "[8.52, 13.48]" in rows["RGB"]  # 11 ± t(2) / sqrt 3
     assert "Top row Sum against the second, Max" in text and "ahead beyond seed noise" in text

@@ -1,4 +1,5 @@
 """Config hashing, param flattening and the SQLite retry of ablate.store.tracker."""
+
 import sqlite3
 
 import pytest
@@ -9,9 +10,15 @@ from ablate.store.tracker import SHARED_VIEW_KEY, SHARED_VIEW_TAG, Tracker, retr
 
 
 def _cfg(**over):
-    base = {"seed": 0, "model": {"width": 0.25}, "force": False, "logger": {"tracking_uri": "sqlite:///a.db"},
-            "trainer": {"max_epochs": 2, "enable_progress_bar": True}, "data": {"num_workers": 0, "frames": 8},
-            "table": {"name": "t", "rows": []}}
+    base = {
+        "seed": 0,
+        "model": {"width": 0.25},
+        "force": False,
+        "logger": {"tracking_uri": "sqlite:///a.db"},
+        "trainer": {"max_epochs": 2, "enable_progress_bar": True},
+        "data": {"num_workers": 0, "frames": 8},
+        "table": {"name": "t", "rows": []},
+    }
     return OmegaConf.merge(OmegaConf.create(base), OmegaConf.create(over))
 
 
@@ -33,7 +40,11 @@ def test_hash_changes_with_results_relevant_keys():
 
 def test_flatten_nested_dicts_and_lists():
     assert flatten({"a": {"b": 1, "c": [2, {"d": 3}]}, "e": None}) == {
-        "a.b": "1", "a.c.0": "2", "a.c.1.d": "3", "e": "None"}
+        "a.b": "1",
+        "a.c.0": "2",
+        "a.c.1.d": "3",
+        "e": "None",
+    }
 
 
 def test_retry_waits_out_a_locked_database():
@@ -102,8 +113,10 @@ def test_the_table_view_is_an_mlflow_shared_view_with_the_metric_columns(tmp_pat
     link = tracker.share_table_view(exp, ["det_rate", "normal/ap11"])
     state = json.loads(tracker.client.get_experiment(exp).tags[SHARED_VIEW_TAG + SHARED_VIEW_KEY])
     assert state["selectedColumns"] == ["metrics.`det_rate`", "metrics.`normal/ap11`"]  # the UI's column keys
-    assert link == (f"http://127.0.0.1:5000/#/experiments/{exp}/runs?viewStateShareKey={SHARED_VIEW_KEY}"
-                    "&workflowType=machine_learning")
+    assert link == (
+        f"http://127.0.0.1:5000/#/experiments/{exp}/runs?viewStateShareKey={SHARED_VIEW_KEY}"
+        "&workflowType=machine_learning"
+    )
     # on a tracking server the link is the server's own UI
     assert runs_link("http://10.0.0.2:5001/", "7").startswith("http://10.0.0.2:5001/#/experiments/7/runs?")
 

@@ -1,5 +1,6 @@
 """A fresh SQLite store survives parallel first use: MLflow creates its schema on first use, which two processes
 cannot do at once, so Tracker serialises it with a file lock beside the database."""
+
 import multiprocessing as mp
 
 

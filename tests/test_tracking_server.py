@@ -2,6 +2,7 @@
 after. Parallel jobs log to it, their artifacts go through it, and skip, resume, row reuse and the report work.
 With MLflow's basic-auth app on (``--auth``), a client without credentials gets 401 and one with them writes a run
 and reads it back; without it, an address other than loopback is refused."""
+
 from __future__ import annotations
 
 import base64
@@ -51,8 +52,9 @@ def running(pid: int) -> bool:
 def test_an_address_other_than_loopback_is_refused_without_auth(tmp_path):
     store = tmp_path / "store"
     for host in ("0.0.0.0", "::"):
-        out = subprocess.run([sys.executable, str(SCRIPT), "start", str(store), "--host", host], capture_output=True,
-                             text=True)
+        out = subprocess.run(
+            [sys.executable, str(SCRIPT), "start", str(store), "--host", host], capture_output=True, text=True
+        )
         assert out.returncode == 1 and not out.stdout
         assert out.stderr.startswith(f"error: --host {host} is not a loopback address") and "Add --auth" in out.stderr
         assert out.stderr.count("\n") == 1  # one line
@@ -73,9 +75,23 @@ def store_server(*options: str):
     folder = Path(tempfile.mkdtemp(prefix="ablate-store-", dir="/tmp"))
     folder.chmod(0o755)  # PostgreSQL runs as the user postgres when we are root: it must reach its data folder
     store = folder / "store"
-    started = subprocess.run([sys.executable, str(SCRIPT), "start", str(store), "--port", str(free_port()),
-                              "--pg-port", str(free_port()), "--workers", "1", *options], capture_output=True,
-                             text=True)
+    started = subprocess.run(
+        [
+            sys.executable,
+            str(SCRIPT),
+            "start",
+            str(store),
+            "--port",
+            str(free_port()),
+            "--pg-port",
+            str(free_port()),
+            "--workers",
+            "1",
+            *options,
+        ],
+        capture_output=True,
+        text=True,
+    )
     try:
         assert started.returncode == 0, started.stderr
         yield started.stdout, store
@@ -111,7 +127,9 @@ def auth_server():
         exports = dict(re.findall(r"^export (\w+)=(.*)$", stdout, re.M))
         uri, user = exports["MLFLOW_TRACKING_URI"], exports["MLFLOW_TRACKING_USERNAME"]
         assert uri.startswith("http://127.0.0.1:") and user == "admin"
-        assert exports["MLFLOW_TRACKING_PASSWORD"] == f'"$(cat {store / "auth.password"})"'  # the file, not the password
+        assert (
+            exports["MLFLOW_TRACKING_PASSWORD"] == f'"$(cat {store / "auth.password"})"'
+        )  # the file, not the password
         password = (store / "auth.password").read_text().strip()
         assert len(password) >= 32 and password not in stdout
         for name in ("auth.password", "auth.secret", "basic_auth.ini"):  # readable by the user alone
@@ -126,8 +144,11 @@ def auth_server():
 
 def call(uri: str, path: str, body: dict | None = None, auth: tuple[str, str] | None = None) -> int:
     """The HTTP status of a REST call: GET, or POST of ``body``; basic auth with ``auth``."""
-    request = urllib.request.Request(f"{uri}{path}", data=None if body is None else json.dumps(body).encode(),
-                                     headers={"Content-Type": "application/json"})
+    request = urllib.request.Request(
+        f"{uri}{path}",
+        data=None if body is None else json.dumps(body).encode(),
+        headers={"Content-Type": "application/json"},
+    )
     if auth:
         request.add_header("Authorization", "Basic " + base64.b64encode(":".join(auth).encode()).decode())
     try:
@@ -179,8 +200,16 @@ def test_with_credentials_a_run_is_written_and_read_back(auth_server, tmp_path):
 def sweep(server, tmp_path_factory):
     uri, store = server
     cwd = tmp_path_factory.mktemp("server_sweep")
-    out = ablate(cwd, "-m", "experiment=chinet_table2", "row=chinet,unet", "hydra/launcher=joblib",
-                 "hydra.launcher.n_jobs=2", *TINY, env={"MLFLOW_TRACKING_URI": uri})
+    out = ablate(
+        cwd,
+        "-m",
+        "experiment=chinet_table2",
+        "row=chinet,unet",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        *TINY,
+        env={"MLFLOW_TRACKING_URI": uri},
+    )
     return uri, store, cwd, out
 
 
@@ -233,7 +262,13 @@ def test_the_report_reads_the_server(sweep, tmp_path):
 
 def test_a_local_artifact_root_with_a_server_is_refused_by_name(server, tmp_path):
     uri, _ = server
-    out = ablate(tmp_path, "-m", "experiment=chinet_table2", "logger.artifact_root=mlartifacts", *TINY,
-                 env={"MLFLOW_TRACKING_URI": uri})
+    out = ablate(
+        tmp_path,
+        "-m",
+        "experiment=chinet_table2",
+        "logger.artifact_root=mlartifacts",
+        *TINY,
+        env={"MLFLOW_TRACKING_URI": uri},
+    )
     assert out.returncode != 0
     assert "logger.artifact_root=mlartifacts is a local path" in out.stderr + out.stdout

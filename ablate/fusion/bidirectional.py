@@ -13,9 +13,11 @@ DT, the domain transformation (eq. 12), is a 1x1 convolution from the source bra
 "changes channels" without mixing positions the space transform placed). The fusion is any operator of the registry
 (:func:`ablate.fusion.build`; CBF in the paper); its inputs are, as everywhere, camera first, LiDAR second.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
+
 import torch
 from torch import Tensor, nn
 
@@ -25,7 +27,7 @@ from ablate.fusion.space import SpaceTransform
 
 
 class WithContext(nn.Module):
-    """"+CBF" (BiFNet §V-F) for an operator with fixed learned weights: CBF's context gains (eq. 9-10: global
+    """ "+CBF" (BiFNet §V-F) for an operator with fixed learned weights: CBF's context gains (eq. 9-10: global
     average pool per input, a three-layer MLP with ReLU in the middle and a sigmoid out, one gain per channel and
     input) multiply each input before the operator, ``op([q_1 * f_1, ..., q_N * f_N])``.
 
@@ -53,8 +55,9 @@ class WithContext(nn.Module):
         return self.op([g * f for g, f in zip(q, features)])
 
 
-def fusion_op(fusion: Callable[..., nn.Module], channels: int, num_inputs: int = 2, context: bool = False,
-              reduction: int = 16) -> nn.Module:
+def fusion_op(
+    fusion: Callable[..., nn.Module], channels: int, num_inputs: int = 2, context: bool = False, reduction: int = 16
+) -> nn.Module:
     """The operator ``fusion(channels=, num_inputs=)``, behind CBF's context gains when ``context`` ("+CBF")."""
     op = fusion(channels=channels, num_inputs=num_inputs)
     return WithContext(op, channels, num_inputs, reduction) if context else op
@@ -70,8 +73,15 @@ class BidirectionalFusion(nn.Module):
     ``last_coverage``: per space, the fraction of positions the transform reached in the last call.
     """
 
-    def __init__(self, cam_channels: int, bev_channels: int, space: SpaceTransform, stride: int,
-                 fusion: Callable[..., nn.Module], context: bool = False) -> None:
+    def __init__(
+        self,
+        cam_channels: int,
+        bev_channels: int,
+        space: SpaceTransform,
+        stride: int,
+        fusion: Callable[..., nn.Module],
+        context: bool = False,
+    ) -> None:
         super().__init__()
         self.space, self.stride = space, int(stride)
         self.dt_bev = nn.Conv2d(cam_channels, bev_channels, 1)  # DT of the BEV group: camera -> BEV channels
@@ -98,4 +108,3 @@ def gains(module: nn.Module) -> list[Tensor] | None:
     if isinstance(module, FusionOp) and getattr(module, "op_name", "") != "cbf":
         return None
     return gates
-

@@ -7,6 +7,7 @@ Batch keys (the data module gives them when they are listed in ``targets``; see 
 ``height_image`` [B,1,H,W] and ``height_bev`` [B,1,Hb,Wb] (m, velodyne z), ``lidar_points`` [B,N,3] (velodyne
 x, y, z; NaN rows are padding).
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -43,8 +44,10 @@ class BevGrid:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return (int(round((self.x_range[1] - self.x_range[0]) / self.cell)),
-                int(round((self.y_range[1] - self.y_range[0]) / self.cell)))
+        return (
+            int(round((self.x_range[1] - self.x_range[0]) / self.cell)),
+            int(round((self.y_range[1] - self.y_range[0]) / self.cell)),
+        )
 
 
 @dataclass
@@ -62,14 +65,22 @@ class Geometry:
     @classmethod
     def from_batch(cls, batch: Mapping, grid: BevGrid, image_size: tuple[int, int]) -> Geometry:
         if "calib" not in batch:
-            raise KeyError(f"space transform needs batch['calib'] (list `calib` in the task's targets); got "
-                           f"{sorted(batch)}")
-        return cls(batch["calib"].double(), grid, tuple(image_size), batch.get("height_image"),
-                   batch.get("height_bev"), batch.get("lidar_points"))
+            raise KeyError(
+                f"space transform needs batch['calib'] (list `calib` in the task's targets); got {sorted(batch)}"
+            )
+        return cls(
+            batch["calib"].double(),
+            grid,
+            tuple(image_size),
+            batch.get("height_image"),
+            batch.get("height_bev"),
+            batch.get("lidar_points"),
+        )
 
     @classmethod
-    def from_frame(cls, points: np.ndarray, calib, image_size: tuple[int, int], grid: BevGrid = BevGrid(),
-                   **heights) -> Geometry:
+    def from_frame(
+        cls, points: np.ndarray, calib, image_size: tuple[int, int], grid: BevGrid = BevGrid(), **heights
+    ) -> Geometry:
         """The geometry of one frame (B = 1) from its velodyne scan and :class:`~ablate.data.kitti.Calibration`,
         built as the data module builds it; ``heights``: options of the height functions (``window``,
         ``azimuth_res``)."""
@@ -80,9 +91,14 @@ class Geometry:
         window = {k: heights[k] for k in ("window",) if k in heights}
         azimuth = {k: heights[k] for k in ("azimuth_res",) if k in heights}
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a))[None]  # noqa: E731
-        return cls(t(calib_array(calib)).double(), grid, tuple(image_size),
-                   t(lidar.perspective_height(points, calib, image_size, **window))[:, None],
-                   t(lidar.bev_height(points, **box, **azimuth))[:, None], t(lidar.bev_points(points, **box)))
+        return cls(
+            t(calib_array(calib)).double(),
+            grid,
+            tuple(image_size),
+            t(lidar.perspective_height(points, calib, image_size, **window))[:, None],
+            t(lidar.bev_height(points, **box, **azimuth))[:, None],
+            t(lidar.bev_points(points, **box)),
+        )
 
     def need(self, *names: str, by: str = "space transform") -> None:
         missing = [n for n in names if getattr(self, n) is None]

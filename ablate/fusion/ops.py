@@ -10,6 +10,7 @@ multiplied onto that input in the last forward), for plots such as DGFN Fig. 5.
 Every operator has a natural N-way form (documented per class), so each accepts N >= 2.
 The BiFNet operators (cbf, lidcamnet, plard) live in ``ops_bifnet.py`` and register here.
 """
+
 from __future__ import annotations
 
 import inspect
@@ -71,11 +72,15 @@ class FusionOp(nn.Module):
 
     def forward(self, features: list[Tensor]) -> Tensor:
         if len(features) != self.num_inputs:
-            raise ValueError(f"fusion operator {self.op_name!r} built for {self.num_inputs} inputs, got {len(features)}")
+            raise ValueError(
+                f"fusion operator {self.op_name!r} built for {self.num_inputs} inputs, got {len(features)}"
+            )
         shape = features[0].shape
         if len(shape) != 4 or shape[1] != self.channels or any(f.shape != shape for f in features):
-            raise ValueError(f"fusion operator {self.op_name!r} expects {self.num_inputs} tensors "
-                             f"[B,{self.channels},H,W] of one shape, got {[tuple(f.shape) for f in features]}")
+            raise ValueError(
+                f"fusion operator {self.op_name!r} expects {self.num_inputs} tensors "
+                f"[B,{self.channels},H,W] of one shape, got {[tuple(f.shape) for f in features]}"
+            )
         return self.fuse(list(features))
 
     def fuse(self, features: list[Tensor]) -> Tensor:

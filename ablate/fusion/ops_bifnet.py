@@ -2,6 +2,7 @@
 
 Input order as everywhere: ``features[0]`` camera, ``features[1]`` LiDAR, further inputs other modalities.
 """
+
 from __future__ import annotations
 
 from functools import reduce
@@ -36,12 +37,20 @@ class CBF(FusionOp):
             raise ValueError(f"fusion operator 'cbf': reduction must be >= 1, got {reduction}")
         self.joint = bool(joint)
         width = num_inputs * channels if self.joint else channels
-        self.mlps = nn.ModuleList(self._mlp(width, max(width // reduction, 8)) for _ in range(1 if joint else num_inputs))
+        self.mlps = nn.ModuleList(
+            self._mlp(width, max(width // reduction, 8)) for _ in range(1 if joint else num_inputs)
+        )
 
     @staticmethod
     def _mlp(width: int, hidden: int) -> nn.Sequential:
-        return nn.Sequential(nn.Linear(width, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, hidden),
-                             nn.ReLU(inplace=True), nn.Linear(hidden, width), nn.Sigmoid())
+        return nn.Sequential(
+            nn.Linear(width, hidden),
+            nn.ReLU(inplace=True),
+            nn.Linear(hidden, hidden),
+            nn.ReLU(inplace=True),
+            nn.Linear(hidden, width),
+            nn.Sigmoid(),
+        )
 
     def fuse(self, features: list[Tensor]) -> Tensor:
         z = [f.mean(dim=(2, 3)) for f in features]
@@ -86,7 +95,9 @@ class PLARD(FusionOp):
     N-way: the camera input is the reference; every other input gets its own map.
     """
 
-    def __init__(self, channels: int, num_inputs: int = 2, size: tuple[int, int] = (48, 160), init: float = 1.0) -> None:
+    def __init__(
+        self, channels: int, num_inputs: int = 2, size: tuple[int, int] = (48, 160), init: float = 1.0
+    ) -> None:
         super().__init__(channels, num_inputs)
         size = tuple(int(s) for s in size)
         if len(size) != 2 or min(size) < 1:
@@ -96,8 +107,11 @@ class PLARD(FusionOp):
 
     def fuse(self, features: list[Tensor]) -> Tensor:
         h, w = features[0].shape[-2:]
-        maps = self.weight if (h, w) == self.size else F.interpolate(
-            self.weight, size=(h, w), mode="bilinear", align_corners=False)
+        maps = (
+            self.weight
+            if (h, w) == self.size
+            else F.interpolate(self.weight, size=(h, w), mode="bilinear", align_corners=False)
+        )
         maps = [m[None] for m in maps.unbind(0)]
         self.last_gates = [torch.ones_like(maps[0]).detach()] + [m.detach() for m in maps]
         return reduce(torch.add, [features[0]] + [m * f for m, f in zip(maps, features[1:])])

@@ -15,6 +15,7 @@ Feature position (i, j) at stride s stands for the input position ((i + 0.5) s -
 rows and columns; BEV rows along x with row 0 the farthest, columns along y with column 0 the leftmost, the grid of
 :func:`ablate.data.lidar.bev_image`), and an input position belongs to the feature position floor(p / s).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -138,8 +139,9 @@ class DST(SpaceTransform):
     A feature position's height is the dense height of the input position it stands for (nearest pixel or cell).
     """
 
-    def maps(self, geometry: Geometry, cam_size: tuple[int, int], bev_size: tuple[int, int],
-             stride: int) -> tuple[IndexMap, IndexMap]:
+    def maps(
+        self, geometry: Geometry, cam_size: tuple[int, int], bev_size: tuple[int, int], stride: int
+    ) -> tuple[IndexMap, IndexMap]:
         g = geometry
         g.need("height_image", "height_bev", by="space transform 'dst'")
         dev = g.height_image.device
@@ -157,8 +159,13 @@ class DST(SpaceTransform):
         heights = g.height_image[:, 0].double().flatten(1)[:, (r.round().long() * image[1] + c.round().long())]
         uv = torch.stack([c, r], -1).expand(heights.shape[0], -1, -1)
         xyz, ok = backproject(g, uv, heights)
-        to_cam = _flat((g.grid.x_range[1] - xyz[..., 0]) / g.grid.cell, (g.grid.y_range[1] - xyz[..., 1]) / g.grid.cell,
-                       bev, bev_size, stride)
+        to_cam = _flat(
+            (g.grid.x_range[1] - xyz[..., 0]) / g.grid.cell,
+            (g.grid.y_range[1] - xyz[..., 1]) / g.grid.cell,
+            bev,
+            bev_size,
+            stride,
+        )
         to_cam = torch.where(ok, to_cam, torch.full_like(to_cam, -1))
         return IndexMap(to_bev, tuple(bev_size)), IndexMap(to_cam, tuple(cam_size))
 
@@ -175,8 +182,9 @@ class SHPL(SpaceTransform):
     non-homogeneous weights: 1 / the number of points). No point, no feature: 0.
     """
 
-    def maps(self, geometry: Geometry, cam_size: tuple[int, int], bev_size: tuple[int, int],
-             stride: int) -> tuple[PointPooling, PointPooling]:
+    def maps(
+        self, geometry: Geometry, cam_size: tuple[int, int], bev_size: tuple[int, int], stride: int
+    ) -> tuple[PointPooling, PointPooling]:
         g = geometry
         g.need("points", by="space transform 'shpl'")
         present = torch.isfinite(g.points).all(-1)
@@ -184,8 +192,13 @@ class SHPL(SpaceTransform):
         pts, present = g.points[:, :count].double(), present[:, :count]
         uv, depth = project(g, torch.nan_to_num(pts))
         pixel = _flat(torch.floor(uv[..., 1] + 0.5), torch.floor(uv[..., 0] + 0.5), g.image_size, cam_size, stride)
-        cell = _flat((g.grid.x_range[1] - pts[..., 0]) / g.grid.cell, (g.grid.y_range[1] - pts[..., 1]) / g.grid.cell,
-                     g.grid.shape, bev_size, stride)
+        cell = _flat(
+            (g.grid.x_range[1] - pts[..., 0]) / g.grid.cell,
+            (g.grid.y_range[1] - pts[..., 1]) / g.grid.cell,
+            g.grid.shape,
+            bev_size,
+            stride,
+        )
         used = present & (depth > 0) & (pixel >= 0) & (cell >= 0)
         pixel, cell = (torch.where(used, t, torch.full_like(t, -1)) for t in (pixel, cell))
         return PointPooling(cell, pixel, tuple(bev_size)), PointPooling(pixel, cell, tuple(cam_size))

@@ -12,6 +12,7 @@ The order of ``modalities`` is the operators' input order: the first is f_i (cam
 The head never sees the stage: it is called as ``head(in_channels=fpn_channels, num_levels=5)`` and its
 ``forward(list[P3..P7]) -> dict[str, Tensor | list[Tensor]]`` matches its ``out_channels`` dict.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
@@ -40,9 +41,16 @@ class FusionModel(FreezableModel):
     Per-modality parts are ``encoders[m]`` (all stages but early), ``fpns[m]`` (fpn, late), ``heads[m]`` (late).
     """
 
-    def __init__(self, stage: str, modalities: Mapping[str, int], fusion: Callable[..., nn.Module] | None = None,
-                 head: Callable[..., nn.Module] | None = None, backbone: Mapping | None = None,
-                 fpn_channels: int = 64, single: str | None = None) -> None:
+    def __init__(
+        self,
+        stage: str,
+        modalities: Mapping[str, int],
+        fusion: Callable[..., nn.Module] | None = None,
+        head: Callable[..., nn.Module] | None = None,
+        backbone: Mapping | None = None,
+        fpn_channels: int = 64,
+        single: str | None = None,
+    ) -> None:
         super().__init__()
         if stage not in STAGES:
             raise ValueError(f"unknown fusion stage {stage!r}; valid: {', '.join(STAGES)}")
@@ -80,7 +88,8 @@ class FusionModel(FreezableModel):
             self.late_keys = list(self.out_channels)
             self.fuse = nn.ModuleList(
                 nn.ModuleList(fusion(channels=c, num_inputs=n) for c in (v if isinstance(v, (list, tuple)) else [v]))
-                for v in self.out_channels.values())
+                for v in self.out_channels.values()
+            )
         else:
             self.head = head(in_channels=fpn_channels, num_levels=NUM_LEVELS)
         if stage == "backbone":
@@ -92,8 +101,12 @@ class FusionModel(FreezableModel):
         opts = dict(self.backbone_options)
         if isinstance(opts.get("weights"), Mapping):
             opts["weights"] = dict(opts["weights"]).get(modality)
-        return ResNet(depth=int(opts.get("depth", 18)), width=float(opts.get("width", 1.0)),
-                      in_channels=in_channels, weights=opts.get("weights"))
+        return ResNet(
+            depth=int(opts.get("depth", 18)),
+            width=float(opts.get("width", 1.0)),
+            in_channels=in_channels,
+            weights=opts.get("weights"),
+        )
 
     def _fpn(self, enc_channels: list[int]) -> FPN:
         return FPN(enc_channels[1:], self.fpn_channels, num_downsample=NUM_LEVELS - 3)
@@ -118,8 +131,10 @@ class FusionModel(FreezableModel):
             return self.head(self.fpn([op([features[m][k] for m in mods]) for k, op in enumerate(self.fuse)]))
         if self.stage == "fpn":
             return self.head([op([features[m][k] for m in mods]) for k, op in enumerate(self.fuse)])
-        return {key: self._fuse_late(key, ops, [features[m][key] for m in mods])
-                for key, ops in zip(self.late_keys, self.fuse)}
+        return {
+            key: self._fuse_late(key, ops, [features[m][key] for m in mods])
+            for key, ops in zip(self.late_keys, self.fuse)
+        }
 
     def _inputs(self, inputs: dict[str, Tensor]) -> dict[str, Tensor]:
         missing = [m for m in self.modalities if m not in inputs]
@@ -133,8 +148,11 @@ class FusionModel(FreezableModel):
 
     def _branch_parts(self, modality: str) -> list[nn.Module]:
         """The parts of ``modality`` before the fusion point, in order: encoder, then FPN (fpn, late), head (late)."""
-        return [self.encoders[modality], *([self.fpns[modality]] if self.stage in ("fpn", "late") else []),
-                *([self.heads[modality]] if self.stage == "late" else [])]
+        return [
+            self.encoders[modality],
+            *([self.fpns[modality]] if self.stage in ("fpn", "late") else []),
+            *([self.heads[modality]] if self.stage == "late" else []),
+        ]
 
     def _branch(self, modality: str, x: Tensor) -> list[Tensor] | dict:
         """``modality``'s features at the fusion point: C3..C5 (backbone, single), P3..P7 (fpn), head outputs (late)."""
@@ -149,7 +167,8 @@ class FusionModel(FreezableModel):
         ``freeze``), so that :meth:`frozen_features` of an input is a constant (SMoE §4.3)."""
         frozen = {id(part) for part in self._frozen}
         return self.stage in ("backbone", "fpn", "late") and all(
-            id(part) in frozen for m in self.modalities for part in self._branch_parts(m))
+            id(part) in frozen for m in self.modalities for part in self._branch_parts(m)
+        )
 
     @torch.no_grad()
     def frozen_features(self, inputs: dict[str, Tensor]) -> dict[str, list[Tensor] | dict]:
@@ -157,9 +176,11 @@ class FusionModel(FreezableModel):
         (fpn), the expert head's output dict (late). ``forward(inputs, features=frozen_features(inputs))`` equals
         ``forward(inputs)``. Only for a :attr:`cacheable` model (else gradients would be lost)."""
         if not self.cacheable:
-            raise ValueError(f"frozen_features needs every per-modality part frozen (load_expert(freeze=True)) at "
-                             f"stage backbone, fpn or late; this model is stage {self.stage!r} with "
-                             f"{len(self._frozen)} frozen part(s)")
+            raise ValueError(
+                f"frozen_features needs every per-modality part frozen (load_expert(freeze=True)) at "
+                f"stage backbone, fpn or late; this model is stage {self.stage!r} with "
+                f"{len(self._frozen)} frozen part(s)"
+            )
         return {m: self._branch(m, t) for m, t in self._inputs(inputs).items()}
 
     def _fuse_late(self, key: str, ops: nn.ModuleList, maps: list) -> Tensor | list[Tensor]:
@@ -201,10 +222,14 @@ class FusionModel(FreezableModel):
         (requires_grad False) and keeps their BatchNorm statistics fixed (eval mode even under ``train()``).
         """
         if modality not in self.encoders:
-            raise KeyError(f"no per-modality encoder for {modality!r} at stage {self.stage!r}; have {list(self.encoders)}")
+            raise KeyError(
+                f"no per-modality encoder for {modality!r} at stage {self.stage!r}; have {list(self.encoders)}"
+            )
         if expert.stage != "single" or expert.single != modality:
-            raise ValueError(f"expert for {modality!r} must be a stage 'single' model of that modality, "
-                             f"got stage {expert.stage!r} of {expert.single!r}")
+            raise ValueError(
+                f"expert for {modality!r} must be a stage 'single' model of that modality, "
+                f"got stage {expert.stage!r} of {expert.single!r}"
+            )
         for mine, theirs in zip(self._branch_parts(modality), (expert.encoders[modality], expert.fpn, expert.head)):
             mine.load_state_dict(theirs.state_dict())
             if freeze:

@@ -21,6 +21,7 @@ in height which follows the same principle with KITTI object detection benchmark
 States are flat 1-D tensors per image concatenated with ``dist_reduce_fx="cat"``; masks are kept as compressed
 RLE bytes, so the metric works under DDP and costs a few bytes per mask.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -39,9 +40,19 @@ from torchmetrics.utilities import dim_zero_cat
 from ablate.data.difficulty import MIN_HEIGHT, REFERENCE_HEIGHT, counted
 
 _STATES = (
-    "img_sizes", "pred_counts", "gt_counts",
-    "pred_scores", "pred_labels", "pred_boxes", "pred_rle", "pred_rle_len",
-    "gt_labels", "gt_boxes", "gt_crowd", "gt_rle", "gt_rle_len",
+    "img_sizes",
+    "pred_counts",
+    "gt_counts",
+    "pred_scores",
+    "pred_labels",
+    "pred_boxes",
+    "pred_rle",
+    "pred_rle_len",
+    "gt_labels",
+    "gt_boxes",
+    "gt_crowd",
+    "gt_rle",
+    "gt_rle_len",
 )
 
 
@@ -77,13 +88,20 @@ class MaskAP(Metric):
     is_differentiable = False
     higher_is_better = True
 
-    def __init__(self, min_height: float = MIN_HEIGHT, reference_height: float = REFERENCE_HEIGHT,
-                 ignore_overlap: float = 0.5,
-                 max_detections: int = 100, class_metrics: bool = False, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        min_height: float = MIN_HEIGHT,
+        reference_height: float = REFERENCE_HEIGHT,
+        ignore_overlap: float = 0.5,
+        max_detections: int = 100,
+        class_metrics: bool = False,
+        **kwargs: Any,
+    ) -> None:
         super().__init__(**kwargs)
         if reference_height <= 0 or min_height < 0:
-            raise ValueError(f"MaskAP: need reference_height > 0 and min_height >= 0, got "
-                             f"{reference_height}, {min_height}")
+            raise ValueError(
+                f"MaskAP: need reference_height > 0 and min_height >= 0, got {reference_height}, {min_height}"
+            )
         self.min_height, self.reference_height = float(min_height), float(reference_height)
         self.ignore_overlap, self.max_detections = float(ignore_overlap), int(max_detections)
         self.class_metrics = class_metrics
@@ -99,14 +117,21 @@ class MaskAP(Metric):
             self._add_image(pred, target)
 
     def _add_image(self, pred: dict[str, Tensor], target: dict[str, Tensor]) -> None:
-        for key, d, where in (("masks", pred, "preds"), ("scores", pred, "preds"), ("labels", pred, "preds"),
-                              ("masks", target, "targets"), ("labels", target, "targets")):
+        for key, d, where in (
+            ("masks", pred, "preds"),
+            ("scores", pred, "preds"),
+            ("labels", pred, "preds"),
+            ("masks", target, "targets"),
+            ("labels", target, "targets"),
+        ):
             if key not in d:
                 raise KeyError(f"MaskAP.update: {where} dict lacks '{key}' (has {sorted(d)})")
         gt_masks, masks = target["masks"].bool(), pred["masks"].bool()
         if gt_masks.ndim != 3 or masks.ndim != 3 or gt_masks.shape[1:] != masks.shape[1:]:
-            raise ValueError(f"MaskAP.update: masks must be (N,H,W) of one image size, got preds "
-                             f"{tuple(masks.shape)} and targets {tuple(gt_masks.shape)}")
+            raise ValueError(
+                f"MaskAP.update: masks must be (N,H,W) of one image size, got preds "
+                f"{tuple(masks.shape)} and targets {tuple(gt_masks.shape)}"
+            )
         h, w = gt_masks.shape[1:]
         keep = torch.ones(masks.shape[0], dtype=torch.bool, device=masks.device)
         if "ignore" in target and masks.shape[0]:
@@ -115,20 +140,33 @@ class MaskAP(Metric):
             keep = inside <= self.ignore_overlap * masks.flatten(1).sum(1, dtype=torch.int32).double()
         keep = keep.cpu()
         rles, rle, rle_len = _encode(masks[keep.to(masks.device)])
-        boxes = (_xyxy_to_xywh(pred["boxes"])[keep] if "boxes" in pred
-                 else torch.as_tensor(mask_utils.toBbox(rles) if rles else np.zeros((0, 4))).double())
+        boxes = (
+            _xyxy_to_xywh(pred["boxes"])[keep]
+            if "boxes" in pred
+            else torch.as_tensor(mask_utils.toBbox(rles) if rles else np.zeros((0, 4))).double()
+        )
         gt_rles, gt_rle, gt_rle_len = _encode(gt_masks)
-        gt_boxes = (_xyxy_to_xywh(target["boxes"]) if "boxes" in target
-                    else torch.as_tensor(mask_utils.toBbox(gt_rles) if gt_rles else np.zeros((0, 4))).double())
+        gt_boxes = (
+            _xyxy_to_xywh(target["boxes"])
+            if "boxes" in target
+            else torch.as_tensor(mask_utils.toBbox(gt_rles) if gt_rles else np.zeros((0, 4))).double()
+        )
         crowd = ~counted(gt_boxes[:, 3], h, self.min_height, self.reference_height)
         self.img_sizes.append(torch.tensor([h, w], dtype=torch.long, device=self.device))
         self.pred_counts.append(torch.tensor([len(rles)], dtype=torch.long, device=self.device))
         self.gt_counts.append(torch.tensor([len(gt_rles)], dtype=torch.long, device=self.device))
-        for name, value in (("pred_scores", pred["scores"].detach().cpu().double()[keep]),
-                            ("pred_labels", pred["labels"].detach().cpu().long()[keep]),
-                            ("pred_boxes", boxes.flatten()), ("pred_rle", rle), ("pred_rle_len", rle_len),
-                            ("gt_labels", target["labels"].detach().cpu().long()), ("gt_boxes", gt_boxes.flatten()),
-                            ("gt_crowd", crowd.long()), ("gt_rle", gt_rle), ("gt_rle_len", gt_rle_len)):
+        for name, value in (
+            ("pred_scores", pred["scores"].detach().cpu().double()[keep]),
+            ("pred_labels", pred["labels"].detach().cpu().long()[keep]),
+            ("pred_boxes", boxes.flatten()),
+            ("pred_rle", rle),
+            ("pred_rle_len", rle_len),
+            ("gt_labels", target["labels"].detach().cpu().long()),
+            ("gt_boxes", gt_boxes.flatten()),
+            ("gt_crowd", crowd.long()),
+            ("gt_rle", gt_rle),
+            ("gt_rle_len", gt_rle_len),
+        ):
             getattr(self, name).append(value.to(self.device))
 
     def _datasets(self) -> tuple[dict, dict]:
@@ -150,18 +188,37 @@ class MaskAP(Metric):
             images.append({"id": img_id, "height": h, "width": w})
             for j in range(gi, gi + ng):
                 rle = {"size": [h, w], "counts": gt_rle[j]}
-                gt_anns.append({"id": j + 1, "image_id": img_id, "category_id": int(s["gt_labels"][j]),
-                                "segmentation": rle, "area": float(mask_utils.area(rle)),
-                                "bbox": gt_boxes[j].tolist(), "iscrowd": int(s["gt_crowd"][j])})
+                gt_anns.append(
+                    {
+                        "id": j + 1,
+                        "image_id": img_id,
+                        "category_id": int(s["gt_labels"][j]),
+                        "segmentation": rle,
+                        "area": float(mask_utils.area(rle)),
+                        "bbox": gt_boxes[j].tolist(),
+                        "iscrowd": int(s["gt_crowd"][j]),
+                    }
+                )
             for j in range(di, di + nd):
                 rle = {"size": [h, w], "counts": dt_rle[j]}
-                dt_anns.append({"id": j + 1, "image_id": img_id, "category_id": int(s["pred_labels"][j]),
-                                "segmentation": rle, "area": float(mask_utils.area(rle)),
-                                "bbox": dt_boxes[j].tolist(), "score": float(s["pred_scores"][j]), "iscrowd": 0})
+                dt_anns.append(
+                    {
+                        "id": j + 1,
+                        "image_id": img_id,
+                        "category_id": int(s["pred_labels"][j]),
+                        "segmentation": rle,
+                        "area": float(mask_utils.area(rle)),
+                        "bbox": dt_boxes[j].tolist(),
+                        "score": float(s["pred_scores"][j]),
+                        "iscrowd": 0,
+                    }
+                )
             gi, di = gi + ng, di + nd
         categories = [{"id": c} for c in sorted(cats)]
-        return ({"images": images, "annotations": gt_anns, "categories": categories},
-                {"images": images, "annotations": dt_anns, "categories": categories})
+        return (
+            {"images": images, "annotations": gt_anns, "categories": categories},
+            {"images": images, "annotations": dt_anns, "categories": categories},
+        )
 
     def _evaluate(self, gt: COCO, dt: COCO, iou_type: str) -> tuple[np.ndarray, list[int]]:
         """COCOeval precision [T, R, K] at area 'all' and the last maxDets, silenced."""

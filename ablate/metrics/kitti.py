@@ -55,6 +55,7 @@ Readings where the devkit or the papers leave room:
 
 States are flat per-image tensors concatenated with ``dist_reduce_fx="cat"``, so the metric works under DDP.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -78,8 +79,17 @@ LABEL_NAMES = (*CLASSES, "Van", "Person_sitting", "DontCare")
 N_SAMPLE_PTS = 41
 #: The devkit versions KittiAP follows (``cleanData``'s ground-truth height rule) and the ``evaluator`` tag of each.
 DEVKITS = {"2017": "kitti_object_devkit_2017", "2d_2012": "kitti_object_devkit_2d_2012"}
-_STATES = ("pred_counts", "pred_boxes", "pred_scores", "pred_labels", "pred_in_dc",
-           "gt_counts", "gt_boxes", "gt_labels", "gt_level")
+_STATES = (
+    "pred_counts",
+    "pred_boxes",
+    "pred_scores",
+    "pred_labels",
+    "pred_in_dc",
+    "gt_counts",
+    "gt_boxes",
+    "gt_labels",
+    "gt_level",
+)
 
 
 def overlap(a: np.ndarray, b: np.ndarray, union: bool = True) -> np.ndarray:
@@ -139,9 +149,15 @@ class KittiAP(Metric):
     is_differentiable = False
     higher_is_better = True
 
-    def __init__(self, classes: Sequence[str] = CLASSES, label_names: Sequence[str] = LABEL_NAMES,
-                 image_height: float = REFERENCE_HEIGHT, min_overlap: dict[str, float] | None = None,
-                 devkit: str = "2017", **kwargs: Any) -> None:
+    def __init__(
+        self,
+        classes: Sequence[str] = CLASSES,
+        label_names: Sequence[str] = LABEL_NAMES,
+        image_height: float = REFERENCE_HEIGHT,
+        min_overlap: dict[str, float] | None = None,
+        devkit: str = "2017",
+        **kwargs: Any,
+    ) -> None:
         super().__init__(**kwargs)
         if devkit not in DEVKITS:
             raise ValueError(f"KittiAP: devkit must be one of {sorted(DEVKITS)}, got {devkit!r}")
@@ -150,8 +166,10 @@ class KittiAP(Metric):
         self.min_overlap = {**MIN_OVERLAP, **(min_overlap or {})}
         for c in self.classes:
             if c not in self.label_names or c not in self.min_overlap:
-                raise ValueError(f"KittiAP: class {c!r} must be in label_names {self.label_names} and have a "
-                                 f"min_overlap (known: {sorted(self.min_overlap)})")
+                raise ValueError(
+                    f"KittiAP: class {c!r} must be in label_names {self.label_names} and have a "
+                    f"min_overlap (known: {sorted(self.min_overlap)})"
+                )
         if image_height <= 0:
             raise ValueError(f"KittiAP: image_height must be > 0, got {image_height}")
         self.image_height = float(image_height)
@@ -179,13 +197,19 @@ class KittiAP(Metric):
         if len(preds) != len(targets):
             raise ValueError(f"KittiAP.update: {len(preds)} predictions for {len(targets)} targets")
         for pred, target in zip(preds, targets):
-            for key, d, where in (("boxes", pred, "preds"), ("scores", pred, "preds"), ("labels", pred, "preds"),
-                                  ("boxes", target, "targets"), ("labels", target, "targets")):
+            for key, d, where in (
+                ("boxes", pred, "preds"),
+                ("scores", pred, "preds"),
+                ("labels", pred, "preds"),
+                ("boxes", target, "targets"),
+                ("labels", target, "targets"),
+            ):
                 if key not in d:
                     raise KeyError(f"KittiAP.update: {where} dict lacks '{key}' (has {sorted(d)})")
             if "difficulty" not in target and not {"occluded", "truncated"} <= set(target):
-                raise KeyError(f"KittiAP.update: targets need 'difficulty' or 'occluded' and 'truncated' "
-                               f"(has {sorted(target)})")
+                raise KeyError(
+                    f"KittiAP.update: targets need 'difficulty' or 'occluded' and 'truncated' (has {sorted(target)})"
+                )
             self._add_image(pred, target)
 
     def _add_image(self, pred: dict[str, Tensor], target: dict[str, Tensor]) -> None:
@@ -200,16 +224,30 @@ class KittiAP(Metric):
             level = arr(target["difficulty"], np.int64)
         else:
             height, occ, trunc = gt_boxes[:, 3] - gt_boxes[:, 1], arr(target["occluded"]), arr(target["truncated"])
-            ok = np.stack([counted(height, self.image_height, MIN_HEIGHT[k]) & (occ <= MAX_OCCLUSION[k])
-                           & (trunc <= MAX_TRUNCATION[k]) for k in range(3)], 1)
+            ok = np.stack(
+                [
+                    counted(height, self.image_height, MIN_HEIGHT[k])
+                    & (occ <= MAX_OCCLUSION[k])
+                    & (trunc <= MAX_TRUNCATION[k])
+                    for k in range(3)
+                ],
+                1,
+            )
             level = np.where(ok.any(1), ok.argmax(1), -1)
         dc = gt_labels == self._id("DontCare")
         thr = np.array([self.min_overlap.get(self.label_names[k], np.inf) for k in labels])
         in_dc = (overlap(boxes, gt_boxes[dc], union=False) > thr[:, None]).any(1)
-        for name, value in (("pred_counts", [len(boxes)]), ("pred_boxes", boxes.ravel()), ("pred_scores", scores),
-                            ("pred_labels", labels), ("pred_in_dc", in_dc.astype(np.int64)),
-                            ("gt_counts", [int((~dc).sum())]), ("gt_boxes", gt_boxes[~dc].ravel()),
-                            ("gt_labels", gt_labels[~dc]), ("gt_level", level[~dc])):
+        for name, value in (
+            ("pred_counts", [len(boxes)]),
+            ("pred_boxes", boxes.ravel()),
+            ("pred_scores", scores),
+            ("pred_labels", labels),
+            ("pred_in_dc", in_dc.astype(np.int64)),
+            ("gt_counts", [int((~dc).sum())]),
+            ("gt_boxes", gt_boxes[~dc].ravel()),
+            ("gt_labels", gt_labels[~dc]),
+            ("gt_level", level[~dc]),
+        ):
             getattr(self, name).append(torch.as_tensor(np.asarray(value)).to(self.device))
 
     def _images(self) -> list[tuple[np.ndarray, ...]]:
@@ -252,7 +290,7 @@ class KittiAP(Metric):
             tp += ((match >= 0) & counts & ~to_small[match]).sum(1)
             fp += (free & fp_able).sum(1)
         precision = np.zeros(N_SAMPLE_PTS)
-        precision[:len(t)] = np.divide(tp, tp + fp, out=np.zeros_like(tp), where=tp + fp > 0)
+        precision[: len(t)] = np.divide(tp, tp + fp, out=np.zeros_like(tp), where=tp + fp > 0)
         precision = np.maximum.accumulate(precision[::-1])[::-1]
         return 100 * precision[::4].sum() / 11, 100 * precision[1:].sum() / 40
 

@@ -40,6 +40,7 @@ single road pixel lands in.
 States are per-threshold TP / FP / FN counts (shape [256], ``dist_reduce_fx="sum"``): memory does not grow with
 the number of frames and the metric works under DDP.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -70,8 +71,10 @@ def road_homography(calib: Calibration, camera_height: float | None = None) -> n
     if camera_height is not None:
         return calib.P2 @ np.array([[1.0, 0, 0], [0, 0, camera_height], [0, 1, 0], [0, 0, 1]])
     if calib.Tr_cam_to_road is None:
-        raise DataError(f"{calib.path or 'calibration'}: no Tr_cam_to_road for the road plane; pass "
-                        f"camera_height to use a level plane below the camera instead")
+        raise DataError(
+            f"{calib.path or 'calibration'}: no Tr_cam_to_road for the road plane; pass "
+            f"camera_height to use a level plane below the camera instead"
+        )
     rect, road = np.eye(4), np.eye(4)
     rect[:3, :3], road[:3] = calib.R0_rect, calib.Tr_cam_to_road
     return (calib.P2 @ rect @ np.linalg.inv(road))[:, [0, 2, 3]]
@@ -95,8 +98,14 @@ def check_lookup(lookup: str) -> str:
     return lookup
 
 
-def bev_lookup(homography: np.ndarray, image_shape: tuple[int, int], res: float = BEV_RES, x_range=BEV_X,
-               z_range=BEV_Z, lookup: str = "devkit") -> tuple[np.ndarray, np.ndarray]:
+def bev_lookup(
+    homography: np.ndarray,
+    image_shape: tuple[int, int],
+    res: float = BEV_RES,
+    x_range=BEV_X,
+    z_range=BEV_Z,
+    lookup: str = "devkit",
+) -> tuple[np.ndarray, np.ndarray]:
     """For each BEV cell (flattened row-major): the flat index of the image pixel it takes, and whether it is kept
     (its centre projects into the image, in front of the camera; index 0 where not).
 
@@ -132,8 +141,13 @@ def road_scores(tp: Tensor, fp: Tensor, fn: Tensor) -> dict[str, Tensor]:
     f = 2 * precision * recall / (precision + recall + 1e-10)
     best = int(torch.argmax(f))  # the first maximum, as numpy's argmax in the devkit
     ap = torch.stack([precision[recall >= r].max() for r in AP_RECALLS.tolist()]).mean()
-    return {"max_f": 100 * f[best], "ap": 100 * ap, "pre": 100 * precision[best], "rec": 100 * recall[best],
-            "threshold": torch.tensor(best / (NUM_THRESHOLDS - 1), dtype=torch.float64)}
+    return {
+        "max_f": 100 * f[best],
+        "ap": 100 * ap,
+        "pre": 100 * precision[best],
+        "rec": 100 * recall[best],
+        "threshold": torch.tensor(best / (NUM_THRESHOLDS - 1), dtype=torch.float64),
+    }
 
 
 def _frames(x: Tensor, name: str) -> Tensor:
@@ -164,16 +178,24 @@ class RoadMaxF(Metric):
     is_differentiable = False
     higher_is_better = True
 
-    def __init__(self, res: float = BEV_RES, x_range: Sequence[float] = BEV_X, z_range: Sequence[float] = BEV_Z,
-                 camera_height: float | None = None, lookup: str = "devkit", **kwargs: Any) -> None:
+    def __init__(
+        self,
+        res: float = BEV_RES,
+        x_range: Sequence[float] = BEV_X,
+        z_range: Sequence[float] = BEV_Z,
+        camera_height: float | None = None,
+        lookup: str = "devkit",
+        **kwargs: Any,
+    ) -> None:
         super().__init__(**kwargs)
         try:
             self.lookup = check_lookup(lookup)
         except ValueError as err:
             raise ValueError(f"RoadMaxF: {err}") from None
         if res <= 0 or x_range[1] <= x_range[0] or z_range[1] <= z_range[0]:
-            raise ValueError(f"RoadMaxF: need res > 0 and increasing ranges, got res={res}, x_range={x_range}, "
-                             f"z_range={z_range}")
+            raise ValueError(
+                f"RoadMaxF: need res > 0 and increasing ranges, got res={res}, x_range={x_range}, z_range={z_range}"
+            )
         if camera_height is not None and camera_height <= 0:
             raise ValueError(f"RoadMaxF: camera_height must be > 0 m, got {camera_height}")
         self.res, self.x_range, self.z_range = float(res), tuple(map(float, x_range)), tuple(map(float, z_range))
@@ -187,8 +209,13 @@ class RoadMaxF(Metric):
         """The evaluator this metric follows, as a run records it (``ablate.tasks.base.FusionTask.evaluator``)."""
         return LOOKUPS[self.lookup]
 
-    def update(self, preds: Tensor, target: Tensor, valid: Tensor | None = None,
-               calib: Calibration | Sequence[Calibration] | None = None) -> None:
+    def update(
+        self,
+        preds: Tensor,
+        target: Tensor,
+        valid: Tensor | None = None,
+        calib: Calibration | Sequence[Calibration] | None = None,
+    ) -> None:
         """Add frames. ``preds``: road probability in [0, 1] (float) or 0..255 (uint8, read as k/255); ``target``:
         road mask (bool or 0/1); ``valid``: optional mask, False where the ground truth is don't-care. Each is
         (H,W), (B,H,W) or (B,1,H,W). With ``calib`` (one, or one per frame) they are image_2 perspective images
@@ -196,8 +223,10 @@ class RoadMaxF(Metric):
         preds, target = _frames(preds, "preds"), _frames(target, "target").to(preds.device)
         valid = torch.ones_like(target, dtype=torch.bool) if valid is None else _frames(valid, "valid").bool()
         if not preds.shape == target.shape == valid.shape:
-            raise ValueError(f"RoadMaxF.update: preds {tuple(preds.shape)}, target {tuple(target.shape)} and valid "
-                             f"{tuple(valid.shape)} must have one shape")
+            raise ValueError(
+                f"RoadMaxF.update: preds {tuple(preds.shape)}, target {tuple(target.shape)} and valid "
+                f"{tuple(valid.shape)} must have one shape"
+            )
         if not ((target == 0) | (target == 1)).all():
             raise ValueError("RoadMaxF.update: target must be a road mask of 0/1 or bool values")
         if preds.dtype == torch.uint8:
@@ -205,24 +234,31 @@ class RoadMaxF(Metric):
         else:
             p = preds.detach().float() if preds.dtype in (torch.float16, torch.bfloat16) else preds.detach()
             if not ((p >= 0) & (p <= 1)).all():
-                raise ValueError(f"RoadMaxF.update: preds must be probabilities in [0, 1], got values in "
-                                 f"[{p.min().item():.4g}, {p.max().item():.4g}] (logits?)")
+                raise ValueError(
+                    f"RoadMaxF.update: preds must be probabilities in [0, 1], got values in "
+                    f"[{p.min().item():.4g}, {p.max().item():.4g}] (logits?)"
+                )
             thresholds = torch.arange(NUM_THRESHOLDS, dtype=p.dtype, device=p.device) / (NUM_THRESHOLDS - 1)
             level = torch.bucketize(p, thresholds, right=True)
         target, valid = target.bool(), valid.to(preds.device)
         if calib is not None:
             level, target, valid = self._warp(level, target, valid, calib)
         elif tuple(preds.shape[1:]) != self.shape:
-            raise ValueError(f"RoadMaxF.update: BEV inputs must be {self.shape} (rows z, columns x), got "
-                             f"{tuple(preds.shape[1:])}; pass calib for image_2 perspective inputs")
-        tp, fp = (torch.bincount(level[mask], minlength=NUM_THRESHOLDS + 1).flip(0).cumsum(0).flip(0)[1:]
-                  .to(self.tp.device) for mask in (target & valid, ~target & valid))  # [k]: cells with p >= k/255
+            raise ValueError(
+                f"RoadMaxF.update: BEV inputs must be {self.shape} (rows z, columns x), got "
+                f"{tuple(preds.shape[1:])}; pass calib for image_2 perspective inputs"
+            )
+        tp, fp = (
+            torch.bincount(level[mask], minlength=NUM_THRESHOLDS + 1).flip(0).cumsum(0).flip(0)[1:].to(self.tp.device)
+            for mask in (target & valid, ~target & valid)
+        )  # [k]: cells with p >= k/255
         self.tp += tp
         self.fp += fp
         self.fn += tp[0] - tp  # every cell has p >= 0/255, so tp[0] counts all road cells
 
-    def _warp(self, level: Tensor, target: Tensor, valid: Tensor,
-              calib: Calibration | Sequence[Calibration]) -> tuple[Tensor, Tensor, Tensor]:
+    def _warp(
+        self, level: Tensor, target: Tensor, valid: Tensor, calib: Calibration | Sequence[Calibration]
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """Perspective (B,H,W) -> BEV (B,rows,cols) by ``self.lookup``'s pixel of each cell; cells left out are
         don't-care."""
         calibs = [calib] * len(level) if isinstance(calib, Calibration) else list(calib)
@@ -231,8 +267,10 @@ class RoadMaxF(Metric):
         out = []
         for lv, tg, va, cal in zip(level, target, valid, calibs):
             hom = road_homography(cal, self.camera_height)
-            index, inside = (torch.from_numpy(a).to(lv.device) for a in
-                             bev_lookup(hom, tuple(lv.shape), self.res, self.x_range, self.z_range, self.lookup))
+            index, inside = (
+                torch.from_numpy(a).to(lv.device)
+                for a in bev_lookup(hom, tuple(lv.shape), self.res, self.x_range, self.z_range, self.lookup)
+            )
             out.append([x.flatten()[index].view(self.shape) for x in (lv, tg, va)])
             out[-1][2] &= inside.view(self.shape)
         return tuple(torch.stack(x) for x in zip(*out))

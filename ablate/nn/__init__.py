@@ -1,4 +1,5 @@
 """Plain-torch building blocks: ResNet, YOLACT-style FPN, VGG-16 SSD trunk, U-Net blocks, local weight loading."""
+
 from ablate.nn.fpn import FPN
 from ablate.nn.resnet import ResNet
 from ablate.nn.unet import ConvBlock, DecoderBlock, Encoder

@@ -22,6 +22,7 @@ level, as in U-Net); the bottleneck is the deepest encoder level. The FuseNet re
 connection between intensity encoder layers and depth encoder layers") and the issue's "depth summed into the RGB
 encoder": its decoder gets no encoder skips.
 """
+
 from __future__ import annotations
 
 import torch
@@ -36,14 +37,16 @@ VARIANTS = ("chinet", "simo", "miso", "iimo", "unet", "fusenet")
 class Decoder(nn.Module):
     """One output branch: from the bottleneck up through every encoder level, with skips, to ``out_ch`` logits."""
 
-    def __init__(self, bottleneck: int, skip_channels: list[int], widths: list[int], out_ch: int,
-                 dropout: float) -> None:
+    def __init__(
+        self, bottleneck: int, skip_channels: list[int], widths: list[int], out_ch: int, dropout: float
+    ) -> None:
         super().__init__()
         if len(widths) < 2:
             raise ValueError(f"ChiNet needs at least two encoder levels (widths), got {widths}")
         ins = [bottleneck] + widths[-2:0:-1]
         self.blocks = nn.ModuleList(
-            DecoderBlock(c, s, w, dropout) for c, s, w in zip(ins, skip_channels[-2::-1], widths[-2::-1]))
+            DecoderBlock(c, s, w, dropout) for c, s, w in zip(ins, skip_channels[-2::-1], widths[-2::-1])
+        )
         self.out = nn.Conv2d(widths[0], out_ch, 1)
 
     def forward(self, x: Tensor, skips: list[Tensor]) -> Tensor:
@@ -55,8 +58,14 @@ class Decoder(nn.Module):
 class ChiNet(nn.Module):
     """Encoders over groups of modalities, decoders for free space + road objects (multilabel) or 3 classes."""
 
-    def __init__(self, branches: list[list[str]], channels: dict[str, int], widths: list[int],
-                 multilabel: bool, dropout: float = 0.2) -> None:
+    def __init__(
+        self,
+        branches: list[list[str]],
+        channels: dict[str, int],
+        widths: list[int],
+        multilabel: bool,
+        dropout: float = 0.2,
+    ) -> None:
         super().__init__()
         self.branches = branches
         self.encoders = nn.ModuleList(Encoder(sum(channels[m] for m in b), widths, dropout) for b in branches)
@@ -64,7 +73,8 @@ class ChiNet(nn.Module):
         skip_channels = [n * w for w in widths]
         outputs = {name: 1 for name in MULTILABEL} if multilabel else {"semantic": 3}
         self.decoders = nn.ModuleDict(
-            {name: Decoder(skip_channels[-1], skip_channels, widths, c, dropout) for name, c in outputs.items()})
+            {name: Decoder(skip_channels[-1], skip_channels, widths, c, dropout) for name, c in outputs.items()}
+        )
 
     def forward(self, inputs: dict[str, Tensor]) -> dict[str, Tensor]:
         feats = [enc(torch.cat([inputs[m] for m in b], 1)) for enc, b in zip(self.encoders, self.branches)]
@@ -76,8 +86,9 @@ class FuseNet(nn.Module):
     """FuseNet as ChiNet Table I describes it: depth features summed into the intensity encoder after every
     level (Hazirbas et al.), one multiclass decoder without encoder skips."""
 
-    def __init__(self, intensity: str, depth: str, channels: dict[str, int], widths: list[int],
-                 dropout: float = 0.2) -> None:
+    def __init__(
+        self, intensity: str, depth: str, channels: dict[str, int], widths: list[int], dropout: float = 0.2
+    ) -> None:
         super().__init__()
         self.intensity, self.depth = intensity, depth
         ins = widths[:-1]
@@ -113,6 +124,11 @@ def build(variant: str, modalities: dict[str, int], widths: list[int], dropout: 
     intensity, depth = names[0], names[-1]
     if variant == "fusenet":
         return FuseNet(intensity, depth, channels, widths, dropout)
-    branches = {"chinet": [[intensity], [depth]], "simo": [[intensity, depth]], "miso": [[intensity], [depth]],
-                "iimo": [[intensity]], "unet": [[intensity, depth]]}[variant]
+    branches = {
+        "chinet": [[intensity], [depth]],
+        "simo": [[intensity, depth]],
+        "miso": [[intensity], [depth]],
+        "iimo": [[intensity]],
+        "unet": [[intensity, depth]],
+    }[variant]
     return ChiNet(branches, channels, widths, multilabel=variant in ("chinet", "simo", "iimo"), dropout=dropout)

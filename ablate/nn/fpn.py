@@ -1,4 +1,5 @@
 """YOLACT-style feature pyramid (Lin et al. FPN as used by YOLACT, Bolya et al. 2019): C3-C5 -> P3-P7."""
+
 from __future__ import annotations
 
 import torch.nn.functional as F
@@ -16,8 +17,10 @@ class FPN(nn.Module):
     def __init__(self, in_channels: list[int], out_channels: int = 256, num_downsample: int = 2) -> None:
         super().__init__()
         if len(in_channels) < 1 or out_channels < 1 or num_downsample < 0:
-            raise ValueError(f"FPN needs in_channels (one per input level), out_channels >= 1, num_downsample >= 0; "
-                             f"got {in_channels}, {out_channels}, {num_downsample}")
+            raise ValueError(
+                f"FPN needs in_channels (one per input level), out_channels >= 1, num_downsample >= 0; "
+                f"got {in_channels}, {out_channels}, {num_downsample}"
+            )
         self.in_channels, self.out_channels = list(in_channels), out_channels
         self.lateral = nn.ModuleList(nn.Conv2d(c, out_channels, 1) for c in in_channels)
         self.pred = nn.ModuleList(nn.Conv2d(out_channels, out_channels, 3, padding=1) for _ in in_channels)
@@ -26,8 +29,9 @@ class FPN(nn.Module):
 
     def forward(self, features: list[Tensor]) -> list[Tensor]:
         if len(features) != len(self.lateral) or any(f.shape[1] != c for f, c in zip(features, self.in_channels)):
-            raise ValueError(f"FPN built for inputs with channels {self.in_channels}, "
-                             f"got {[tuple(f.shape) for f in features]}")
+            raise ValueError(
+                f"FPN built for inputs with channels {self.in_channels}, got {[tuple(f.shape) for f in features]}"
+            )
         outs: list[Tensor] = [None] * len(features)  # type: ignore[list-item]
         x = None
         for j in range(len(features) - 1, -1, -1):

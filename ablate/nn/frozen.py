@@ -1,5 +1,6 @@
 """Frozen parts of a model: their weights fixed and their BatchNorm statistics too (SMoE §4.3: the fusion network
 is fine-tuned "with fixed weights of each expert network"; BiFNet §V-B trains its two networks separately first)."""
+
 from __future__ import annotations
 
 from torch import nn

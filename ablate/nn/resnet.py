@@ -3,6 +3,7 @@
 Parameter names follow torchvision's ResNet (``conv1``, ``bn1``, ``layer1.0.conv1``, ``...downsample.0``), so a
 torchvision ImageNet state dict saved to a local file loads at width 1.0 (its ``fc.`` keys are ignored).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -80,13 +81,16 @@ class ResNet(nn.Module):
     ``weights.adapt_first_conv``.
     """
 
-    def __init__(self, depth: int = 18, width: float = 1.0, in_channels: int = 3,
-                 weights: str | Path | None = None) -> None:
+    def __init__(
+        self, depth: int = 18, width: float = 1.0, in_channels: int = 3, weights: str | Path | None = None
+    ) -> None:
         super().__init__()
         if depth not in DEPTHS:
             raise ValueError(f"unknown ResNet depth {depth}; valid: {sorted(DEPTHS)}")
         if width <= 0 or in_channels < 1:
-            raise ValueError(f"ResNet needs width > 0 and in_channels >= 1, got width={width}, in_channels={in_channels}")
+            raise ValueError(
+                f"ResNet needs width > 0 and in_channels >= 1, got width={width}, in_channels={in_channels}"
+            )
         block, counts = DEPTHS[depth]
         self.depth, self.width, self.in_channels = depth, width, in_channels
         widths = [max(1, round(w * width)) for w in (64, 128, 256, 512)]

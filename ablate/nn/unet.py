@@ -1,4 +1,5 @@
 """U-Net building blocks (Ronneberger et al.), used by the ChiNet family (John et al.)."""
+
 from __future__ import annotations
 
 import torch
@@ -33,7 +34,9 @@ class Encoder(nn.Module):
         if not widths:
             raise ValueError("Encoder needs at least one width")
         self.channels: list[int] = list(widths)
-        self.blocks = nn.ModuleList(ConvBlock(c, w, dropout) for c, w in zip([in_ch] + self.channels[:-1], self.channels))
+        self.blocks = nn.ModuleList(
+            ConvBlock(c, w, dropout) for c, w in zip([in_ch] + self.channels[:-1], self.channels)
+        )
         self.pool = nn.MaxPool2d(2)
 
     def forward(self, x: Tensor) -> list[Tensor]:

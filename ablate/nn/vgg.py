@@ -9,6 +9,7 @@ Detectors from Scratch", CVPR 2019, §3: BatchNorm in the backbone and the head 
 smoother and lets the detector train from random weights with a larger learning rate). ``features`` then has
 torchvision's ``vgg16_bn`` layout (conv, BN, ReLU), so its state dict loads the same way.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -22,8 +23,16 @@ from ablate.nn.weights import WeightsError, adapt_first_conv, load_checked, read
 VGG16 = [64, 64, "M", 128, 128, "M", 256, 256, 256, "C", 512, 512, 512, "M", 512, 512, 512]
 CONV4_3 = 10  # conv4_3 is the 10th conv of VGG16
 # SSD300 extras: (out, kernel, stride, padding), pairs conv8_1/8_2 .. conv11_1/11_2
-EXTRAS = [(256, 1, 1, 0), (512, 3, 2, 1), (128, 1, 1, 0), (256, 3, 2, 1),
-          (128, 1, 1, 0), (256, 3, 1, 0), (128, 1, 1, 0), (256, 3, 1, 0)]
+EXTRAS = [
+    (256, 1, 1, 0),
+    (512, 3, 2, 1),
+    (128, 1, 1, 0),
+    (256, 3, 2, 1),
+    (128, 1, 1, 0),
+    (256, 3, 1, 0),
+    (128, 1, 1, 0),
+    (256, 3, 1, 0),
+]
 
 
 class BatchNorm2d(nn.BatchNorm2d):
@@ -33,8 +42,9 @@ class BatchNorm2d(nn.BatchNorm2d):
 
     def forward(self, x: Tensor) -> Tensor:
         if self.training and x.shape[0] * x.shape[2] * x.shape[3] == 1:
-            return nn.functional.batch_norm(x, self.running_mean, self.running_var, self.weight, self.bias, False,
-                                            0.0, self.eps)
+            return nn.functional.batch_norm(
+                x, self.running_mean, self.running_var, self.weight, self.bias, False, 0.0, self.eps
+            )
         return super().forward(x)
 
 
@@ -61,11 +71,14 @@ class VGG16SSD(nn.Module):
     ``batch_norm``: a BatchNorm after every conv (ScratchDet; see the module docstring).
     """
 
-    def __init__(self, in_channels: int = 3, width: float = 1.0, weights: str | Path | None = None,
-                 batch_norm: bool = False) -> None:
+    def __init__(
+        self, in_channels: int = 3, width: float = 1.0, weights: str | Path | None = None, batch_norm: bool = False
+    ) -> None:
         super().__init__()
         if width <= 0 or in_channels < 1:
-            raise ValueError(f"VGG16SSD needs width > 0 and in_channels >= 1, got width={width}, in_channels={in_channels}")
+            raise ValueError(
+                f"VGG16SSD needs width > 0 and in_channels >= 1, got width={width}, in_channels={in_channels}"
+            )
         self.in_channels, self.width, self.batch_norm = in_channels, width, batch_norm
         s = lambda c: max(1, round(c * width))  # noqa: E731
         norm = (lambda c: BatchNorm2d(c)) if batch_norm else (lambda c: nn.Identity())  # noqa: E731
@@ -75,8 +88,11 @@ class VGG16SSD(nn.Module):
             if v in ("M", "C"):
                 layers.append(nn.MaxPool2d(2, 2, ceil_mode=v == "C"))
             else:
-                layers += [nn.Conv2d(ch, s(v), 3, padding=1)] + ([BatchNorm2d(s(v))] if batch_norm else []) \
+                layers += (
+                    [nn.Conv2d(ch, s(v), 3, padding=1)]
+                    + ([BatchNorm2d(s(v))] if batch_norm else [])
                     + [nn.ReLU(inplace=True)]
+                )
                 ch, convs = s(v), convs + 1
                 if convs == CONV4_3:
                     self.conv4_3 = len(layers) - 1  # its ReLU's index: 22 as in vgg16().features, 32 in vgg16_bn()
@@ -106,7 +122,7 @@ class VGG16SSD(nn.Module):
         full = any(k.startswith("conv6.") for k in state)
         target = self if full else self.features
         if not full:
-            state = {k[len("features."):]: v for k, v in state.items() if k.startswith("features.")}
+            state = {k[len("features.") :]: v for k, v in state.items() if k.startswith("features.")}
         try:
             load_checked(target, state, path)
         except WeightsError as err:
@@ -117,13 +133,15 @@ class VGG16SSD(nn.Module):
             raise ValueError(f"VGG16SSD built for [B,{self.in_channels},H,W] input, got {tuple(x.shape)}")
         x = self.features[: self.conv4_3 + 1](x)
         outs = [self.l2norm(x)]
-        x = self.features[self.conv4_3 + 1:](x)
+        x = self.features[self.conv4_3 + 1 :](x)
         x = torch.relu(self.bn7(self.conv7(torch.relu(self.bn6(self.conv6(self.pool5(x)))))))
         outs.append(x)
         for i, (conv, bn) in enumerate(zip(self.extras, self.extras_bn)):
             if conv.padding == (0, 0) and min(x.shape[-2:]) < conv.kernel_size[0]:
-                raise ValueError(f"input {tuple(outs[0].shape[-2:])} at conv4_3 is too small for the SSD300 extras: "
-                                 f"{tuple(x.shape[-2:])} before an unpadded 3x3 conv; use inputs of ~260 px or more")
+                raise ValueError(
+                    f"input {tuple(outs[0].shape[-2:])} at conv4_3 is too small for the SSD300 extras: "
+                    f"{tuple(x.shape[-2:])} before an unpadded 3x3 conv; use inputs of ~260 px or more"
+                )
             x = torch.relu(bn(conv(x)))
             if i % 2 == 1:
                 outs.append(x)

@@ -1,4 +1,5 @@
 """Load network weights from a local file only (``torch.load(..., weights_only=True)``); nothing is downloaded."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -42,14 +43,20 @@ def load_checked(module: nn.Module, state: dict[str, torch.Tensor], path: str | 
     """``module.load_state_dict(state)`` with one ``WeightsError`` naming ``path`` on any mismatch."""
     own = module.state_dict()
     missing, unexpected = sorted(set(own) - set(state)), sorted(set(state) - set(own))
-    shapes = [f"{k}: file {tuple(state[k].shape)} vs network {tuple(own[k].shape)}"
-              for k in sorted(set(own) & set(state)) if tuple(state[k].shape) != tuple(own[k].shape)]
+    shapes = [
+        f"{k}: file {tuple(state[k].shape)} vs network {tuple(own[k].shape)}"
+        for k in sorted(set(own) & set(state))
+        if tuple(state[k].shape) != tuple(own[k].shape)
+    ]
     if missing or unexpected or shapes:
-        parts = [f"missing {missing[:5]}{' ...' if len(missing) > 5 else ''}" if missing else "",
-                 f"unexpected {unexpected[:5]}{' ...' if len(unexpected) > 5 else ''}" if unexpected else "",
-                 f"shape mismatch {shapes[:3]}{' ...' if len(shapes) > 3 else ''}" if shapes else ""]
-        raise WeightsError(f"weights file {path} does not fit {type(module).__name__}: "
-                           + "; ".join(p for p in parts if p))
+        parts = [
+            f"missing {missing[:5]}{' ...' if len(missing) > 5 else ''}" if missing else "",
+            f"unexpected {unexpected[:5]}{' ...' if len(unexpected) > 5 else ''}" if unexpected else "",
+            f"shape mismatch {shapes[:3]}{' ...' if len(shapes) > 3 else ''}" if shapes else "",
+        ]
+        raise WeightsError(
+            f"weights file {path} does not fit {type(module).__name__}: " + "; ".join(p for p in parts if p)
+        )
     module.load_state_dict(state)
 
 

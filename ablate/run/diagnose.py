@@ -28,6 +28,7 @@ Writes ``results/<table>_diagnosis.md`` and ``.png``, and two figures of seed 0:
 maps of the table's last gated row on a night and a glare frame). Needs the table's checkpoints (``checkpoints/``,
 kept by ``python -m ablate -m experiment=...``): a missing one is named with the command that makes it.
 """
+
 from __future__ import annotations
 
 import sys
@@ -49,9 +50,9 @@ from ablate.config import compose  # noqa: E402
 from ablate.data.difficulty import counted  # noqa: E402
 from ablate.metrics.coco import MaskAP  # noqa: E402
 from ablate.run.experts import EXPERTS_TABLE, expert_config, load_model  # noqa: E402
+from ablate.store import Tracker, config_hash, retry  # noqa: E402
 from ablate.tasks.yolact.figures import draw_rows  # noqa: E402
 from ablate.tasks.yolact.task import CONDITION_GROUPS, condition_group  # noqa: E402
-from ablate.store import Tracker, config_hash, retry  # noqa: E402
 
 IOU = 0.5
 
@@ -71,9 +72,11 @@ def checkpoint(cfg: DictConfig, table: str, row: str = "?") -> Path:
         found = sorted(Path("checkpoints").glob(f"*/{chash}/best.ckpt"))
     found = [p for p in found if p.exists()]
     if not found:
-        raise MissingCheckpoint(f"no checkpoint for row {row} seed {cfg.seed} (config {chash}) "
-                                f"under {Path('checkpoints').resolve()}: run `python -m ablate -m experiment={table}` "
-                                "with the same overrides first")
+        raise MissingCheckpoint(
+            f"no checkpoint for row {row} seed {cfg.seed} (config {chash}) "
+            f"under {Path('checkpoints').resolve()}: run `python -m ablate -m experiment={table}` "
+            "with the same overrides first"
+        )
     return found[0]
 
 
@@ -105,6 +108,7 @@ class Evaluation:
     point x modality the mean gate, the frame with the most objects of each condition group (image, target,
     prediction) and the first batch holding a night and a glare frame, or else the first batch (for the gate
     figure)."""
+
     objects: pd.DataFrame
     gates: pd.DataFrame
     showcase: dict = field(default_factory=dict)
@@ -115,8 +119,9 @@ class Evaluation:
 def evaluate(cfg: DictConfig, ckpt: Path, datamodule) -> Evaluation:
     model = load_model(cfg, ckpt).eval()
     task = instantiate(cfg.task, model=model)
-    ops = [op for op in (model.fusion_modules() if hasattr(model, "fusion_modules") else [])
-           if hasattr(op, "last_gates")]
+    ops = [
+        op for op in (model.fusion_modules() if hasattr(model, "fusion_modules") else []) if hasattr(op, "last_gates")
+    ]
     names = list(model.modalities)
     objects, gates, image, showcase, gate_batch = [], [], 0, {}, None
     with torch.no_grad():
@@ -126,18 +131,29 @@ def evaluate(cfg: DictConfig, ckpt: Path, datamodule) -> Evaluation:
             size = task.image_size(batch)
             preds = task.predict(outputs, size)
             conditions = batch.get("condition") or ["?"] * len(preds)
-            if gate_batch is None or (not {"night", "glare"} <= set(gate_batch["condition"] or [])
-                                      and {"night", "glare"} <= set(conditions)):
+            if gate_batch is None or (
+                not {"night", "glare"} <= set(gate_batch["condition"] or []) and {"night", "glare"} <= set(conditions)
+            ):
                 gate_batch = batch  # the first holding a night and a glare frame, else the first
             for b, (pred, target) in enumerate(zip(preds, task.targets(batch))):
                 group = condition_group(conditions[b]) or conditions[b]
                 is_counted, found = found_objects(pred, target, size[0])
-                objects += [{"image": image + b, "object": i, "group": group, "found": bool(f)}
-                            for i, (c, f) in enumerate(zip(is_counted, found)) if c]
+                objects += [
+                    {"image": image + b, "object": i, "group": group, "found": bool(f)}
+                    for i, (c, f) in enumerate(zip(is_counted, found))
+                    if c
+                ]
                 for level, op in enumerate(ops):
                     for m, gate in zip(names, op.last_gates or []):
-                        gates.append({"image": image + b, "group": group, "point": level, "modality": m,
-                                      "gate": float(gate[b].float().mean())})
+                        gates.append(
+                            {
+                                "image": image + b,
+                                "group": group,
+                                "point": level,
+                                "modality": m,
+                                "gate": float(gate[b].float().mean()),
+                            }
+                        )
                 if group not in showcase or len(target["labels"]) > len(showcase[group][1]["labels"]):
                     shown = batch["rgb"][b] if "rgb" in batch else inputs[names[0]][b]
                     showcase[group] = (shown, target, pred)  # the frame with the most objects of its group
@@ -151,8 +167,13 @@ def expert_curves(cfg: DictConfig, experts: dict[str, DictConfig]) -> pd.DataFra
     exp = retry(tracker.client.get_experiment_by_name, EXPERTS_TABLE)
     out = []
     for (seed, modality), ecfg in experts.items():
-        runs = [] if exp is None else tracker.runs(
-            exp.experiment_id, f"attributes.status = 'FINISHED' and tags.config_hash = '{config_hash(ecfg)}'")
+        runs = (
+            []
+            if exp is None
+            else tracker.runs(
+                exp.experiment_id, f"attributes.status = 'FINISHED' and tags.config_hash = '{config_hash(ecfg)}'"
+            )
+        )
         if runs:
             history = retry(tracker.client.get_metric_history, runs[0].info.run_id, "val/map")
             out += [{"seed": seed, "modality": modality, "step": h.step, "val_map": h.value} for h in history]
@@ -202,30 +223,41 @@ def diagnose(overrides: list[str], experts_only: bool = False) -> dict:
         datamodule.setup("test")
         ev = evaluate(cfg, ckpt, datamodule)
         if cfg.stage.name == "single":
-            conditions += [{"seed": seed, "modality": cfg.stage.modality, "condition": c, "map": v}
-                           for c, v in ap_per_condition(cfg, ckpt).items()]
+            conditions += [
+                {"seed": seed, "modality": cfg.stage.modality, "condition": c, "map": v}
+                for c, v in ap_per_condition(cfg, ckpt).items()
+            ]
         for frame, into in ((ev.objects, objects), (ev.gates, gates)):
             if len(frame):
-                into.append(frame.assign(seed=seed, row=spec.row, name=spec.get("name", spec.row),
-                                         modality_row=cfg.stage.get("modality")))
+                into.append(
+                    frame.assign(
+                        seed=seed, row=spec.row, name=spec.get("name", spec.row), modality_row=cfg.stage.get("modality")
+                    )
+                )
         if seed == 0:
             showcase[spec.get("name", spec.row)] = ev.showcase
             if len(ev.gates) and ev.gate_batch is not None:  # the last gated row of the table wins
                 if gate_figure is not None:
                     plt.close(gate_figure)
                 gate_figure = ev.task.gate_figure(ev.gate_batch)
-    return {"table": table, "objects": pd.concat(objects, ignore_index=True) if objects else pd.DataFrame(),
-            "gates": pd.concat(gates, ignore_index=True) if gates else pd.DataFrame(),
-            "curves": expert_curves(base, experts), "showcase": showcase, "gate_figure": gate_figure,
-            "conditions": pd.DataFrame(conditions, columns=["seed", "modality", "condition", "map"]),
-            "experts_only": experts_only}
+    return {
+        "table": table,
+        "objects": pd.concat(objects, ignore_index=True) if objects else pd.DataFrame(),
+        "gates": pd.concat(gates, ignore_index=True) if gates else pd.DataFrame(),
+        "curves": expert_curves(base, experts),
+        "showcase": showcase,
+        "gate_figure": gate_figure,
+        "conditions": pd.DataFrame(conditions, columns=["seed", "modality", "condition", "map"]),
+        "experts_only": experts_only,
+    }
 
 
 def recall_table(objects: pd.DataFrame) -> pd.DataFrame:
     """Recall in percent per (row or expert union) x condition group, mean and std over seeds; rows in the
     order they first appear in ``objects`` (the table's)."""
-    found = objects.pivot_table(index=["seed", "group", "image", "object"], columns="row", values="found",
-                                aggfunc="first")[list(objects["row"].unique())]
+    found = objects.pivot_table(
+        index=["seed", "group", "image", "object"], columns="row", values="found", aggfunc="first"
+    )[list(objects["row"].unique())]
     single = objects.drop_duplicates("row").set_index("row")["modality_row"].dropna().to_dict()
     by_modality = {m: r for r, m in single.items()}
     if {"rgb", "ddm_jet"} <= set(by_modality):
@@ -254,10 +286,15 @@ def gate_table(gates: pd.DataFrame) -> pd.DataFrame:
 
 
 #: The data checks (issue: data where each sensor sees what the other misses): name -> threshold.
-CHECKS = {"RGB AP in clear weather / DDM AP in clear weather": 0.6, "found by RGB only (%)": 10.0,
-          "found by DDM only (%)": 10.0, "union minus the better expert (recall points)": 10.0,
-          "RGB AP drop at night (%)": 20.0, "RGB AP drop in glare (%)": 20.0,
-          "DDM AP change at night or in glare (%, at most)": 10.0}
+CHECKS = {
+    "RGB AP in clear weather / DDM AP in clear weather": 0.6,
+    "found by RGB only (%)": 10.0,
+    "found by DDM only (%)": 10.0,
+    "union minus the better expert (recall points)": 10.0,
+    "RGB AP drop at night (%)": 20.0,
+    "RGB AP drop in glare (%)": 20.0,
+    "DDM AP change at night or in glare (%, at most)": 10.0,
+}
 
 
 def checks(result: dict) -> pd.DataFrame:
@@ -270,13 +307,24 @@ def checks(result: dict) -> pd.DataFrame:
         return pd.DataFrame(columns=["check", "value", "threshold", "passes"])
     rgb, ddm = ap["rgb"], ap["ddm_jet"]
     overall = rec.loc["all"]
-    values = [rgb["clear"] / ddm["clear"], overall[("RGB only", "mean")], overall[("DDM only", "mean")],
-              overall[("RGB ∪ DDM", "mean")] - max(overall[(row["rgb"], "mean")], overall[(row["ddm_jet"], "mean")]),
-              100 * (1 - rgb["night"] / rgb["clear"]), 100 * (1 - rgb["glare"] / rgb["clear"]),
-              100 * max(abs(ddm["night"] / ddm["clear"] - 1), abs(ddm["glare"] / ddm["clear"] - 1))]
+    values = [
+        rgb["clear"] / ddm["clear"],
+        overall[("RGB only", "mean")],
+        overall[("DDM only", "mean")],
+        overall[("RGB ∪ DDM", "mean")] - max(overall[(row["rgb"], "mean")], overall[(row["ddm_jet"], "mean")]),
+        100 * (1 - rgb["night"] / rgb["clear"]),
+        100 * (1 - rgb["glare"] / rgb["clear"]),
+        100 * max(abs(ddm["night"] / ddm["clear"] - 1), abs(ddm["glare"] / ddm["clear"] - 1)),
+    ]
     at_most = [name.endswith("at most)") for name in CHECKS]
-    return pd.DataFrame({"check": list(CHECKS), "value": values, "threshold": list(CHECKS.values()),
-                         "passes": [v <= t if m else v >= t for v, t, m in zip(values, CHECKS.values(), at_most)]})
+    return pd.DataFrame(
+        {
+            "check": list(CHECKS),
+            "value": values,
+            "threshold": list(CHECKS.values()),
+            "passes": [v <= t if m else v >= t for v, t, m in zip(values, CHECKS.values(), at_most)],
+        }
+    )
 
 
 def conditions_markdown(result: dict) -> list[str]:
@@ -286,17 +334,30 @@ def conditions_markdown(result: dict) -> list[str]:
         return []
     stats = cond.groupby(["modality", "condition"])["map"].agg(["mean", "std"])
     order = list(dict.fromkeys(cond["condition"]))
-    table = pd.DataFrame({c: [f"{stats.loc[(m, c), 'mean']:.2f} ± {stats.loc[(m, c), 'std']:.2f}"
-                              if (m, c) in stats.index else "" for m in cond["modality"].unique()] for c in order},
-                         index=cond["modality"].unique())
+    table = pd.DataFrame(
+        {
+            c: [
+                f"{stats.loc[(m, c), 'mean']:.2f} ± {stats.loc[(m, c), 'std']:.2f}" if (m, c) in stats.index else ""
+                for m in cond["modality"].unique()
+            ]
+            for c in order
+        },
+        index=cond["modality"].unique(),
+    )
     chk = checks(result)
     chk["value"] = [f"{v:.2f}" for v in chk["value"]]
     chk["passes"] = ["yes" if p else "**no**" for p in chk["passes"]]
-    return ["", "Experts' mask AP (%) on the whole test split under each condition (the same frames in every "
-            f"column), mean ± std over {cond['seed'].nunique()} seed(s):", "",
-            table.reset_index(names="expert").to_markdown(index=False, disable_numparse=True), "",
-            "Checks of the data on the experts alone (means over seeds; drops are relative to clear weather):", "",
-            chk.to_markdown(index=False, disable_numparse=True)]
+    return [
+        "",
+        "Experts' mask AP (%) on the whole test split under each condition (the same frames in every "
+        f"column), mean ± std over {cond['seed'].nunique()} seed(s):",
+        "",
+        table.reset_index(names="expert").to_markdown(index=False, disable_numparse=True),
+        "",
+        "Checks of the data on the experts alone (means over seeds; drops are relative to clear weather):",
+        "",
+        chk.to_markdown(index=False, disable_numparse=True),
+    ]
 
 
 def to_markdown(result: dict) -> str:
@@ -310,33 +371,56 @@ def to_markdown(result: dict) -> str:
         out[names.get(c, c)] = [f"{m:.1f}" + ("" if np.isnan(s) else f" ± {s:.1f}") for m, s in zip(mean, std)]
     seeds = objects["seed"].nunique()
     heading = "Data check on the experts of" if result.get("experts_only") else "Diagnosis of"
-    lines = [f"# {heading} {table.title}", "",
-             f"Recall (%) of the counted test objects (mask IoU >= {IOU} with a detection of their class, among all "
-             f"detections the AP sees), mean ± std over {seeds} seed(s). *RGB ∪ DDM*: found by either expert; "
-             "*RGB only*: found by the RGB expert and missed by the DDM expert, the most a fusion of the two "
-             "experts could add to the DDM expert's recall without learning anything new.", "",
-             out.to_markdown(index=False, disable_numparse=True)] + conditions_markdown(result)
+    lines = [
+        f"# {heading} {table.title}",
+        "",
+        f"Recall (%) of the counted test objects (mask IoU >= {IOU} with a detection of their class, among all "
+        f"detections the AP sees), mean ± std over {seeds} seed(s). *RGB ∪ DDM*: found by either expert; "
+        "*RGB only*: found by the RGB expert and missed by the DDM expert, the most a fusion of the two "
+        "experts could add to the DDM expert's recall without learning anything new.",
+        "",
+        out.to_markdown(index=False, disable_numparse=True),
+    ] + conditions_markdown(result)
     gates = result["gates"]
     if len(gates) and "rgb" in set(gates["modality"]):
         gates = gates[gates["modality"] == "rgb"]
     gates = gate_table(gates)
     if len(gates):
         g = gates.reset_index()
-        g["point"] = [f"P{3 + p}" if len(gates.index.get_level_values('point').unique()) == 5 else str(p)
-                      for p in g["point"]]
+        g["point"] = [
+            f"P{3 + p}" if len(gates.index.get_level_values("point").unique()) == 5 else str(p) for p in g["point"]
+        ]
         g = g.rename(columns={"name": "row", "point": "fusion point"})
-        lines += ["", "Mean gate weight on RGB (channels, positions, images and seeds averaged; the MoE operators "
-                  "weight DDM by 1 minus it), per fusion point and condition.", "",
-                  g.to_markdown(index=False, floatfmt=".3f")]
+        lines += [
+            "",
+            "Mean gate weight on RGB (channels, positions, images and seeds averaged; the MoE operators "
+            "weight DDM by 1 minus it), per fusion point and condition.",
+            "",
+            g.to_markdown(index=False, floatfmt=".3f"),
+        ]
     curves = result["curves"]
     if len(curves):
-        last = curves.sort_values("step").groupby(["modality", "seed"]).agg(
-            first=("val_map", "first"), best=("val_map", "max"), last=("val_map", "last"),
-            epochs=("val_map", "size"))
-        lines += ["", "Experts' validation mask AP (%) over their epochs (first, best, last):", "",
-                  last.reset_index().to_markdown(index=False, floatfmt=".2f")]
-    lines += ["", "Regenerated by `python -m ablate.diagnose` from the checkpoints and MLflow runs; "
-              "do not edit by hand.", ""]
+        last = (
+            curves.sort_values("step")
+            .groupby(["modality", "seed"])
+            .agg(
+                first=("val_map", "first"),
+                best=("val_map", "max"),
+                last=("val_map", "last"),
+                epochs=("val_map", "size"),
+            )
+        )
+        lines += [
+            "",
+            "Experts' validation mask AP (%) over their epochs (first, best, last):",
+            "",
+            last.reset_index().to_markdown(index=False, floatfmt=".2f"),
+        ]
+    lines += [
+        "",
+        "Regenerated by `python -m ablate.diagnose` from the checkpoints and MLflow runs; do not edit by hand.",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -349,8 +433,14 @@ def plot(result: dict):
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), gridspec_kw={"width_ratios": [2.2, 1, 1]})
     x, width = np.arange(len(rec)), 0.8 / max(len(cols), 1)
     for k, c in enumerate(cols):
-        axes[0].bar(x + (k - (len(cols) - 1) / 2) * width, rec[(c, "mean")], width,
-                    yerr=rec[(c, "std")].fillna(0), capsize=2, label=names.get(c, c))
+        axes[0].bar(
+            x + (k - (len(cols) - 1) / 2) * width,
+            rec[(c, "mean")],
+            width,
+            yerr=rec[(c, "std")].fillna(0),
+            capsize=2,
+            label=names.get(c, c),
+        )
     axes[0].set_xticks(x, rec.index)
     axes[0].set_ylabel(f"recall % (mask IoU >= {IOU})")
     axes[0].legend(fontsize=7, ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.1))
@@ -360,7 +450,7 @@ def plot(result: dict):
         last = max(gates["row"].unique(), key=lambda r: order.index(r) if r in order else -1)
         rgb = gate_table(gates[(gates["row"] == last) & (gates["modality"] == "rgb")])
         points = rgb.index.get_level_values("point")
-        for (name, point, _), values in rgb.iterrows():
+        for (_name, point, _), values in rgb.iterrows():
             label = f"P{3 + point}" if points.nunique() == 5 else f"point {point}"
             axes[1].plot(values.index, values.values, marker="o", label=label)
         axes[1].axhline(0.5, color="grey", lw=0.8, ls="--")
@@ -368,8 +458,13 @@ def plot(result: dict):
         axes[1].legend(fontsize=6)
         axes[1].set_title(f"Gate on RGB: {names.get(last, last)}", fontsize=9)
     for (modality, seed), c in curves.groupby(["modality", "seed"]):
-        axes[2].plot(np.arange(1, len(c) + 1), c.sort_values("step")["val_map"], marker=".",
-                     color="C0" if modality == "rgb" else "C1", label=f"{modality} seed {seed}")
+        axes[2].plot(
+            np.arange(1, len(c) + 1),
+            c.sort_values("step")["val_map"],
+            marker=".",
+            color="C0" if modality == "rgb" else "C1",
+            label=f"{modality} seed {seed}",
+        )
     axes[2].set_xlabel("epoch")
     axes[2].set_ylabel("val mask AP %")
     axes[2].legend(fontsize=6)
@@ -418,4 +513,3 @@ def main(argv: list[str] | None = None) -> int:
         plt.close(fig)
         print(path)
     return 0
-

@@ -12,11 +12,13 @@ parts after the fusion point. Stage ``early`` has no per-modality part and train
 is itself an expert: it is tested from the expert's checkpoint and not trained again. With frozen experts, stage 2
 computes each frame's expert features once and reuses them (:class:`FeatureCache`, ``experts.cache_features``).
 """
+
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import torch
 from hydra.utils import instantiate
@@ -42,8 +44,13 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
         ecfg.fusion = None
         ecfg.experts = None
         ecfg.force = False
-        ecfg.table = {"name": EXPERTS_TABLE, "title": "Single-modal experts", "primary": None, "metrics": None,
-                      "rows": []}
+        ecfg.table = {
+            "name": EXPERTS_TABLE,
+            "title": "Single-modal experts",
+            "primary": None,
+            "metrics": None,
+            "rows": [],
+        }
     return ecfg
 
 
@@ -72,7 +79,7 @@ def load_model(cfg: DictConfig, checkpoint: Path) -> torch.nn.Module:
     """The model of ``cfg`` with the weights of a task checkpoint (keys ``model.*``)."""
     model = instantiate(cfg.model)
     state = torch.load(checkpoint, map_location="cpu", weights_only=True)["state_dict"]
-    model.load_state_dict({k[len("model."):]: v for k, v in state.items() if k.startswith("model.")})
+    model.load_state_dict({k[len("model.") :]: v for k, v in state.items() if k.startswith("model.")})
     return model
 
 
@@ -90,8 +97,9 @@ def prepare(cfg: DictConfig, run: RunJob) -> dict[str, tuple[Path, str]]:
     return {m: ensure_expert(cfg, m, run) for m in needed(cfg)}
 
 
-def attach(cfg: DictConfig, model: torch.nn.Module, experts: dict[str, tuple[Path, str]], tracker: Tracker,
-           run_id: str) -> str | None:
+def attach(
+    cfg: DictConfig, model: torch.nn.Module, experts: dict[str, tuple[Path, str]], tracker: Tracker, run_id: str
+) -> str | None:
     """Stage 2: load the experts into ``model``. Returns the checkpoint to test from when the job is itself an
     expert (stage single), else None (the caller trains the fusion network)."""
     tracker.set_tags(run_id, {f"expert_{m}": expert_run for m, (_, expert_run) in experts.items()})

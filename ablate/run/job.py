@@ -7,6 +7,7 @@ killed is recorded FAILED or KILLED and runs again next time, resuming from its 
 A job runs in the launch directory, whichever process runs it, so that its relative paths (``checkpoints/``,
 ``data/``, the SQLite store, the artifact root) are the ones the sweep was launched with.
 """
+
 from __future__ import annotations
 
 import logging
@@ -18,10 +19,10 @@ import socket
 import sys
 import traceback
 import warnings
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import lightning as L
 import torch
@@ -32,11 +33,23 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException, ValidationError
 
 from ablate import hardware
+from ablate.run import fingerprint
 from ablate.run.experts import attach as attach_experts
 from ablate.run.experts import feature_cache
 from ablate.run.experts import prepare as prepare_experts
-from ablate.store import (KIND_JOB, RunLogger, Tracker, config_hash, flatten, launch_dir, parent_run_id,
-                          provenance_tags, record_failure, swept_keys, sweep_dir)
+from ablate.store import (
+    KIND_JOB,
+    RunLogger,
+    Tracker,
+    config_hash,
+    flatten,
+    launch_dir,
+    parent_run_id,
+    provenance_tags,
+    record_failure,
+    sweep_dir,
+    swept_keys,
+)
 
 log = logging.getLogger(__name__)
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
@@ -83,8 +96,10 @@ def check_stage(cfg: DictConfig) -> None:
     reads = sorted(set(re.findall(r"stage\.(\w+)", model)) - {"name"})
     for option in cfg.get("stage") or {}:
         if option != "name" and option not in reads:
-            raise ValidationError(f"stage.{option}: not an option of model {cfg.model.get('_target_', '?')!r}, "
-                                  f"which reads stage.{{{', '.join(['name', *reads])}}}")
+            raise ValidationError(
+                f"stage.{option}: not an option of model {cfg.model.get('_target_', '?')!r}, "
+                f"which reads stage.{{{', '.join(['name', *reads])}}}"
+            )
 
 
 def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcome:
@@ -100,19 +115,39 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
     ckpt_dir = Path("checkpoints") / cfg.table.name / chash
     done = None if cfg.force else tracker.finished_run(exp, chash)
     if done is not None:
-        log.info("Skipping %s (seed %s): run %s with config hash %s is FINISHED (force=true reruns it)",
-                 row, cfg.seed, done.info.run_id, chash)
+        log.info(
+            "Skipping %s (seed %s): run %s with config hash %s is FINISHED (force=true reruns it)",
+            row,
+            cfg.seed,
+            done.info.run_id,
+            chash,
+        )
         return Outcome("SKIPPED", done.info.run_id, ckpt_dir)
     parent = parent_run_id() if kind == KIND_JOB else None
-    tags = {"kind": kind, "table": cfg.table.name, "row": row, "seed": str(cfg.seed),
-            "config_hash": chash, **provenance_tags(), "scale": cfg.scale.name, **hardware.tags(cfg)}
+    tags = {
+        "kind": kind,
+        "table": cfg.table.name,
+        "row": row,
+        "seed": str(cfg.seed),
+        "config_hash": chash,
+        **provenance_tags(),
+        "scale": cfg.scale.name,
+        **hardware.tags(cfg),
+    }
     if parent:
-        tags.update({"mlflow.parentRunId": parent, "sweep_id": parent})
+        tags.update({"mlflow.parentRunId": parent, "sweep_id": parent, "job_num": str(HydraConfig.get().job.num)})
     source = None if cfg.force or kind != KIND_JOB else tracker.finished_elsewhere(chash)
     if source is not None:
-        run_id = tracker.copy_run(source, exp, {k: v for k, v in tags.items() if k not in ("git_commit", "ablate_version", "launch_commit")})
-        log.info("Reusing %s (seed %s): the same config finished as run %s of another table; copied as %s",
-                 row, cfg.seed, source.info.run_id, run_id)
+        run_id = tracker.copy_run(
+            source, exp, {k: v for k, v in tags.items() if k not in ("git_commit", "ablate_version", "launch_commit")}
+        )
+        log.info(
+            "Reusing %s (seed %s): the same config finished as run %s of another table; copied as %s",
+            row,
+            cfg.seed,
+            source.info.run_id,
+            run_id,
+        )
         return Outcome("SKIPPED", run_id, Path("checkpoints") / source.data.tags.get("table", "") / chash)
     if stale := tracker.close_stale(exp, chash):
         log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, chash)
@@ -122,6 +157,7 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
     try:
         tracker.log_params(run_id, flatten(OmegaConf.to_container(cfg, resolve=True)))
         tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
+        record_fingerprint(cfg, tracker, run_id)
         metrics = fit_and_test(cfg, tracker, run_id, ckpt_dir)
     except KeyboardInterrupt:
         tracker.end(run_id, "KILLED")
@@ -134,9 +170,15 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
         log.error("%s %s (seed %s) FAILED: %s", kind, row, cfg.seed, message)
         raise JobFailed(message) from err
     tracker.end(run_id, "FINISHED")
-    log.info("FINISHED %s seed %s: %s", row, cfg.seed,
-             ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items())))
+    log.info("FINISHED %s seed %s: %s", row, cfg.seed, ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items())))
     return Outcome("FINISHED", run_id, ckpt_dir)
+
+
+def record_fingerprint(cfg: DictConfig, tracker: Tracker, run_id: str) -> None:
+    """Tag the run with its config's fingerprint (:mod:`ablate.run.fingerprint`) and the seconds it took."""
+    numbers, seconds = fingerprint.timed(cfg)
+    tracker.set_tags(run_id, {fingerprint.TAG: fingerprint.encode(numbers), "fingerprint_s": f"{seconds:.2f}"})
+    log.info("Fingerprint in %.1f s", seconds)
 
 
 def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path) -> dict[str, float]:
@@ -153,12 +195,15 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     datamodule = instantiate(cfg.data)
     model = instantiate(cfg.model)
     task = instantiate(cfg.task, model=model)
-    checkpoint = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor=task.monitor, mode="max",
-                                 save_last=True, save_top_k=1)
-    lightning_options = {k: v for k, v in OmegaConf.to_container(cfg.trainer, resolve=True).items()
-                         if k not in hardware.OPTIONS}
-    trainer = instantiate(lightning_options, logger=RunLogger(tracker, run_id), callbacks=[checkpoint],
-                          default_root_dir=str(ckpt_dir))
+    checkpoint = ModelCheckpoint(
+        dirpath=ckpt_dir, filename="best", monitor=task.monitor, mode="max", save_last=True, save_top_k=1
+    )
+    lightning_options = {
+        k: v for k, v in OmegaConf.to_container(cfg.trainer, resolve=True).items() if k not in hardware.OPTIONS
+    }
+    trainer = instantiate(
+        lightning_options, logger=RunLogger(tracker, run_id), callbacks=[checkpoint], default_root_dir=str(ckpt_dir)
+    )
     best = attach_experts(cfg, model, experts, tracker, run_id) if cfg.get("experts") else None
     if cfg.trainer.get("channels_last"):  # after the experts' weights are in
         model.to(memory_format=torch.channels_last)
@@ -174,8 +219,11 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
         task.feature_cache = feature_cache(cfg, model)
         trainer.fit(task, datamodule=datamodule, ckpt_path=str(last) if last.exists() else None)
         if task.feature_cache is not None:
-            log.info("Expert feature cache: %d frames, %.0f MiB", len(task.feature_cache.frames),
-                     task.feature_cache.nbytes / 2**20)
+            log.info(
+                "Expert feature cache: %d frames, %.0f MiB",
+                len(task.feature_cache.frames),
+                task.feature_cache.nbytes / 2**20,
+            )
             task.feature_cache = None  # testing runs the whole model, whatever its data
         best = checkpoint.best_model_path or None
     results = trainer.test(task, datamodule=datamodule, ckpt_path=best, verbose=False)[0]
@@ -183,8 +231,9 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     sample = next(iter(datamodule.test_dataloader()))
     metrics["params_m"] = sum(p.numel() for p in task.model.parameters()) / 1e6
     tracker.log_metrics(run_id, metrics, step=trainer.global_step)
-    tracker.set_tags(run_id, {"device": str(next(task.model.parameters()).device),
-                              "threads_used": str(torch.get_num_threads())})
+    tracker.set_tags(
+        run_id, {"device": str(next(task.model.parameters()).device), "threads_used": str(torch.get_num_threads())}
+    )
     tracker.set_tags(run_id, {"evaluator": task.evaluator} if getattr(task, "evaluator", None) else {})
     for method, name in (("figure", "predictions.png"), ("gate_figure", "gates.png")):
         figure = getattr(task, method, lambda _: None)(sample)
@@ -210,8 +259,10 @@ def in_launch_dir() -> Iterator[Path]:
         yield target
         return
     if not target.is_dir():
-        raise JobFailed(f"the launch directory {target} does not exist on {socket.gethostname()}: run the sweep "
-                        "from a directory every machine sees at the same path (a shared filesystem)")
+        raise JobFailed(
+            f"the launch directory {target} does not exist on {socket.gethostname()}: run the sweep "
+            "from a directory every machine sees at the same path (a shared filesystem)"
+        )
     os.chdir(target)
     try:
         yield target

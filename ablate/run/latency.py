@@ -17,6 +17,7 @@ Per row, every FINISHED run of the row (all seeds: one architecture, one figure)
 ``torch.utils.flop_counter.FlopCounterMode`` counts, i.e. convolutions and matrix products), and the tags
 ``latency_threads`` and ``latency_device``.
 """
+
 from __future__ import annotations
 
 import logging
@@ -34,6 +35,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from ablate import hardware
 from ablate.config import compose as compose_root
+from ablate.run import fingerprint
 from ablate.run.experts import expert_config, load_model
 from ablate.store import Tracker, retry
 from ablate.tables import collect, table_spec, write_table
@@ -41,15 +43,19 @@ from ablate.tables import collect, table_spec, write_table
 log = logging.getLogger(__name__)
 
 
-def interleaved(forwards: dict[str, Callable[[], object]], rounds: int, warmup: int = 3,
-                clock: Callable[[], float] = time.perf_counter, sync: Callable[[], None] = lambda: None
-                ) -> dict[str, list[float]]:
+def interleaved(
+    forwards: dict[str, Callable[[], object]],
+    rounds: int,
+    warmup: int = 3,
+    clock: Callable[[], float] = time.perf_counter,
+    sync: Callable[[], None] = lambda: None,
+) -> dict[str, list[float]]:
     """Times in ms of each of ``forwards`` over ``rounds`` rounds, round-robin, the order rotated each round so
     that no row always runs first (or right after the same neighbour); ``warmup`` untimed rounds first."""
     names = list(forwards)
     times: dict[str, list[float]] = {n: [] for n in names}
     for r in range(warmup + rounds):
-        for name in names[r % len(names):] + names[:r % len(names)]:
+        for name in names[r % len(names) :] + names[: r % len(names)]:
             sync()
             start = clock()
             forwards[name]()
@@ -116,8 +122,13 @@ def first_test_sample(cfg: DictConfig) -> dict:
     return {k: v[:1] for k, v in batch.items() if torch.is_tensor(v)}
 
 
-def measure(cfg: DictConfig, tracker: Tracker, compose: Callable[[list[str]], DictConfig],
-            overrides: list[str] = (), only_if_missing: bool = False) -> dict[str, dict[str, float]]:
+def measure(
+    cfg: DictConfig,
+    tracker: Tracker,
+    compose: Callable[[list[str]], DictConfig],
+    overrides: list[str] = (),
+    only_if_missing: bool = False,
+) -> dict[str, dict[str, float]]:
     """Time every row of ``cfg.table`` that has FINISHED runs, side by side, and log the figures to its runs.
     Returns {row: figures}. ``only_if_missing`` (a sweep's end): do nothing when every run already has its
     figures, so a sweep that trained nothing leaves the table as it was; else all rows are timed again together."""
@@ -127,8 +138,13 @@ def measure(cfg: DictConfig, tracker: Tracker, compose: Callable[[list[str]], Di
     if runs.empty:
         log.warning("Latency: no finished runs of table '%s'", table.name)
         return {}
-    device = torch.device("cuda" if torch.cuda.is_available() and opts.device == "auto" else
-                          "cpu" if opts.device == "auto" else opts.device)
+    device = torch.device(
+        "cuda"
+        if torch.cuda.is_available() and opts.device == "auto"
+        else "cpu"
+        if opts.device == "auto"
+        else opts.device
+    )
     torch.set_num_threads(int(opts.threads))
     order = [spec["row"] for spec in table.rows] or sorted(runs["row"].unique())
     forwards, figures, checkpoints = {}, {}, {}
@@ -146,8 +162,10 @@ def measure(cfg: DictConfig, tracker: Tracker, compose: Callable[[list[str]], Di
         sample = {k: v.to(device) for k, v in first_test_sample(rcfg).items()}
         log.info("Latency: %s from %s", row, ckpt or "initial weights (no checkpoint here)")
         checkpoints[row] = str(ckpt or "none")
-        figures[row] = {"params_m": sum(p.numel() for p in model.parameters()) / 1e6,
-                        "macs_g": macs(model, sample) / 1e9}
+        figures[row] = {
+            "params_m": sum(p.numel() for p in model.parameters()) / 1e6,
+            "macs_g": macs(model, sample) / 1e9,
+        }
         forwards[row] = (lambda m, s: lambda: m(s))(model, sample)
     load_start, cores = machine_load()
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
@@ -156,15 +174,30 @@ def measure(cfg: DictConfig, tracker: Tracker, compose: Callable[[list[str]], Di
     load_end, _ = machine_load()
     for row, ts in times.items():
         q1, med, q3 = quartiles(ts)
-        figures[row].update(latency_ms=med, latency_q1_ms=q1, latency_q3_ms=q3,
-                            latency_load=max(load_start, load_end), latency_cores=float(cores))
+        figures[row].update(
+            latency_ms=med,
+            latency_q1_ms=q1,
+            latency_q3_ms=q3,
+            latency_load=max(load_start, load_end),
+            latency_cores=float(cores),
+        )
         for run_id in runs.loc[runs["row"] == row, "run_id"]:
             tracker.log_metrics(run_id, figures[row])
-            tracker.set_tags(run_id, {"latency_threads": str(opts.threads), "latency_device": str(device),
-                                      "latency_checkpoint": checkpoints[row]})
+            tracker.set_tags(
+                run_id,
+                {
+                    "latency_threads": str(opts.threads),
+                    "latency_device": str(device),
+                    "latency_checkpoint": checkpoints[row],
+                },
+            )
     if max(load_start, load_end) > cores:
-        log.warning("Latency: load average %.1f / %.1f (start / end) exceeds the %d available cores",
-                    load_start, load_end, cores)
+        log.warning(
+            "Latency: load average %.1f / %.1f (start / end) exceeds the %d available cores",
+            load_start,
+            load_end,
+            cores,
+        )
     return figures
 
 
@@ -180,10 +213,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     figures = measure(cfg, tracker, compose_root, args)
     for row, f in figures.items():
-        print(f"{row:24s} {f['latency_ms']:9.2f} ms  [{f['latency_q1_ms']:.2f}, {f['latency_q3_ms']:.2f}]  "
-              f"{f['params_m']:.2f} M params  {f['macs_g']:.2f} GMACs")
-    for path in write_table(cfg, tracker):
+        print(
+            f"{row:24s} {f['latency_ms']:9.2f} ms  [{f['latency_q1_ms']:.2f}, {f['latency_q3_ms']:.2f}]  "
+            f"{f['params_m']:.2f} M params  {f['macs_g']:.2f} GMACs"
+        )
+    for path in write_table(cfg, tracker, fingerprint=fingerprint.compute):
         print(path)
     return 0
-
-

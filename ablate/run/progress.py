@@ -5,6 +5,7 @@ Hydra's basic sweeper does); every job, in whichever process runs it, appends it
 ``<sweep dir>/.progress`` under a file lock and logs one line such as
 ``Sweep progress: 4/9 jobs finished (1 skipped), 5 to go, ETA 11 min (2.2 min per trained job, 2 at a time)``.
 """
+
 from __future__ import annotations
 
 import json
@@ -66,8 +67,7 @@ def summary(records: list[dict], planned: int, parallel: int = 1) -> str:
     if left and trained:
         mean = sum(trained) / len(trained)
         eta = math.ceil(left / max(parallel, 1)) * mean
-        line += (f", {left} to go, ETA {_minutes(eta)} ({_minutes(mean)} per trained job, "
-                 f"{max(parallel, 1)} at a time)")
+        line += f", {left} to go, ETA {_minutes(eta)} ({_minutes(mean)} per trained job, {max(parallel, 1)} at a time)"
     elif left:
         line += f", {left} to go"
     return line

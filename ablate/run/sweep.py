@@ -4,6 +4,7 @@ It records the sweep's store and parent run in the sweep directory, where every 
 (:mod:`ablate.store.sweepdir`). A job that fails leaves a note in ``<sweep dir>/failures/``; the
 callback lists those notes at the end, marks the parent FAILED and exits with status 1 after the other jobs have run.
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -21,9 +22,9 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from ablate.run import progress
-from ablate.run.latency import measure
 from ablate.config import compose
+from ablate.run import fingerprint, progress
+from ablate.run.latency import measure
 from ablate.store import KIND_SWEEP, Tracker, is_server, provenance_tags, sweep_dir
 from ablate.store.sweepdir import FAILURES, PARENT_FILE, STORE_FILE, SWEPT_FILE
 from ablate.tables import COSTS, table_spec, write_table
@@ -37,7 +38,6 @@ log = logging.getLogger(__name__)
 # without it, so the warning tells a user nothing. This module is imported with the task function, before Hydra
 # composes (in the launching process and in every submitit job).
 warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/(ray|submitit_local)' is validated against ConfigStore")
-
 
 
 def close_dead_sweeps(tracker: Tracker, experiment_id: str) -> int:
@@ -90,8 +90,9 @@ def ray_driver_auth(config: DictConfig) -> bool:
     https://docs.ray.io/en/latest/ray-security/token-auth.html
     """
     target = str(OmegaConf.select(config, "hydra.launcher._target_", default="") or "")
-    if not target.startswith("hydra_plugins.hydra_ray_launcher") or \
-            not OmegaConf.select(config, "hydra.launcher.ray.init.address", default=None):
+    if not target.startswith("hydra_plugins.hydra_ray_launcher") or not OmegaConf.select(
+        config, "hydra.launcher.ray.init.address", default=None
+    ):
         return False
     try:
         from ray._private.authentication.authentication_token_setup import (
@@ -140,9 +141,19 @@ class SweepCallback(Callback):
         exp = tracker.experiment_id(config.table.name)
         close_dead_sweeps(tracker, exp)
         overrides = " ".join(config.hydra.overrides.task)
-        run_id = tracker.start(exp, f"sweep {time.strftime('%Y-%m-%d %H:%M:%S')}", {
-            "kind": KIND_SWEEP, "table": config.table.name, "overrides": overrides, **provenance_tags(),
-            "sweep_dir": str(sdir), "host": socket.gethostname(), "pid": str(os.getpid())})
+        run_id = tracker.start(
+            exp,
+            f"sweep {time.strftime('%Y-%m-%d %H:%M:%S')}",
+            {
+                "kind": KIND_SWEEP,
+                "table": config.table.name,
+                "overrides": overrides,
+                **provenance_tags(),
+                "sweep_dir": str(sdir),
+                "host": socket.gethostname(),
+                "pid": str(os.getpid()),
+            },
+        )
         (sdir / PARENT_FILE).write_text(run_id)
         parsed = OverridesParser.create().parse_overrides(list(config.hydra.overrides.task))
         (sdir / SWEPT_FILE).write_text(" ".join(o.get_key_element() for o in parsed if o.is_sweep_override()))
@@ -176,7 +187,7 @@ class SweepCallback(Callback):
             except Exception as err:  # the table is written all the same, its latency column empty
                 log.error("Could not time the rows side by side (python -m ablate.latency): %s", err)
         try:
-            paths = write_table(config, tracker, parent_run=parent)
+            paths = write_table(config, tracker, parent_run=parent, fingerprint=fingerprint.compute)
             log.info("Table written: %s", ", ".join(str(p) for p in paths))
         except Exception as err:  # a table that cannot be written must not hide the jobs' own outcome
             log.error("Could not write the table '%s': %s", config.table.name, err)

@@ -6,12 +6,51 @@
 - :mod:`~ablate.store.identity`: the config hash, params, the launch directory and the code's version;
 - :mod:`~ablate.store.sweepdir`: the store and parent run a running multirun recorded in its sweep directory.
 """
-from ablate.store.identity import (UNHASHED, code_version, config_hash, flatten, git_commit, launch_dir,
-                                   provenance_tags, resolve_path)
-from ablate.store.sweepdir import parent_run_id, record_failure, sweep_dir, sweep_store, swept_keys
-from ablate.store.tracker import (KIND_JOB, KIND_SWEEP, RunLogger, Tracker, file_lock, is_server, retry,
-                                  runs_link, tracking_uri)
 
-__all__ = ["KIND_JOB", "KIND_SWEEP", "UNHASHED", "RunLogger", "Tracker", "code_version", "config_hash", "file_lock",
-           "flatten", "git_commit", "is_server", "launch_dir", "parent_run_id", "provenance_tags", "record_failure",
-           "resolve_path", "retry", "runs_link", "sweep_dir", "sweep_store", "swept_keys", "tracking_uri"]
+from ablate.store.identity import (
+    UNHASHED,
+    code_version,
+    config_hash,
+    flatten,
+    git_commit,
+    launch_dir,
+    provenance_tags,
+    resolve_path,
+)
+from ablate.store.sweepdir import parent_run_id, record_failure, sweep_dir, sweep_store, swept_keys
+from ablate.store.tracker import (
+    KIND_JOB,
+    KIND_SWEEP,
+    RunLogger,
+    Tracker,
+    file_lock,
+    is_server,
+    retry,
+    runs_link,
+    tracking_uri,
+)
+
+__all__ = [
+    "KIND_JOB",
+    "KIND_SWEEP",
+    "UNHASHED",
+    "RunLogger",
+    "Tracker",
+    "code_version",
+    "config_hash",
+    "file_lock",
+    "flatten",
+    "git_commit",
+    "is_server",
+    "launch_dir",
+    "parent_run_id",
+    "provenance_tags",
+    "record_failure",
+    "resolve_path",
+    "retry",
+    "runs_link",
+    "sweep_dir",
+    "sweep_store",
+    "swept_keys",
+    "tracking_uri",
+]

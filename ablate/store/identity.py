@@ -5,6 +5,7 @@ source is a git checkout, that checkout's commit with ``-dirty``), and apart fro
 commit where the launch directory is a checkout (:func:`git_commit`). A sweep launched from a folder that is not a
 git repository, with ``ablate`` installed from a checkout, so still records the commit of the code that ran.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -27,9 +28,20 @@ SOURCE = Path(__file__).resolve().parents[2]
 #: Config keys that do not change a result, so they are left out of the config hash (``table`` holds only
 #: the paper's numbers and row names; the experiment a run lands in already separates tables; the float32 feature
 #: cache of frozen experts, ablate.run.experts.FeatureCache, changes the speed only).
-UNHASHED = ("force", "logger", "hydra", "table", "trainer.enable_progress_bar", "data.num_workers",
-            "experts.cache_features", "experts.cache_max_gb", "comp_time.threads", "comp_time.device",
-            "comp_time.after_sweep", "recipe.bf16")
+UNHASHED = (
+    "force",
+    "logger",
+    "hydra",
+    "table",
+    "trainer.enable_progress_bar",
+    "data.num_workers",
+    "experts.cache_features",
+    "experts.cache_max_gb",
+    "comp_time.threads",
+    "comp_time.device",
+    "comp_time.after_sweep",
+    "recipe.bf16",
+)
 
 
 def launch_dir() -> Path:
@@ -82,10 +94,16 @@ def git_commit(where: str | Path | None = None) -> str:
     there are outputs, and would otherwise mark every run of the next sweep dirty."""
     cwd = None if where is None else str(where)
     try:
-        sha = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
-                             cwd=cwd).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":!results"],
-                               capture_output=True, text=True, check=True, cwd=cwd).stdout.strip()
+        sha = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True, cwd=cwd
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":!results"],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=cwd,
+        ).stdout.strip()
         return sha + ("-dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"

@@ -8,6 +8,7 @@ directory). A job so writes to its parent's store even where its own environment
 not inherit the driver's ``MLFLOW_TRACKING_URI``). The sweep callback (:mod:`ablate.run.sweep`) writes these files;
 this module only names and reads them, so the store never imports the orchestration.
 """
+
 from __future__ import annotations
 
 import json

@@ -10,6 +10,7 @@ first use of the store (where MLflow creates and migrates its schema, which two 
 serialised by a file lock beside it, every write goes through :func:`retry`, which waits out "database is locked",
 and experiment creation tolerates a concurrent creator.
 """
+
 from __future__ import annotations
 
 import fcntl
@@ -18,14 +19,16 @@ import logging
 import os
 import random
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator, TypeVar
+from typing import Any, TypeVar
 from urllib.parse import urlparse
 
 from lightning.pytorch.loggers.logger import Logger
 from lightning.pytorch.utilities import rank_zero_only
-from mlflow.entities import Metric, Param, RunTag
+from matplotlib.figure import Figure
+from mlflow.entities import Metric, Param, Run, RunTag
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
@@ -74,12 +77,11 @@ def retry(fn: Callable[..., T], *args: Any, attempts: int = 12, **kwargs: Any) -
     raise AssertionError("unreachable")
 
 
-
 def resolve_uri(uri: str) -> str:
     """A tracking URI whose local path (``sqlite:///REL``, or a plain folder: MLflow's file store) is made absolute
     against :func:`launch_dir`; server and database URIs are returned as they are."""
     if uri.startswith("sqlite:///"):
-        rest = uri[len("sqlite:///"):]
+        rest = uri[len("sqlite:///") :]
         return uri if rest.startswith("/") or rest.startswith(":memory:") else "sqlite:///" + str(resolve_path(rest))
     if not urlparse(uri).scheme:
         return str(resolve_path(uri))
@@ -116,14 +118,15 @@ def artifact_location(uri: str, root: str | None) -> str | None:
     if is_server(uri):
         if root is None or remote:
             return None if root is None else str(root)
-        raise ValueError(f"logger.artifact_root={root} is a local path, but the tracking store is the server {uri}: "
-                         "every worker would keep artifacts on its own disk. Leave it null (the server stores them) "
-                         "or give a URI every machine reaches (s3://..., mlflow-artifacts:/...)")
+        raise ValueError(
+            f"logger.artifact_root={root} is a local path, but the tracking store is the server {uri}: "
+            "every worker would keep artifacts on its own disk. Leave it null (the server stores them) "
+            "or give a URI every machine reaches (s3://..., mlflow-artifacts:/...)"
+        )
     if remote:
         return str(root)
     local = urlparse(str(root)).path if scheme == "file" else (root or "mlartifacts")
     return resolve_path(local).as_uri()
-
 
 
 class Tracker:
@@ -138,7 +141,7 @@ class Tracker:
         self.uri = uri
         self.artifact_location = artifact_location(uri, artifact_root)
         if uri.startswith("sqlite:///"):  # MLflow creates the schema on first use: one process at a time
-            db = Path(uri[len("sqlite:///"):].split("?", 1)[0])
+            db = Path(uri[len("sqlite:///") :].split("?", 1)[0])
             with file_lock(db.with_name(db.name + "-lock")):
                 self.client = MlflowClient(tracking_uri=uri)
                 retry(self.client.search_experiments, max_results=1)
@@ -149,15 +152,15 @@ class Tracker:
         return {"uri": self.uri, "artifact_location": self.artifact_location}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["uri"], state["artifact_location"])
+        Tracker.__init__(self, state["uri"], state["artifact_location"])
 
     @classmethod
-    def from_config(cls, cfg: DictConfig) -> "Tracker":
+    def from_config(cls, cfg: DictConfig) -> Tracker:
         """The store of ``cfg``; inside a multirun, the store its sweep recorded (where its parent run is), whatever
         this process's environment says."""
         recorded = sweep_store()
         if recorded is not None:
-            return cls(recorded["uri"], recorded["artifact_location"])
+            return cls(str(recorded["uri"]), recorded["artifact_location"])
         lg = cfg.get("logger") or {}
         root = lg.get("artifact_root")
         return cls(tracking_uri(lg), None if root is None else str(root))
@@ -181,31 +184,39 @@ class Tracker:
                 raise
             return exp.experiment_id
 
-    def runs(self, experiment_id: str, filter_string: str = "") -> list:
+    def runs(self, experiment_id: str, filter_string: str = "") -> list[Run]:
         """All runs of an experiment matching ``filter_string``, every page."""
-        out, token = [], None
+        out: list[Run] = []
+        token = None
         while True:
-            page = retry(self.client.search_runs, [experiment_id], filter_string, max_results=1000,
-                         page_token=token)
+            page = retry(self.client.search_runs, [experiment_id], filter_string, max_results=1000, page_token=token)
             out.extend(page)
             token = page.token
             if not token:
                 return out
 
-    def finished_run(self, experiment_id: str, chash: str):
+    def finished_run(self, experiment_id: str, chash: str) -> Run | None:
         """A FINISHED job run with this config hash, or None."""
         runs = self.runs(experiment_id, f"tags.config_hash = '{chash}' and attributes.status = 'FINISHED'")
         return runs[0] if runs else None
 
-    def finished_elsewhere(self, chash: str):
+    def finished_elsewhere(self, chash: str) -> Run | None:
         """A FINISHED job run with this config hash in any experiment, or None (tables share rows: ChiNet
         Tables II-V all hold the ChiNet row)."""
         ids = [e.experiment_id for e in retry(self.client.search_experiments)]
-        runs = retry(self.client.search_runs, ids, f"tags.config_hash = '{chash}' and attributes.status = "
-                     f"'FINISHED' and tags.kind = '{KIND_JOB}'", max_results=1) if ids else []
+        runs = (
+            retry(
+                self.client.search_runs,
+                ids,
+                f"tags.config_hash = '{chash}' and attributes.status = 'FINISHED' and tags.kind = '{KIND_JOB}'",
+                max_results=1,
+            )
+            if ids
+            else []
+        )
         return runs[0] if runs else None
 
-    def copy_run(self, source, experiment_id: str, tags: dict[str, str]) -> str:
+    def copy_run(self, source: Run, experiment_id: str, tags: dict[str, str]) -> str:
         """A FINISHED copy of ``source`` (params, final metrics, tags) in ``experiment_id``, tagged
         ``reused_from``; artifacts stay with the source run."""
         keep = {k: v for k, v in source.data.tags.items() if not k.startswith("mlflow.") and k != "sweep_id"}
@@ -233,13 +244,13 @@ class Tracker:
     def log_params(self, run_id: str, params: dict[str, str]) -> None:
         items = [Param(k[:250], v[:6000]) for k, v in sorted(params.items())]
         for i in range(0, len(items), 100):
-            retry(self.client.log_batch, run_id, params=items[i:i + 100])
+            retry(self.client.log_batch, run_id, params=items[i : i + 100])
 
     def log_metrics(self, run_id: str, metrics: dict[str, float], step: int = 0) -> None:
         now = int(time.time() * 1000)
         items = [Metric(k, float(v), now, step) for k, v in sorted(metrics.items())]
         for i in range(0, len(items), 500):
-            retry(self.client.log_batch, run_id, metrics=items[i:i + 500])
+            retry(self.client.log_batch, run_id, metrics=items[i : i + 500])
 
     def set_tags(self, run_id: str, tags: dict[str, str]) -> None:
         retry(self.client.log_batch, run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
@@ -247,7 +258,7 @@ class Tracker:
     def log_artifact(self, run_id: str, path: str | Path, artifact_path: str | None = None) -> None:
         retry(self.client.log_artifact, run_id, str(path), artifact_path)
 
-    def log_figure(self, run_id: str, figure, name: str) -> None:
+    def log_figure(self, run_id: str, figure: Figure, name: str) -> None:
         retry(self.client.log_figure, run_id, figure, name)
 
     def log_text(self, run_id: str, text: str, name: str) -> None:
@@ -258,8 +269,11 @@ class Tracker:
         newest runs first, under :data:`SHARED_VIEW_KEY`, and return its address in the MLflow UI
         (:func:`runs_link`). A sweep's jobs stay folded under its parent run until its [+] is clicked: the UI does
         not take which runs are expanded from a shared view."""
-        state = {"selectedColumns": [f"metrics.`{m}`" for m in metrics],
-                 "orderByKey": "attributes.start_time", "orderByAsc": False}
+        state = {
+            "selectedColumns": [f"metrics.`{m}`" for m in metrics],
+            "orderByKey": "attributes.start_time",
+            "orderByAsc": False,
+        }
         retry(self.client.set_experiment_tag, experiment_id, SHARED_VIEW_TAG + SHARED_VIEW_KEY, json.dumps(state))
         return runs_link(self.uri, experiment_id)
 
@@ -268,8 +282,9 @@ def runs_link(uri: str, experiment_id: str) -> str:
     """Where the MLflow UI shows ``experiment_id``'s runs with the view of :meth:`Tracker.share_table_view`: on the
     tracking server itself when ``uri`` is one, else on ``mlflow ui``'s default address (127.0.0.1:5000)."""
     base = uri.rstrip("/") if is_server(uri) else "http://127.0.0.1:5000"
-    return (f"{base}/#/experiments/{experiment_id}/runs"
-            f"?viewStateShareKey={SHARED_VIEW_KEY}&workflowType=machine_learning")
+    return (
+        f"{base}/#/experiments/{experiment_id}/runs?viewStateShareKey={SHARED_VIEW_KEY}&workflowType=machine_learning"
+    )
 
 
 class RunLogger(Logger):

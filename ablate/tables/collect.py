@@ -1,10 +1,12 @@
 """The runs of a table, from the store, as a pandas frame: one row per (table row, seed)."""
+
 from __future__ import annotations
 
 import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.store import KIND_JOB, Tracker, retry
+
 
 def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     """One row per (row, seed) of ``table``: its latest FINISHED job run, at the scale of the latest such run.
@@ -16,12 +18,23 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     if exp is None:
         return pd.DataFrame()
     runs = tracker.runs(exp.experiment_id, f"attributes.status = 'FINISHED' and tags.kind = '{KIND_JOB}'")
-    records = [{"row": r.data.tags.get("row", "?"), "seed": r.data.tags.get("seed", "?"),
-                "scale": r.data.tags.get("scale", "?"), "config_hash": r.data.tags.get("config_hash", r.info.run_id),
-                "git_commit": r.data.tags.get("git_commit", "unknown"), "run_id": r.info.run_id,
-                "evaluator": r.data.tags.get("evaluator", ""),
-                "targets": " ".join(sorted({v for k, v in r.data.params.items() if k.endswith("_target_")})),
-                "start": r.info.start_time, **r.data.metrics} for r in runs]
+    records = [
+        {
+            "row": r.data.tags.get("row", "?"),
+            "seed": r.data.tags.get("seed", "?"),
+            "scale": r.data.tags.get("scale", "?"),
+            "config_hash": r.data.tags.get("config_hash", r.info.run_id),
+            "git_commit": r.data.tags.get("git_commit", "unknown"),
+            "run_id": r.info.run_id,
+            "evaluator": r.data.tags.get("evaluator", ""),
+            "fingerprint": r.data.tags.get("fingerprint", ""),
+            "job_num": int(r.data.tags.get("job_num", "0") or 0),
+            "targets": " ".join(sorted({v for k, v in r.data.params.items() if k.endswith("_target_")})),
+            "start": r.info.start_time,
+            **r.data.metrics,
+        }
+        for r in runs
+    ]
     if not records:
         return pd.DataFrame()
     df = pd.DataFrame.from_records(records).sort_values(["start", "config_hash"], kind="stable")
@@ -35,6 +48,5 @@ def under_condition(runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
     if not condition or not len(runs):
         return runs
     prefix = f"{condition}/"
-    moved = {c: c[len(prefix):] for c in runs.columns if str(c).startswith(prefix)}
+    moved = {c: c[len(prefix) :] for c in runs.columns if str(c).startswith(prefix)}
     return runs.drop(columns=[c for c in moved.values() if c in runs]).rename(columns=moved)
-

@@ -1,5 +1,6 @@
 """The columns and footer lines both layouts add to a table: the primary metric's 95 % CI and difference from the
 reference row (:func:`significance`), and latency, parameters and MACs (:func:`costs`)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -9,6 +10,7 @@ from omegaconf import DictConfig
 from ablate.tables.significance import BOOTSTRAP_FROM, COLLAPSE_RATIO, RESAMPLES, difference, disagreeing_seeds
 from ablate.tables.spec import COSTS, LOWER_IS_BETTER
 from ablate.tables.summary import best_of, fmt, per_seed, reference, signed
+
 
 def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> tuple[dict, list[str]]:
     """The primary metric's CI column and difference-from-reference column, and the footer lines that explain
@@ -32,27 +34,35 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
         tests.add(d.test)
         deltas.append(f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}]" + (" *" if d.significant else ""))
     columns = {f"{label} 95% CI": cis, f"Δ {label} vs {ref_name} [95% CI]": deltas}
-    lines = [f"95% CI: of the mean over seeds, Student's t for n < {BOOTSTRAP_FROM}, a percentile bootstrap over "
-             f"seeds ({RESAMPLES} resamples) from n = {BOOTSTRAP_FROM}. Δ: difference from {ref_name} on {label} "
-             f"({', '.join(sorted(tests)) or 'no test: too few seeds'}; paired over the seeds two rows share); "
-             "*: its 95% CI excludes 0."]
-    ranked = summary.dropna(subset=[f"{key}_mean"]).sort_values(f"{key}_mean", ascending=key in LOWER_IS_BETTER,
-                                                                kind="stable")
+    lines = [
+        f"95% CI: of the mean over seeds, Student's t for n < {BOOTSTRAP_FROM}, a percentile bootstrap over "
+        f"seeds ({RESAMPLES} resamples) from n = {BOOTSTRAP_FROM}. Δ: difference from {ref_name} on {label} "
+        f"({', '.join(sorted(tests)) or 'no test: too few seeds'}; paired over the seeds two rows share); "
+        "*: its 95% CI excludes 0."
+    ]
+    ranked = summary.dropna(subset=[f"{key}_mean"]).sort_values(
+        f"{key}_mean", ascending=key in LOWER_IS_BETTER, kind="stable"
+    )
     if len(ranked) >= 2:
         (top, top_name), (second, second_name) = [tuple(r) for r in ranked[["row", "name"]].iloc[:2].to_numpy()]
         d = difference(per_seed(runs, top, key), per_seed(runs, second, key))
-        verdict = ("n/a (too few seeds)" if np.isnan(d.ci.lo) else
-                   f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}], {d.test}, p = {d.p:.3f}: "
-                   + ("ahead beyond seed noise" if d.significant else "not separable from seed noise"))
+        verdict = (
+            "n/a (too few seeds)"
+            if np.isnan(d.ci.lo)
+            else f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}], {d.test}, p = {d.p:.3f}: "
+            + ("ahead beyond seed noise" if d.significant else "not separable from seed noise")
+        )
         lines.append(f"Top row {top_name} against the second, {second_name}, on {label}: {verdict}.")
     for row, name in zip(summary["row"], summary["name"]):
         for k, lab in table.metrics.items():
             if k in LOWER_IS_BETTER:
                 continue
             for seed, v, med in disagreeing_seeds(per_seed(runs, row, k)):
-                lines.append(f"**Seeds disagree**: {name}, {lab}, seed {seed} gives {v:.2f} against a median of "
-                             f"{med:.2f} over its other seeds (below {COLLAPSE_RATIO:.0%} of it); the row's mean "
-                             "hides a failed seed.")
+                lines.append(
+                    f"**Seeds disagree**: {name}, {lab}, seed {seed} gives {v:.2f} against a median of "
+                    f"{med:.2f} over its other seeds (below {COLLAPSE_RATIO:.0%} of it); the row's mean "
+                    "hides a failed seed."
+                )
     return columns, lines
 
 
@@ -69,8 +79,10 @@ def costs(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> tuple
     med, q1, q3 = per_row("latency_ms"), per_row("latency_q1_ms"), per_row("latency_q3_ms")
     label = table.metrics.get("latency_ms", COSTS["latency_ms"])
     best = np.nanmin(med) if not np.all(np.isnan(med)) else np.nan
-    columns[f"{label} (ours)"] = ["—" if np.isnan(m) else (f"**{m:.2f}**" if m == best else f"{m:.2f}")
-                                  + f" [{a:.2f}, {b:.2f}]" for m, a, b in zip(med, q1, q3)]
+    columns[f"{label} (ours)"] = [
+        "—" if np.isnan(m) else (f"**{m:.2f}**" if m == best else f"{m:.2f}") + f" [{a:.2f}, {b:.2f}]"
+        for m, a, b in zip(med, q1, q3)
+    ]
     paper = summary["latency_ms_paper"] if "latency_ms_paper" in summary else pd.Series(dtype=float)
     if paper.notna().any():
         columns[f"{label} (paper)"] = [fmt(v, np.nan, v == best_of(paper, "latency_ms")) for v in paper]
@@ -87,10 +99,18 @@ def costs(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> tuple
         lines.append(f"{label}: not measured yet (`python -m ablate.latency experiment={table.name}`).")
         return columns, lines
     load, cores = runs.get("latency_load", pd.Series(dtype=float)).max(), runs["latency_cores"].max()
-    rounds = f"{label}: median [interquartile range] of one forward pass at batch 1, every row timed side by side " \
-             "in one process, interleaved (`python -m ablate.latency`); ratio to the reference row. " \
-             f"Load average up to {load:.1f} on {cores:.0f} cores."
-    lines.append(rounds + (f" **Loaded machine**: the load exceeded the {cores:.0f} available cores while timing; "
-                           "rerun `python -m ablate.latency` on a quiet machine." if load > cores else ""))
+    rounds = (
+        f"{label}: median [interquartile range] of one forward pass at batch 1, every row timed side by side "
+        "in one process, interleaved (`python -m ablate.latency`); ratio to the reference row. "
+        f"Load average up to {load:.1f} on {cores:.0f} cores."
+    )
+    lines.append(
+        rounds
+        + (
+            f" **Loaded machine**: the load exceeded the {cores:.0f} available cores while timing; "
+            "rerun `python -m ablate.latency` on a quiet machine."
+            if load > cores
+            else ""
+        )
+    )
     return columns, lines
-

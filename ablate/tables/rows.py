@@ -4,6 +4,7 @@ A row with ``paper_only: true`` is another system of the paper, listed with the 
 ``table.text_columns`` ({key: label}) adds text columns read from each row. A table with ``primary_condition``
 shows its metrics under that test condition (``<condition>/<metric>``).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -14,6 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
 from ablate.store import Tracker  # noqa: E402
@@ -24,50 +26,83 @@ from ablate.tables.spec import COSTS  # noqa: E402
 from ablate.tables.summary import best_of, fmt, kendall, summarise  # noqa: E402
 
 
-def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> str:
-    """The markdown table: ours (mean ± std over seeds) beside the paper's number, best value of a column bold;
-    the primary metric's 95% CI and its difference from the reference row; provenance under it."""
-    columns: dict[str, list[str]] = {"Row": list(summary["name"]) if len(summary) else []}
-    for key, label in (table.get("text_columns") or {}).items():
-        columns[label] = list(summary[key]) if len(summary) else []
-    for key, label in table.metrics.items():
-        if key in COSTS:
-            continue
-        best = best_of(summary[f"{key}_mean"], key) if len(summary) else np.nan
-        columns[f"{label} (ours)"] = [fmt(m, s, m == best) for m, s in
-                                      zip(summary[f"{key}_mean"], summary[f"{key}_std"])] if len(summary) else []
-        paper = summary[f"{key}_paper"] if len(summary) else pd.Series(dtype=float)
+def metric_columns(summary: pd.DataFrame, table: DictConfig, keys: list[str]) -> dict[str, list[str]]:
+    """Ours (mean ± std, the column's best bold) and, where the paper gives any, the paper's, for each of ``keys``."""
+    columns: dict[str, list[str]] = {}
+    for key in keys:
+        label = table.metrics[key]
+        best = best_of(summary[f"{key}_mean"], key)
+        columns[f"{label} (ours)"] = [
+            fmt(m, s, m == best) for m, s in zip(summary[f"{key}_mean"], summary[f"{key}_std"])
+        ]
+        paper = summary[f"{key}_paper"]
         if paper.notna().any():
             pbest = best_of(paper, key)
             columns[f"{label} (paper)"] = [fmt(p, np.nan, p == pbest) for p in paper]
-    sig_columns, sig_lines = significance(summary, runs, table)
-    columns.update(sig_columns)
-    cost_columns, cost_lines = costs(summary, runs, table)
-    columns.update(cost_columns)
-    columns["n"] = [str(n) if n else "paper only" for n in summary["n"]] if len(summary) else []
+    return columns
+
+
+#: The cost columns of the main table; the latency itself (median [IQR], ours and the paper's) is under "All metrics".
+MAIN_COSTS = ("ratio", "Params", "MACs")
+
+
+def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, footer: list[str] | None = None) -> str:
+    """The markdown: a main table (the row, the primary metric ours ± std and the paper's, its 95 % CI, the
+    difference from the reference row, the latency ratio, parameters, MACs and n), then "All metrics" (every other
+    metric, ours beside the paper's, the text columns and the latency) when there is more to show; the footer
+    under them. ``footer``: the provenance lines (:func:`ablate.tables.provenance.provenance` of ``runs`` when
+    None). A table without any paper number (an ad-hoc sweep) has no paper columns and no τ line."""
     lines = [f"# {table.title}", ""]
-    if len(summary):
-        lines.append(pd.DataFrame(columns).to_markdown(index=False, disable_numparse=True))
-    else:
+    if not len(summary):
         lines.append("No finished runs yet.")
-    tau, n = kendall(summary, table.primary)
-    label = table.metrics.get(table.primary, table.primary)
-    lines += ["", f"Kendall τ between our ranking and the paper's on {label}: "
-              + ("n/a (fewer than 2 rows with both)" if np.isnan(tau) else f"{tau:.2f} over {n} rows") + "."]
-    lines += sig_lines + cost_lines
+    else:
+        main: dict[str, list[str]] = {"Row": list(summary["name"])}
+        main.update(metric_columns(summary, table, [table.primary]))
+        sig_columns, sig_lines = significance(summary, runs, table)
+        main.update(sig_columns)
+        cost_columns, cost_lines = costs(summary, runs, table)
+        main.update(
+            {k: v for k, v in cost_columns.items() if any(k.endswith(c) or k.startswith(c) for c in MAIN_COSTS)}
+        )
+        main["n"] = [str(n) if n else "paper only" for n in summary["n"]]
+        lines.append(pd.DataFrame(main).to_markdown(index=False, disable_numparse=True))
+        others = [k for k in table.metrics if k not in COSTS and k != table.primary]
+        rest: dict[str, list[str]] = {"Row": list(summary["name"])}
+        for key, label in (table.get("text_columns") or {}).items():
+            rest[label] = list(summary[key])
+        rest.update(metric_columns(summary, table, others))
+        rest.update({k: v for k, v in cost_columns.items() if k not in main and set(v) != {"—"}})
+        if len(rest) > 1:
+            lines += ["", "All metrics:", "", pd.DataFrame(rest).to_markdown(index=False, disable_numparse=True)]
+        lines.append("")
+        tau, n = kendall(summary, table.primary)
+        label = table.metrics.get(table.primary, table.primary)
+        if summary[f"{table.primary}_paper"].notna().any():
+            lines.append(
+                f"Kendall τ between our ranking and the paper's on {label}: "
+                + ("n/a (fewer than 2 rows with both)" if np.isnan(tau) else f"{tau:.2f} over {n} rows")
+                + "."
+            )
+        lines += sig_lines + cost_lines
     done = set(summary.loc[summary["n"] > 0, "row"]) if len(summary) else set()
-    missing = [spec.get("name", spec["row"]) for spec in table.rows if spec["row"] not in done
-               and not spec.get("paper_only")]
+    missing = [
+        spec.get("name", spec["row"]) for spec in table.rows if spec["row"] not in done and not spec.get("paper_only")
+    ]
     if missing:
         lines.append(f"Rows without a finished run: {', '.join(missing)}.")
     scales = sorted(runs["scale"].unique()) if len(runs) else []
-    lines += ["", f"mean ± std over seeds (n runs per row); scale: {', '.join(scales) or '—'}. "
-              "Bold: best in its column. " + " ".join(provenance(runs))
-              + " Regenerated by `python -m ablate.report`; do not edit by hand.", ""]
+    lines += [
+        "",
+        f"mean ± std over seeds (n runs per row); scale: {', '.join(scales) or '—'}. "
+        "Bold: best in its column. "
+        + " ".join(provenance(runs) if footer is None else footer)
+        + " Regenerated by `python -m ablate.report`; do not edit by hand.",
+        "",
+    ]
     return "\n".join(lines)
 
 
-def plot(summary: pd.DataFrame, table: DictConfig):
+def plot(summary: pd.DataFrame, table: DictConfig) -> Figure:
     """A bar chart of the primary metric per row: ours (mean, its 95% CI as error bar) beside the paper's."""
     key = table.primary
     label = table.metrics.get(key, key)
@@ -77,7 +112,8 @@ def plot(summary: pd.DataFrame, table: DictConfig):
         mean = summary[f"{key}_mean"]
         err = np.stack([(mean - summary[f"{key}_lo"]).fillna(0), (summary[f"{key}_hi"] - mean).fillna(0)])
         ax.bar(x - 0.2, mean, 0.4, yerr=err, capsize=3, label="ours (95% CI)")
-        ax.bar(x + 0.2, summary[f"{key}_paper"], 0.4, label="paper", alpha=0.7)
+        if summary[f"{key}_paper"].notna().any():
+            ax.bar(x + 0.2, summary[f"{key}_paper"], 0.4, label="paper", alpha=0.7)
         ax.set_xticks(x, summary["name"], rotation=20, ha="right")
     ax.set_ylabel(label)
     ax.set_title(table.title, fontsize=9)
@@ -86,16 +122,22 @@ def plot(summary: pd.DataFrame, table: DictConfig):
     return fig
 
 
-
-def write_rows(cfg: DictConfig, table: DictConfig, runs: pd.DataFrame, tracker: Tracker, parent_run: str | None,
-               results_dir: str | Path) -> list[Path]:
+def write_rows(
+    cfg: DictConfig,
+    table: DictConfig,
+    runs: pd.DataFrame,
+    tracker: Tracker,
+    parent_run: str | None,
+    results_dir: str | Path,
+    footer: list[str] | None = None,
+) -> list[Path]:
     """Write ``results/<table>.md`` and ``.png`` from the runs; log both to ``parent_run`` if given."""
     runs = under_condition(runs, table)
     summary = summarise(runs, table)
     out = Path(results_dir)
     out.mkdir(parents=True, exist_ok=True)
     md, png = out / f"{table.name}.md", out / f"{table.name}.png"
-    md.write_text(to_markdown(summary, runs, table))
+    md.write_text(to_markdown(summary, runs, table, footer))
     fig = plot(summary, table)
     fig.savefig(png, dpi=100, metadata={"Software": None})
     if parent_run:

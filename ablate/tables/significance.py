@@ -11,8 +11,10 @@
 * :func:`disagreeing_seeds` — seeds whose value falls far below the others of their row (a class never learnt,
   a run that diverged): such a row's mean hides a failure, so the report prints it under the table.
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,7 +56,7 @@ class Difference:
         return ("paired t" if self.paired else "Welch t") + (", bootstrap CI" if self.ci.method == "bootstrap" else "")
 
 
-def _bootstrap(samples: list[np.ndarray], statistic) -> tuple[float, float]:
+def _bootstrap(samples: list[np.ndarray], statistic: Callable[..., np.ndarray]) -> tuple[float, float]:
     rng = np.random.default_rng(0)
     draws = [s[rng.integers(0, len(s), size=(RESAMPLES, len(s)))] for s in samples]
     values = statistic(*draws)
@@ -62,7 +64,7 @@ def _bootstrap(samples: list[np.ndarray], statistic) -> tuple[float, float]:
     return float(np.quantile(values, alpha)), float(np.quantile(values, 1 - alpha))
 
 
-def mean_ci(values) -> Interval:
+def mean_ci(values: Iterable[float] | pd.Series) -> Interval:
     """The 95 % CI of the mean of ``values`` (NaNs dropped); NaN bounds with fewer than two values."""
     x = np.asarray(pd.Series(values, dtype=float).dropna(), dtype=float)
     n = len(x)
@@ -95,7 +97,7 @@ def difference(row: pd.Series, ref: pd.Series) -> Difference:
     else:
         va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
         se = np.sqrt(va + vb)
-        dof = (va + vb) ** 2 / (va ** 2 / (len(a) - 1) + vb ** 2 / (len(b) - 1)) if se > 0 else 1.0
+        dof = (va + vb) ** 2 / (va**2 / (len(a) - 1) + vb**2 / (len(b) - 1)) if se > 0 else 1.0
         half = stats.t.ppf(1 - (1 - LEVEL) / 2, dof) * se
         ci = Interval(delta - half, delta + half, "t")
     p = float(stats.ttest_ind(a, b, equal_var=False).pvalue) if np.std(a) + np.std(b) > 0 else float(delta == 0)

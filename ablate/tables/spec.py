@@ -1,5 +1,8 @@
 """A table's spec: ``cfg.table`` (conf/experiment/<table>.yaml) with the task's metrics where it leaves them null."""
+
 from __future__ import annotations
+
+from typing import Any, cast
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -13,9 +16,8 @@ LOWER_IS_BETTER = {"comp_time_ms", *COSTS}
 
 def table_spec(cfg: DictConfig) -> DictConfig:
     """``cfg.table`` with ``metrics`` and ``primary`` falling back to the task's when the table leaves them null."""
-    table = OmegaConf.to_container(cfg.table, resolve=True)
+    table = cast(dict[str, Any], OmegaConf.to_container(cfg.table, resolve=True))
     table["metrics"] = table.get("metrics") or OmegaConf.to_container(cfg.get("metrics") or {}, resolve=True)
     table["primary"] = table.get("primary") or cfg.get("primary") or next(iter(table["metrics"]), None)
     table["metrics"] = {**table["metrics"], **{k: v for k, v in COSTS.items() if k not in table["metrics"]}}
-    return OmegaConf.create(table)
-
+    return cast(DictConfig, OmegaConf.create(table))

@@ -1,5 +1,6 @@
 """Per-row summaries of a table's runs (mean, std, n, 95 % CI over seeds, the paper's value), the reference row,
 Kendall's τ against the paper's ranking, and the cell formats both layouts share."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -10,17 +11,31 @@ from scipy.stats import kendalltau
 from ablate.tables.significance import mean_ci
 from ablate.tables.spec import LOWER_IS_BETTER
 
+
+def typed_order(runs: pd.DataFrame) -> list[str]:
+    """The rows of an ad-hoc sweep (a table that names none) in the order the command line gave them: by the
+    sweep's job number of their runs (Hydra numbers the jobs in the order of the swept values), then by name."""
+    if not len(runs):
+        return []
+    order = runs.groupby("row")["job_num"].min() if "job_num" in runs else runs.groupby("row").size() * 0
+    return [str(r) for r, _ in sorted(order.items(), key=lambda item: (item[1], str(item[0])))]
+
+
 def summarise(runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
     """Per table row (in the paper's order): mean, std, n and 95 % CI (``ablate.tables.significance.mean_ci``) of each
     metric over seeds, and the paper's value."""
-    rows = list(table.rows) or [{"row": r, "name": r, "paper": {}} for r in sorted(runs["row"].unique())]
+    rows = list(table.rows) or [{"row": r, "name": r, "paper": {}} for r in typed_order(runs)]
     out = []
     for spec in rows:
         sel = runs[runs["row"] == spec["row"]] if len(runs) else runs
         if sel.empty and not spec.get("paper_only"):
             continue
-        rec = {"row": spec["row"], "name": spec.get("name", spec["row"]), "n": len(sel),
-               **{key: str(spec.get(key, "")) for key in table.get("text_columns") or {}}}
+        rec = {
+            "row": spec["row"],
+            "name": spec.get("name", spec["row"]),
+            "n": len(sel),
+            **{key: str(spec.get(key, "")) for key in table.get("text_columns") or {}},
+        }
         for key in table.metrics:
             values = sel[key].dropna() if key in sel else pd.Series(dtype=float)
             rec[f"{key}_mean"] = values.mean() if len(values) else np.nan
@@ -76,4 +91,3 @@ def per_seed(runs: pd.DataFrame, row: str, key: str) -> pd.Series:
 
 def signed(x: float) -> str:
     return f"{x:+.2f}".replace("-", "−")
-

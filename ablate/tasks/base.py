@@ -1,12 +1,14 @@
 """What every task's LightningModule shares: the optimiser and LR schedule from config, a loud NaN check, training
 corruptions drawn per weight update, and testing under a list of conditions (DGFN, seed 002 §IV)."""
+
 from __future__ import annotations
 
 import copy
 import inspect
 import warnings
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import lightning as L
 import torch
@@ -24,8 +26,9 @@ class NonFiniteLossError(FloatingPointError):
     """The training loss became NaN or infinite; the job stops at once."""
 
 
-def poly_lr(optimizer: torch.optim.Optimizer, total_steps: int, power: float = 0.9,
-            warmup_steps: int = 0) -> torch.optim.lr_scheduler.LRScheduler:
+def poly_lr(
+    optimizer: torch.optim.Optimizer, total_steps: int, power: float = 0.9, warmup_steps: int = 0
+) -> torch.optim.lr_scheduler.LRScheduler:
     """Poly learning rate, SMoE eq. 6: lr = base_lr * (1 - step / total_steps) ** power (power = gamma = 0.9).
 
     ``warmup_steps`` > 0 ramps the factor linearly from 1/3 to 1 over the first steps, as YOLACT's training does
@@ -75,11 +78,18 @@ class FusionTask(L.LightningModule):
       its own copies of them, and the pooled result the merge of every named condition's copies.
     """
 
-    def __init__(self, model: nn.Module, optimizer: Callable[..., torch.optim.Optimizer],
-                 scheduler: Callable[..., Any] | None = None, monitor: str = "val/loss",
-                 train_corruptions: dict | None = None, eval_conditions: dict | None = None,
-                 eval_severities: list[float] | None = None, eval_pooled: str | None = None,
-                 eval_seed: int = 0) -> None:
+    def __init__(
+        self,
+        model: nn.Module,
+        optimizer: Callable[..., torch.optim.Optimizer],
+        scheduler: Callable[..., Any] | None = None,
+        monitor: str = "val/loss",
+        train_corruptions: dict | None = None,
+        eval_conditions: dict | None = None,
+        eval_severities: list[float] | None = None,
+        eval_pooled: str | None = None,
+        eval_seed: int = 0,
+    ) -> None:
         super().__init__()
         self.model = model
         self.optimizer_factory = optimizer
@@ -88,11 +98,15 @@ class FusionTask(L.LightningModule):
         self.feature_cache = None
         train_corruptions = _plain(train_corruptions)
         if train_corruptions is not None and not isinstance(train_corruptions, dict):
-            raise ValueError(f"task.train_corruptions: expected {{choices: [...], seed, severity}}, "
-                             f"got {train_corruptions!r}")
+            raise ValueError(
+                f"task.train_corruptions: expected {{choices: [...], seed, severity}}, got {train_corruptions!r}"
+            )
         self.train_corruptions = TrainCorruptions(**train_corruptions) if train_corruptions else None
-        self.eval_conditions = EvalConditions(_plain(eval_conditions), _plain(eval_severities) or (), eval_pooled,
-                                              eval_seed) if eval_conditions else None
+        self.eval_conditions = (
+            EvalConditions(_plain(eval_conditions), _plain(eval_severities) or (), eval_pooled, eval_seed)
+            if eval_conditions
+            else None
+        )
         self._condition: str | None = None
         self._condition_metrics: dict[str, dict[str, nn.Module]] = {}
 
@@ -108,7 +122,8 @@ class FusionTask(L.LightningModule):
         if not torch.isfinite(loss).all():
             raise NonFiniteLossError(
                 f"training loss is {loss.detach().float().item()} at epoch {self.current_epoch}, step "
-                f"{self.global_step}; lower task.optimizer.lr or check the input data")
+                f"{self.global_step}; lower task.optimizer.lr or check the input data"
+            )
         return loss
 
     def configure_optimizers(self) -> Any:
@@ -150,8 +165,10 @@ class FusionTask(L.LightningModule):
             return
         names = self._test_metric_names()
         if not names:
-            raise TypeError(f"{type(self).__name__} keeps no test metrics as `test_*` modules, so it cannot be "
-                            "tested under task.eval_conditions")
+            raise TypeError(
+                f"{type(self).__name__} keeps no test metrics as `test_*` modules, so it cannot be "
+                "tested under task.eval_conditions"
+            )
         self._condition_metrics = {c: {n: _fresh(getattr(self, n)) for n in names} for c in self.eval_conditions.names}
 
     def on_test_epoch_end(self) -> None:
@@ -188,7 +205,7 @@ class FusionTask(L.LightningModule):
 
     def log(self, name: str, value: Any, *args: Any, **kwargs: Any) -> None:
         if self._condition is not None and name.startswith("test/"):
-            name = f"test/{self._condition}/{name[len('test/'):]}"
+            name = f"test/{self._condition}/{name[len('test/') :]}"
         super().log(name, value, *args, **kwargs)
 
     def on_before_batch_transfer(self, batch: Any, dataloader_idx: int = 0) -> Any:

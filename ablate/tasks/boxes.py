@@ -4,6 +4,7 @@ Boxes are in input-image pixels. ``xyxy`` boxes use pixel-edge coordinates (a bo
 x1=3, x2=6); anchors are ``cxcywh``. Head maps [B, A*D, Hl, Wl] flatten to [B, N, D] in :class:`Anchors` order
 (:func:`flatten_levels`).
 """
+
 from __future__ import annotations
 
 import math
@@ -35,10 +36,18 @@ class Anchors:
     (``s_{m+1} = 2 s_m - s_{m-1}``, 1.05 after SSD300's 0.88). Order: level, row i, column j, box.
     """
 
-    def __init__(self, scales: Sequence[float], aspect_ratios: Sequence[float] | Sequence[Sequence[float]],
-                 relative_to: str = "stride", extra: bool = False) -> None:
-        per_level = [tuple(r) for r in aspect_ratios] if aspect_ratios and isinstance(aspect_ratios[0], Sequence) \
+    def __init__(
+        self,
+        scales: Sequence[float],
+        aspect_ratios: Sequence[float] | Sequence[Sequence[float]],
+        relative_to: str = "stride",
+        extra: bool = False,
+    ) -> None:
+        per_level = (
+            [tuple(r) for r in aspect_ratios]
+            if aspect_ratios and isinstance(aspect_ratios[0], Sequence)
             else [tuple(aspect_ratios)] * len(scales)
+        )
         if not scales or min(scales) <= 0 or any(not r or min(r) <= 0 for r in per_level):
             raise ValueError(f"Anchors: scales and aspect_ratios must be positive, got {scales}, {aspect_ratios}")
         if len(per_level) != len(scales):
@@ -77,8 +86,9 @@ class Anchors:
             out.append(torch.tensor(wh, dtype=torch.float32))
         return out
 
-    def __call__(self, image_size: tuple[int, int], level_sizes: list[tuple[int, int]],
-                 device: torch.device | str = "cpu") -> Tensor:
+    def __call__(
+        self, image_size: tuple[int, int], level_sizes: list[tuple[int, int]], device: torch.device | str = "cpu"
+    ) -> Tensor:
         """[N, 4] anchors (cx, cy, w, h) in pixels, N = sum_l Hl * Wl * A_l."""
         if len(level_sizes) != len(self.scales):
             raise ValueError(f"Anchors: {len(level_sizes)} levels given but {len(self.scales)} scales configured")
@@ -128,8 +138,13 @@ def encode(boxes: Tensor, anchors: Tensor, variances: tuple[float, float] = VARI
     ((c - c_a) / (v0 wh_a), log(wh / wh_a) / v1)."""
     wh = (boxes[..., 2:] - boxes[..., :2]).clamp(min=1e-6)
     centre = (boxes[..., :2] + boxes[..., 2:]) / 2
-    return torch.cat([(centre - anchors[..., :2]) / (variances[0] * anchors[..., 2:]),
-                      torch.log(wh / anchors[..., 2:]) / variances[1]], -1)
+    return torch.cat(
+        [
+            (centre - anchors[..., :2]) / (variances[0] * anchors[..., 2:]),
+            torch.log(wh / anchors[..., 2:]) / variances[1],
+        ],
+        -1,
+    )
 
 
 def decode_boxes(loc: Tensor, anchors: Tensor, variances: tuple[float, float] = VARIANCES) -> Tensor:
@@ -146,8 +161,9 @@ def match(gt_boxes: Tensor, anchors: Tensor, pos_iou: float = 0.5, neg_iou: floa
     anchor). ``neg_iou == pos_iou`` is SSD's own rule: no neutral anchors."""
     n = anchors.shape[0]
     if gt_boxes.shape[0] == 0:
-        return torch.zeros(n, dtype=torch.long, device=anchors.device), torch.zeros(n, dtype=torch.long,
-                                                                                    device=anchors.device)
+        return torch.zeros(n, dtype=torch.long, device=anchors.device), torch.zeros(
+            n, dtype=torch.long, device=anchors.device
+        )
     iou = box_iou(gt_boxes, cxcywh_to_xyxy(anchors))  # [G, N]
     best_iou, best_gt = iou.max(0)
     for g, a in enumerate(iou.argmax(1).tolist()):
@@ -158,8 +174,14 @@ def match(gt_boxes: Tensor, anchors: Tensor, pos_iou: float = 0.5, neg_iou: floa
     return best_gt, state
 
 
-def fast_nms(boxes: Tensor, scores: Tensor, iou_threshold: float = 0.5, score_threshold: float = 0.05,
-             top_k: int = 200, max_detections: int = 100) -> tuple[Tensor, Tensor, Tensor]:
+def fast_nms(
+    boxes: Tensor,
+    scores: Tensor,
+    iou_threshold: float = 0.5,
+    score_threshold: float = 0.05,
+    top_k: int = 200,
+    max_detections: int = 100,
+) -> tuple[Tensor, Tensor, Tensor]:
     """YOLACT's Fast NMS (Bolya et al. 2019, §3.4), per class in matrix form.
 
     ``boxes`` [N, 4] xyxy, ``scores`` [N, C] (one column per foreground class). For each class the ``top_k``
@@ -189,5 +211,5 @@ def nms(boxes: Tensor, scores: Tensor, iou_threshold: float) -> Tensor:
     keep = np.ones(len(order), bool)
     for i in range(len(order)):
         if keep[i]:
-            keep[i + 1:] &= iou[i, i + 1:] <= iou_threshold
+            keep[i + 1 :] &= iou[i, i + 1 :] <= iou_threshold
     return order[torch.from_numpy(keep).to(order.device)]

@@ -10,6 +10,7 @@ camera only) or, on 3-channel camera images, a Complex-KITTI condition of
 alone: a camera-only model under ``{lidar: blank}`` sees its normal input. Each frame draws its own box, noise
 level or spot from a generator of its own.
 """
+
 from __future__ import annotations
 
 import re
@@ -19,8 +20,14 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from ablate.data.conditions import (CAMERA_MODALITIES, CAMERA_ONLY, CONDITIONS, CORRUPTIONS, apply_condition,
-                                    apply_corruption)
+from ablate.data.conditions import (
+    CAMERA_MODALITIES,
+    CAMERA_ONLY,
+    CONDITIONS,
+    CORRUPTIONS,
+    apply_condition,
+    apply_corruption,
+)
 from ablate.data.dataset import LIDAR_DERIVED, MODALITIES
 
 ROLES = {"camera": tuple(sorted(CAMERA_MODALITIES)), "lidar": tuple(sorted(LIDAR_DERIVED))}
@@ -39,8 +46,10 @@ def parse_spec(spec: Mapping | None, option: str) -> dict[str, str]:
             raise ValueError(f"{option}: unknown target {target!r}; valid: {', '.join([*ROLES, *MODALITIES])}")
         camera = target == "camera" or target in CAMERA_MODALITIES
         if name not in CORRUPTIONS and not (name in CONDITIONS and camera):
-            raise ValueError(f"{option}: unknown corruption {name!r} for {target!r}; valid: "
-                             f"{', '.join(CORRUPTIONS)}" + (f", {', '.join(CONDITIONS)}" if camera else ""))
+            raise ValueError(
+                f"{option}: unknown corruption {name!r} for {target!r}; valid: "
+                f"{', '.join(CORRUPTIONS)}" + (f", {', '.join(CONDITIONS)}" if camera else "")
+            )
         if name in CAMERA_ONLY and not camera:
             raise ValueError(f"{option}: {name!r} applies to the camera only, not to {target!r}")
         out[target] = name
@@ -90,14 +99,21 @@ class EvalConditions:
     (generators seeded by ``seed``, the condition and the frame), so rows of a table see the same test inputs.
     """
 
-    def __init__(self, conditions: Mapping[str, Mapping | None], severities: Sequence[float] = (),
-                 pooled: str | None = None, seed: int = 0) -> None:
+    def __init__(
+        self,
+        conditions: Mapping[str, Mapping | None],
+        severities: Sequence[float] = (),
+        pooled: str | None = None,
+        seed: int = 0,
+    ) -> None:
         option = "task.eval_conditions"
         self.specs = {str(n): parse_spec(s, f"{option}.{n}") for n, s in dict(conditions).items()}
         for name in [*self.specs, *([pooled] if pooled else [])]:
             if not _NAME.match(name) or "-s" in name:
-                raise ValueError(f"{option}: condition name {name!r} must be letters, digits, '_', '.', '-' "
-                                 "without '-s' (kept for severities)")
+                raise ValueError(
+                    f"{option}: condition name {name!r} must be letters, digits, '_', '.', '-' "
+                    "without '-s' (kept for severities)"
+                )
         if pooled in self.specs:
             raise ValueError(f"task.eval_pooled: {pooled!r} is also a condition of {option}")
         if any(float(s) <= 0 for s in severities):
@@ -140,9 +156,13 @@ class TrainCorruptions:
         option = "task.train_corruptions.choices"
         if not choices:
             raise ValueError(f"{option}: give at least one choice ({{}} is no action)")
-        self.choices = [[parse_spec(s, f"{option}.{i}") for s in (c if isinstance(c, Sequence) and
-                                                                 not isinstance(c, (str, Mapping)) else [c])]
-                        for i, c in enumerate(choices)]
+        self.choices = [
+            [
+                parse_spec(s, f"{option}.{i}")
+                for s in (c if isinstance(c, Sequence) and not isinstance(c, (str, Mapping)) else [c])
+            ]
+            for i, c in enumerate(choices)
+        ]
         self.seed, self.severity = int(seed), float(severity)
 
     def draw(self, step: int) -> tuple[dict[str, str], np.random.Generator]:

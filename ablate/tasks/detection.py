@@ -9,6 +9,7 @@ The pieces live in :mod:`ablate.tasks.ssd`; what SSD shares with YOLACT (anchors
 * :func:`decode` — SSD inference: per-class greedy NMS into :class:`~ablate.metrics.kitti.KittiAP`'s format.
 * :class:`DetectionTask` — the LightningModule: loss, KITTI AP (easy / moderate / hard), GFU weight figures.
 """
+
 from __future__ import annotations
 
 from ablate.tasks.ssd import CLASSES
@@ -18,5 +19,14 @@ from ablate.tasks.ssd.loss import SSDLoss
 from ablate.tasks.ssd.model import DGFN
 from ablate.tasks.ssd.task import DetectionTask
 
-__all__ = ["CLASSES", "DGFN", "SSD300_RATIOS", "DetectionTask", "SSDHead", "SSDLoss", "decode", "ssd_ratios",
-           "ssd_scales"]
+__all__ = [
+    "CLASSES",
+    "DGFN",
+    "SSD300_RATIOS",
+    "DetectionTask",
+    "SSDHead",
+    "SSDLoss",
+    "decode",
+    "ssd_ratios",
+    "ssd_scales",
+]

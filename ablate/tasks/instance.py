@@ -10,6 +10,7 @@ The pieces live in :mod:`ablate.tasks.yolact`:
 
 Classes follow the SMoE annotation (§3.1): car and pedestrian, labels 0 and 1.
 """
+
 from __future__ import annotations
 
 from ablate.tasks.yolact import CLASSES
@@ -19,6 +20,21 @@ from ablate.tasks.yolact.loss import YolactLoss
 from ablate.tasks.yolact.nms import assemble_masks, decode, fast_nms
 from ablate.tasks.yolact.task import CONDITION_GROUPS, SMOE_CONDITIONS, InstanceTask, condition_group, task_head
 
-__all__ = ["ANCHOR_SCALES", "ASPECT_RATIOS", "CLASSES", "CONDITION_GROUPS", "SMOE_CONDITIONS", "VARIANCES", "Anchors",
-           "InstanceTask", "YolactHead", "YolactLoss", "assemble_masks", "condition_group", "decode", "fast_nms",
-           "match", "task_head"]
+__all__ = [
+    "ANCHOR_SCALES",
+    "ASPECT_RATIOS",
+    "CLASSES",
+    "CONDITION_GROUPS",
+    "SMOE_CONDITIONS",
+    "VARIANCES",
+    "Anchors",
+    "InstanceTask",
+    "YolactHead",
+    "YolactLoss",
+    "assemble_masks",
+    "condition_group",
+    "decode",
+    "fast_nms",
+    "match",
+    "task_head",
+]

@@ -21,6 +21,7 @@ or a list of 3 weights. The multilabel loss already gives road objects a term of
 tried on the FuseNet seed whose road objects never appeared at the cpu scale (ChiNet Table II, seed 1), it left
 their IoU at 0, so class imbalance alone does not explain that seed.
 """
+
 from __future__ import annotations
 
 import matplotlib
@@ -42,8 +43,9 @@ class SegmentationHead(nn.Module):
     """A head for a fusion model's FPN: P3 .. P(2+levels) upsampled to P3's size and summed, a 3x3 conv + ReLU,
     then one 1x1 conv per output branch, as ChiNet's separate free-space and road-object branches."""
 
-    def __init__(self, in_channels: int, num_levels: int = 5, levels: int = 3,
-                 outputs: tuple[str, ...] = BRANCHES) -> None:
+    def __init__(
+        self, in_channels: int, num_levels: int = 5, levels: int = 3, outputs: tuple[str, ...] = BRANCHES
+    ) -> None:
         super().__init__()
         if not 1 <= levels <= num_levels:
             raise ValueError(f"head.levels must be in 1..{num_levels}, got {levels}")
@@ -55,7 +57,7 @@ class SegmentationHead(nn.Module):
     def forward(self, features: list[torch.Tensor]) -> dict[str, torch.Tensor]:
         size = features[0].shape[-2:]
         x = features[0]
-        for f in features[1:self.levels]:
+        for f in features[1 : self.levels]:
             x = x + F.interpolate(f, size=size, mode="bilinear", align_corners=False)
         x = self.mix(x)
         return {name: conv(x) for name, conv in self.branches.items()}
@@ -75,7 +77,7 @@ def median_frequency(batches) -> torch.Tensor:
     absent from every label gets weight 0 (it has no pixel to weigh)."""
     counts = torch.zeros(len(CLASSES), dtype=torch.float64)
     for batch in batches:
-        counts += torch.bincount(batch["semantic"].flatten(), minlength=len(CLASSES))[:len(CLASSES)].double()
+        counts += torch.bincount(batch["semantic"].flatten(), minlength=len(CLASSES))[: len(CLASSES)].double()
     if counts.sum() == 0:
         raise ValueError("task.class_weights=median_frequency: the training split has no labelled pixel")
     freq = counts / counts.sum()
@@ -92,14 +94,24 @@ def _up(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
 class SemanticTask(FusionTask):
     """Free space + road objects with ChiNet's losses and the metrics above."""
 
-    def __init__(self, model: nn.Module, optimizer, scheduler=None, monitor: str = "val/det_rate",
-                 figure_frames: int = 4, class_weights: str | list[float] | None = None) -> None:
+    def __init__(
+        self,
+        model: nn.Module,
+        optimizer,
+        scheduler=None,
+        monitor: str = "val/det_rate",
+        figure_frames: int = 4,
+        class_weights: str | list[float] | None = None,
+    ) -> None:
         super().__init__(model, optimizer, scheduler, monitor)
         self.figure_frames = figure_frames
-        if class_weights not in (None, "median_frequency") and (isinstance(class_weights, str)
-                                                                or len(class_weights) != len(CLASSES)):
-            raise ValueError(f"task.class_weights: 'median_frequency', a list of {len(CLASSES)} weights or null; "
-                             f"got {class_weights!r}")
+        if class_weights not in (None, "median_frequency") and (
+            isinstance(class_weights, str) or len(class_weights) != len(CLASSES)
+        ):
+            raise ValueError(
+                f"task.class_weights: 'median_frequency', a list of {len(CLASSES)} weights or null; "
+                f"got {class_weights!r}"
+            )
         self.class_weights = class_weights
         if class_weights is not None:  # filled at the start of the fit, or from a checkpoint
             given = [float(w) for w in class_weights] if not isinstance(class_weights, str) else [0.0] * 3
@@ -159,8 +171,9 @@ class SemanticTask(FusionTask):
         for i in range(n):
             img = image[i].permute(1, 2, 0).float().clamp(0, 1)
             img = img.expand(-1, -1, 3) if img.shape[-1] == 1 else img
-            for ax, (title, labels) in zip(axes[i], (("input", None), ("ground truth", sub["semantic"][i]),
-                                                     ("prediction", pred[i]))):
+            for ax, (title, labels) in zip(
+                axes[i], (("input", None), ("ground truth", sub["semantic"][i]), ("prediction", pred[i]))
+            ):
                 shown = img if labels is None else 0.5 * img + 0.5 * colours[labels]
                 ax.imshow(shown.numpy())
                 ax.set_axis_off()

@@ -1,4 +1,5 @@
 """Fixtures for the fusion tests: a tiny task head and a tiny FusionModel factory."""
+
 import functools
 
 import pytest
@@ -24,8 +25,16 @@ class TinyHead(nn.Module):
 
 
 def model(stage, op="sum", modalities=MODALITIES, **kw):
-    return FusionModel(stage=stage, modalities=modalities, fusion=functools.partial(build, name=op),
-                       head=TinyHead, backbone=BACKBONE, fpn_channels=8, single="rgb", **kw)
+    return FusionModel(
+        stage=stage,
+        modalities=modalities,
+        fusion=functools.partial(build, name=op),
+        head=TinyHead,
+        backbone=BACKBONE,
+        fpn_channels=8,
+        single="rgb",
+        **kw,
+    )
 
 
 @pytest.fixture

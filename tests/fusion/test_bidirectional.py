@@ -1,5 +1,6 @@
 """The bidirectional fusion module (two groups DST -> DT -> operator) with every operator of the registry, and CBF's
 context gains in front of an operator ("+CBF")."""
+
 from __future__ import annotations
 
 import functools
@@ -21,8 +22,13 @@ H, W = 64, 208  # the smoke scale's image
 def geometry():
     """The generated rig's calibration and a flat road 1.73 m below the velodyne, both heights dense."""
     cal = torch.from_numpy(calib_array(calibration(H, W)))[None].repeat(2, 1, 1, 1)
-    return Geometry(cal, BevGrid(), (H, W), height_image=torch.full((2, 1, H, W), -1.73),
-                    height_bev=torch.full((2, 1, 80, 40), -1.73))
+    return Geometry(
+        cal,
+        BevGrid(),
+        (H, W),
+        height_image=torch.full((2, 1, H, W), -1.73),
+        height_bev=torch.full((2, 1, 80, 40), -1.73),
+    )
 
 
 @pytest.mark.parametrize("name", sorted(OPERATORS))

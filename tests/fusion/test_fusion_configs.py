@@ -1,4 +1,5 @@
 """conf/fusion and conf/stage: one YAML per operator and per stage, composable with Hydra."""
+
 import functools
 from pathlib import Path
 
@@ -38,10 +39,15 @@ def test_groups_compose_into_a_fusion_model(stage, tiny_head, tmp_path):
     torch.save(ResNet(18, 0.125).state_dict(), tmp_path / "rgb.pth")
     OmegaConf.set_struct(cfg, False)
     cfg.modalities = {"rgb": 3, "dense_depth": 1}
-    cfg.model = {"_target_": "ablate.fusion.stages.FusionModel", "stage": "${stage.name}",
-                 "single": "${oc.select:stage.modality,null}", "modalities": "${modalities}", "fusion": "${fusion}",
-                 "backbone": {"depth": 18, "width": 0.125, "weights": {"rgb": str(tmp_path / "rgb.pth")}},
-                 "fpn_channels": 8}
+    cfg.model = {
+        "_target_": "ablate.fusion.stages.FusionModel",
+        "stage": "${stage.name}",
+        "single": "${oc.select:stage.modality,null}",
+        "modalities": "${modalities}",
+        "fusion": "${fusion}",
+        "backbone": {"depth": 18, "width": 0.125, "weights": {"rgb": str(tmp_path / "rgb.pth")}},
+        "fpn_channels": 8,
+    }
     model = instantiate(cfg.model, head=tiny_head)
     assert model.single == ("rgb" if stage == "single" else None)
     if stage != "early":

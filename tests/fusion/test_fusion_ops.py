@@ -1,4 +1,5 @@
 """Each fusion operator against its paper equation on hand-made tensors."""
+
 import math
 
 import pytest

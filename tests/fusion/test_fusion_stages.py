@@ -1,4 +1,5 @@
 """Every operator x every stage builds and trains one step; stage structure, MACs, experts, errors."""
+
 import functools
 
 import pytest
@@ -70,8 +71,11 @@ def test_load_expert_copies_and_freezes(make_model):
             p.add_(1.0)
     fused = make_model("late", "smoe")
     fused.load_expert("rgb", expert)
-    for part, theirs in [(fused.encoders["rgb"], expert.encoders["rgb"]), (fused.fpns["rgb"], expert.fpn),
-                         (fused.heads["rgb"], expert.head)]:
+    for part, theirs in [
+        (fused.encoders["rgb"], expert.encoders["rgb"]),
+        (fused.fpns["rgb"], expert.fpn),
+        (fused.heads["rgb"], expert.head),
+    ]:
         for (k, a), b in zip(part.state_dict().items(), theirs.state_dict().values()):
             assert torch.equal(a, b), k
         assert not any(p.requires_grad for p in part.parameters())

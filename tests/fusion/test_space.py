@@ -4,6 +4,7 @@ The road sample has no velodyne scan (../shared/kitti/SOURCES.md: no repository 
 object frame 000001, taken by the same rig: its calib's P2, R0_rect and Tr_velo_to_cam equal um_000000's, which the
 fixture checks, so the scan and um_000000's calibration belong together geometrically.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -135,8 +136,11 @@ def test_shpl_covers_only_where_points_are(frame):
 
 def test_shpl_pools_the_mean_of_its_points():
     # two points in one BEV cell seeing pixels with features 2 and 4 give the cell 3
-    calib = Calibration(P2=np.array([[100.0, 0, 50, 0], [0, 100, 50, 0], [0, 0, 1, 0]]), R0_rect=np.eye(3),
-                        Tr_velo_to_cam=np.array([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]]))
+    calib = Calibration(
+        P2=np.array([[100.0, 0, 50, 0], [0, 100, 50, 0], [0, 0, 1, 0]]),
+        R0_rect=np.eye(3),
+        Tr_velo_to_cam=np.array([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]]),
+    )
     from ablate.data.dataset import calib_array
 
     pts = torch.tensor([[[10.1, 0.1, -1.0], [10.3, 0.3, -1.0], [float("nan")] * 3]])

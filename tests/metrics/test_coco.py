@@ -1,4 +1,5 @@
 """MaskAP against hand-made masks and direct pycocotools COCOeval calls."""
+
 from __future__ import annotations
 
 import contextlib
@@ -38,16 +39,27 @@ def coco_stats(images: list[tuple[dict, dict]], iou_type: str) -> np.ndarray:
         imgs.append({"id": img_id, "height": H, "width": W})
         for m, lab in zip(t["masks"], t["labels"]):
             rle = mask_utils.encode(np.asfortranarray(m.numpy().astype(np.uint8)))
-            gt_anns.append({"id": len(gt_anns) + 1, "image_id": img_id, "category_id": int(lab), "iscrowd": 0,
-                            "segmentation": rle, "area": float(mask_utils.area(rle)),
-                            "bbox": mask_utils.toBbox(rle).tolist()})
+            gt_anns.append(
+                {
+                    "id": len(gt_anns) + 1,
+                    "image_id": img_id,
+                    "category_id": int(lab),
+                    "iscrowd": 0,
+                    "segmentation": rle,
+                    "area": float(mask_utils.area(rle)),
+                    "bbox": mask_utils.toBbox(rle).tolist(),
+                }
+            )
         for m, s, lab in zip(p["masks"], p["scores"], p["labels"]):
             rle = mask_utils.encode(np.asfortranarray(m.numpy().astype(np.uint8)))
             results.append({"image_id": img_id, "category_id": int(lab), "segmentation": rle, "score": float(s)})
     with contextlib.redirect_stdout(io.StringIO()):
         gt = COCO()
-        gt.dataset = {"images": imgs, "annotations": gt_anns,
-                      "categories": [{"id": c} for c in sorted({a["category_id"] for a in gt_anns})]}
+        gt.dataset = {
+            "images": imgs,
+            "annotations": gt_anns,
+            "categories": [{"id": c} for c in sorted({a["category_id"] for a in gt_anns})],
+        }
         gt.createIndex()
         ev = COCOeval(gt, gt.loadRes(results), iouType=iou_type)
         ev.evaluate()
@@ -68,10 +80,14 @@ def test_perfect_prediction_scores_one():
 
 def test_shifted_masks_match_direct_cocoeval():
     images = [
-        (pred((12, 10, 42, 50), (60, 25, 70, 65), (0, 0, 20, 20), scores=[0.9, 0.6, 0.7], labels=[0, 1, 0]),
-         target((10, 10, 40, 50), (60, 20, 70, 60), labels=[0, 1])),
-        (pred((50, 30, 90, 70), (5, 5, 25, 30), scores=[0.5, 0.95], labels=[0, 0]),
-         target((55, 30, 95, 70), (5, 8, 25, 33), (30, 40, 45, 70), labels=[0, 0, 1])),
+        (
+            pred((12, 10, 42, 50), (60, 25, 70, 65), (0, 0, 20, 20), scores=[0.9, 0.6, 0.7], labels=[0, 1, 0]),
+            target((10, 10, 40, 50), (60, 20, 70, 60), labels=[0, 1]),
+        ),
+        (
+            pred((50, 30, 90, 70), (5, 5, 25, 30), scores=[0.5, 0.95], labels=[0, 0]),
+            target((55, 30, 95, 70), (5, 8, 25, 33), (30, 40, 45, 70), labels=[0, 0, 1]),
+        ),
     ]
     metric = MaskAP()
     for p, t in images:
@@ -104,8 +120,11 @@ def test_height_threshold_scales_with_image_height():
     # a 10 px tall object: counted at H=75 (threshold 5 px), ignored at H=375 (threshold 25 px)
     for h, expected in ((75, 0.0), (375, -1.0)):
         t = {"masks": rect(10, 10, 40, 20, h=h)[None], "labels": torch.tensor([0])}
-        p = {"masks": torch.zeros(0, h, W, dtype=torch.bool), "scores": torch.zeros(0),
-             "labels": torch.zeros(0, dtype=torch.long)}
+        p = {
+            "masks": torch.zeros(0, h, W, dtype=torch.bool),
+            "scores": torch.zeros(0),
+            "labels": torch.zeros(0, dtype=torch.long),
+        }
         metric = MaskAP()
         metric.update([p], [t])
         assert metric.compute()["map"].item() == expected
@@ -126,9 +145,10 @@ def test_predictions_in_dontcare_region_are_dropped():
 
 
 def _two_images() -> list[tuple[dict, dict]]:
-    return [(pred((12, 10, 42, 50), scores=[0.9], labels=[0]), target((10, 10, 40, 50), labels=[0])),
-            (pred((5, 5, 25, 30), (60, 20, 70, 60), scores=[0.4, 0.8], labels=[1, 1]),
-             target((5, 8, 25, 33), labels=[1]))]
+    return [
+        (pred((12, 10, 42, 50), scores=[0.9], labels=[0]), target((10, 10, 40, 50), labels=[0])),
+        (pred((5, 5, 25, 30), (60, 20, 70, 60), scores=[0.4, 0.8], labels=[1, 1]), target((5, 8, 25, 33), labels=[1])),
+    ]
 
 
 def test_two_updates_equal_one_update_with_both_images():
@@ -164,12 +184,15 @@ def test_empty_cases():
     no_preds.update([pred(scores=[], labels=[])], [target((10, 10, 40, 50), labels=[0])])
     assert no_preds.compute()["map"].item() == 0.0
     no_gt = MaskAP()
-    no_gt.update([pred((10, 10, 40, 50), scores=[0.5], labels=[0])],
-                 [{"masks": torch.zeros(0, H, W, dtype=torch.bool), "labels": torch.zeros(0, dtype=torch.long)}])
+    no_gt.update(
+        [pred((10, 10, 40, 50), scores=[0.5], labels=[0])],
+        [{"masks": torch.zeros(0, H, W, dtype=torch.bool), "labels": torch.zeros(0, dtype=torch.long)}],
+    )
     assert no_gt.compute()["bbox_map"].item() == -1.0
 
 
 def test_missing_key_is_named():
     with pytest.raises(KeyError, match="scores"):
-        MaskAP().update([{"masks": torch.zeros(0, H, W), "labels": torch.zeros(0)}],
-                        [target((10, 10, 40, 50), labels=[0])])
+        MaskAP().update(
+            [{"masks": torch.zeros(0, H, W), "labels": torch.zeros(0)}], [target((10, 10, 40, 50), labels=[0])]
+        )

@@ -1,5 +1,6 @@
 """KittiAP against hand-computed cases and a loop-by-loop transliteration of the KITTI object devkit's
 evaluate_object.cpp (2017; its ``cleanData`` with the older 2D devkit's height rule as the ``2d_2012`` option)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -14,13 +15,17 @@ from ablate.metrics.kitti import LABEL_NAMES, KittiAP, thresholds
 
 def image(gts=(), dets=()) -> tuple[dict, dict]:
     """gts: (type, xyxy, occluded, truncated); dets: (type, xyxy, score) -> (pred, target) of KittiAP.update."""
-    target = {"boxes": torch.tensor([g[1] for g in gts], dtype=torch.float64).reshape(-1, 4),
-              "labels": torch.tensor([LABEL_NAMES.index(g[0]) for g in gts], dtype=torch.long),
-              "occluded": torch.tensor([g[2] for g in gts], dtype=torch.long),
-              "truncated": torch.tensor([g[3] for g in gts], dtype=torch.float64)}
-    pred = {"boxes": torch.tensor([d[1] for d in dets], dtype=torch.float64).reshape(-1, 4),
-            "labels": torch.tensor([LABEL_NAMES.index(d[0]) for d in dets], dtype=torch.long),
-            "scores": torch.tensor([d[2] for d in dets], dtype=torch.float64)}
+    target = {
+        "boxes": torch.tensor([g[1] for g in gts], dtype=torch.float64).reshape(-1, 4),
+        "labels": torch.tensor([LABEL_NAMES.index(g[0]) for g in gts], dtype=torch.long),
+        "occluded": torch.tensor([g[2] for g in gts], dtype=torch.long),
+        "truncated": torch.tensor([g[3] for g in gts], dtype=torch.float64),
+    }
+    pred = {
+        "boxes": torch.tensor([d[1] for d in dets], dtype=torch.float64).reshape(-1, 4),
+        "labels": torch.tensor([LABEL_NAMES.index(d[0]) for d in dets], dtype=torch.long),
+        "scores": torch.tensor([d[2] for d in dets], dtype=torch.float64),
+    }
     return pred, target
 
 
@@ -94,8 +99,12 @@ def ref_statistics(cls, gts, dets, dc, ignored_gt, ignored_det, compute_fp, thre
             overlap = ref_boxoverlap(d[1], g[1])
             if not compute_fp and overlap > OVERLAP[cls] and d[2] > valid_detection:
                 det_idx, valid_detection = j, d[2]
-            elif (compute_fp and overlap > OVERLAP[cls] and (overlap > max_iou or assigned_ignored_det)
-                  and ignored_det[j] == 0):
+            elif (
+                compute_fp
+                and overlap > OVERLAP[cls]
+                and (overlap > max_iou or assigned_ignored_det)
+                and ignored_det[j] == 0
+            ):
                 max_iou, det_idx, valid_detection, assigned_ignored_det = overlap, j, 1, False
             elif compute_fp and overlap > OVERLAP[cls] and valid_detection == no_detection and ignored_det[j] == 1:
                 det_idx, valid_detection, assigned_ignored_det = j, 1, True
@@ -181,8 +190,13 @@ def random_frames(seed: int, n_images: int = 60, on_thresholds: float = 0.0) -> 
             box = tuple(np.round([x, y, x + w, y + h], 2).tolist())
             gts.append((typ, box, int(rng.integers(0, 4)), float(np.round(rng.uniform(0, 0.6), 2))))
             if exact and typ != "DontCare":
-                dets.append(({"Van": "Car", "Person_sitting": "Pedestrian"}.get(typ, typ), box,
-                             float(np.round(rng.random(), 2))))
+                dets.append(
+                    (
+                        {"Van": "Car", "Person_sitting": "Pedestrian"}.get(typ, typ),
+                        box,
+                        float(np.round(rng.random(), 2)),
+                    )
+                )
             for _ in range(rng.integers(1, 4) if rng.random() < 0.8 else 0):
                 label = {"Van": "Car", "Person_sitting": "Pedestrian", "DontCare": "Car"}.get(typ, typ)
                 label = label if rng.random() < 0.85 else types[rng.integers(0, 3)]
@@ -198,8 +212,13 @@ def random_frames(seed: int, n_images: int = 60, on_thresholds: float = 0.0) -> 
 # ---- hand-made cases ----
 def test_perfect_detector_scores_100_with_enough_ground_truths():
     ped = (300.0, 100.0, 320.0, 160.0)
-    frames = [image([("Car", CAR, 0, 0.0), ("Pedestrian", ped, 0, 0.0)],
-                    [("Car", CAR, (i + 1) / 100), ("Pedestrian", ped, (i + 1) / 100)]) for i in range(50)]
+    frames = [
+        image(
+            [("Car", CAR, 0, 0.0), ("Pedestrian", ped, 0, 0.0)],
+            [("Car", CAR, (i + 1) / 100), ("Pedestrian", ped, (i + 1) / 100)],
+        )
+        for i in range(50)
+    ]
     out = evaluate(frames)
     for cls in ("Car", "Pedestrian"):
         for level in ("easy", "moderate", "hard"):
@@ -311,8 +330,13 @@ def test_thresholds_follow_get_thresholds_including_float_ties():
 def test_overlap_threshold_is_per_class():
     # shifted 10 px: IoU 40/60 = 0.67, a match for a Pedestrian (> 0.5), not for a Car (> 0.7)
     gt, det = (100.0, 100.0, 150.0, 200.0), (110.0, 100.0, 160.0, 200.0)
-    frames = [image([("Car", gt, 0, 0.0), ("Pedestrian", gt, 0, 0.0)],
-                    [("Car", det, (i + 1) / 100), ("Pedestrian", det, (i + 1) / 100)]) for i in range(41)]
+    frames = [
+        image(
+            [("Car", gt, 0, 0.0), ("Pedestrian", gt, 0, 0.0)],
+            [("Car", det, (i + 1) / 100), ("Pedestrian", det, (i + 1) / 100)],
+        )
+        for i in range(41)
+    ]
     out = evaluate(frames)
     assert out["Car/easy/ap40"] == 0.0
     assert out["Pedestrian/easy/ap40"] == pytest.approx(100.0)
@@ -357,9 +381,17 @@ def missed_car(height: float, difficulty: int | None = None) -> tuple[dict, dict
 COUNTED, IGNORED = (100 * 39 / 40, 100 * 10 / 11), (100.0, 100.0)
 
 
-@pytest.mark.parametrize("devkit, height, moderate", [
-    ("2017", 24.99, IGNORED), ("2017", 25.0, IGNORED), ("2017", 25.01, COUNTED),
-    ("2d_2012", 24.99, IGNORED), ("2d_2012", 25.0, COUNTED), ("2d_2012", 25.01, COUNTED)])
+@pytest.mark.parametrize(
+    "devkit, height, moderate",
+    [
+        ("2017", 24.99, IGNORED),
+        ("2017", 25.0, IGNORED),
+        ("2017", 25.01, COUNTED),
+        ("2d_2012", 24.99, IGNORED),
+        ("2d_2012", 25.0, COUNTED),
+        ("2d_2012", 25.01, COUNTED),
+    ],
+)
 def test_ground_truth_on_the_moderate_and_hard_minimum(devkit, height, moderate):
     # counted GTs at moderate and hard: 41 + (1 if moderate is COUNTED else 0); at easy (> 40 or >= 40) always 41
     for difficulty in (None, 1 if height >= 25 else -1):  # by occlusion / truncation, or as boxes2d gives it
@@ -369,9 +401,17 @@ def test_ground_truth_on_the_moderate_and_hard_minimum(devkit, height, moderate)
         assert (out["Car/easy/ap40"], out["Car/easy/ap11"]) == pytest.approx(IGNORED)
 
 
-@pytest.mark.parametrize("devkit, height, easy", [
-    ("2017", 39.99, IGNORED), ("2017", 40.0, IGNORED), ("2017", 40.01, COUNTED),
-    ("2d_2012", 39.99, IGNORED), ("2d_2012", 40.0, COUNTED), ("2d_2012", 40.01, COUNTED)])
+@pytest.mark.parametrize(
+    "devkit, height, easy",
+    [
+        ("2017", 39.99, IGNORED),
+        ("2017", 40.0, IGNORED),
+        ("2017", 40.01, COUNTED),
+        ("2d_2012", 39.99, IGNORED),
+        ("2d_2012", 40.0, COUNTED),
+        ("2d_2012", 40.01, COUNTED),
+    ],
+)
 def test_ground_truth_on_the_easy_minimum(devkit, height, easy):
     # counted GTs at easy: 41 + (1 if easy is COUNTED else 0); at moderate and hard (> 25) always 42
     for difficulty in (None, 0 if height >= 40 else 1):
@@ -397,9 +437,17 @@ FP = (100 * 41 / 42, 100 * 41 / 42)
 
 
 @pytest.mark.parametrize("devkit", ["2017", "2d_2012"])  # the detection rule is the same in both
-@pytest.mark.parametrize("height, moderate, easy", [
-    (24.99, IGNORED, IGNORED), (25.0, FP, IGNORED), (25.01, FP, IGNORED),
-    (39.99, FP, IGNORED), (40.0, FP, FP), (40.01, FP, FP)])
+@pytest.mark.parametrize(
+    "height, moderate, easy",
+    [
+        (24.99, IGNORED, IGNORED),
+        (25.0, FP, IGNORED),
+        (25.01, FP, IGNORED),
+        (39.99, FP, IGNORED),
+        (40.0, FP, FP),
+        (40.01, FP, FP),
+    ],
+)
 def test_detection_on_the_minimum_heights(devkit, height, moderate, easy):
     lone = image([], [("Car", (400.0, 100.0, 450.0, 100.0 + height), 0.99)])
     out = evaluate(found_cars(41) + [lone], devkit=devkit)
@@ -409,9 +457,17 @@ def test_detection_on_the_minimum_heights(devkit, height, moderate, easy):
 
 
 # ---- the reference on random cases ----
-@pytest.mark.parametrize("seed,image_height,on_thresholds,devkit", [
-    (0, 375.0, 0.0, "2017"), (1, 375.0, 0.0, "2017"), (2, 250.0, 0.0, "2017"),
-    (5, 375.0, 0.4, "2017"), (6, 375.0, 0.4, "2d_2012"), (7, 375.0, 0.0, "2d_2012")])
+@pytest.mark.parametrize(
+    "seed,image_height,on_thresholds,devkit",
+    [
+        (0, 375.0, 0.0, "2017"),
+        (1, 375.0, 0.0, "2017"),
+        (2, 250.0, 0.0, "2017"),
+        (5, 375.0, 0.4, "2017"),
+        (6, 375.0, 0.4, "2d_2012"),
+        (7, 375.0, 0.0, "2d_2012"),
+    ],
+)
 def test_matches_devkit_transliteration_on_random_frames(seed, image_height, on_thresholds, devkit):
     frames = random_frames(seed, on_thresholds=on_thresholds)
     out = evaluate([image(g, d) for g, d in frames], image_height=image_height, devkit=devkit)
@@ -432,8 +488,11 @@ def test_difficulty_input_equals_occlusion_and_truncation():
     for gts, dets in frames:
         p, t = image(gts, dets)
         objs = [Object3D(g[0], g[3], g[2], 0.0, g[1], (1.0, 1.0, 1.0), (0.0, 0.0, 10.0), 0.0) for g in gts]
-        t = {"boxes": t["boxes"], "labels": t["labels"],
-             "difficulty": torch.tensor([o.difficulty_at(scale) for o in objs], dtype=torch.long)}
+        t = {
+            "boxes": t["boxes"],
+            "labels": t["labels"],
+            "difficulty": torch.tensor([o.difficulty_at(scale) for o in objs], dtype=torch.long),
+        }
         by_level.append((p, t))
     assert evaluate(by_level, image_height=250.0) == evaluate([image(g, d) for g, d in frames], image_height=250.0)
 

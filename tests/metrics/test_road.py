@@ -1,6 +1,7 @@
 """RoadMaxF against hand-computed cases, a loop-based reference of the devkit's 256-threshold evaluation, a made-up
 calibration projected by hand, and the real KITTI road frame um_000000 against a transliteration of the road
 devkit's BEV lookup (BirdsEyeView.computeBEVLookUpTable / transformImage2BEV)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -56,11 +57,13 @@ def test_hand_counted_curve():
     #   k <= 25: TP 8 FP 8 | 26..51: TP 8 FP 2 (P .8, R 1, F .8889) | 52..127: TP 6 FP 2 | 128..229: TP 6 FP 0
     #   (P 1, R .75, F .8571) | k >= 230: TP 0. MaxF at k = 26; AP = (8 levels r <= .7 at P 1 + 3 at P .8) / 11.
     gt = torch.tensor([[1, 1, 1, 1], [1, 1, 1, 1], [0, 0, 0, 0], [0, 0, 0, 0]])
-    p = torch.tensor([[.9, .9, .9, .9], [.9, .9, .2, .2], [.5, .5, .1, .1], [.1, .1, .1, .1]])
+    p = torch.tensor([[0.9, 0.9, 0.9, 0.9], [0.9, 0.9, 0.2, 0.2], [0.5, 0.5, 0.1, 0.1], [0.1, 0.1, 0.1, 0.1]])
     metric = RoadMaxF(**SMALL)
     metric.update(p, gt)
-    check(metric.compute(), {"max_f": 100 * 1.6 / 1.8, "pre": 80, "rec": 100, "threshold": 26 / 255,
-                             "ap": 100 * (8 * 1.0 + 3 * 0.8) / 11})
+    check(
+        metric.compute(),
+        {"max_f": 100 * 1.6 / 1.8, "pre": 80, "rec": 100, "threshold": 26 / 255, "ap": 100 * (8 * 1.0 + 3 * 0.8) / 11},
+    )
     assert metric.tp[[0, 26, 52, 128, 230]].tolist() == [8, 8, 6, 6, 0]
     assert metric.fp[[0, 26, 52, 128, 230]].tolist() == [8, 2, 2, 0, 0]
     assert metric.fn[[0, 26, 52, 128, 230]].tolist() == [0, 0, 2, 2, 8]
@@ -71,8 +74,16 @@ def test_scores_from_counts():
     tp[:], fp[:], fn[:] = 30, 70, 0  # threshold 0: everything is road
     tp[1:], fp[1:], fn[1:] = 20, 5, 10  # then P .8, R 2/3
     out = road_scores(tp, fp, fn)
-    check(out, {"pre": 80, "rec": 100 * 2 / 3, "max_f": 100 * 2 * 0.8 * 2 / 3 / (0.8 + 2 / 3), "threshold": 1 / 255,
-                "ap": 100 * (7 * 0.8 + 4 * 0.3) / 11})  # r <= .6 reach P .8; r >= .7 only threshold 0 (P .3)
+    check(
+        out,
+        {
+            "pre": 80,
+            "rec": 100 * 2 / 3,
+            "max_f": 100 * 2 * 0.8 * 2 / 3 / (0.8 + 2 / 3),
+            "threshold": 1 / 255,
+            "ap": 100 * (7 * 0.8 + 4 * 0.3) / 11,
+        },
+    )  # r <= .6 reach P .8; r >= .7 only threshold 0 (P .3)
     assert torch.isnan(road_scores(torch.zeros(256), torch.ones(256), torch.zeros(256))["max_f"])
 
 
@@ -122,8 +133,11 @@ def test_matches_loop_reference_on_random_frames(quantised):
         p = np.round(noise * 255).astype(np.uint8) if quantised else noise
         valid = rng.random((4, 4)) > 0.15
         frames.append((p, gt, valid))
-        metric.update(torch.from_numpy(p).float() / 255 if quantised else torch.from_numpy(p),
-                      torch.from_numpy(gt), torch.from_numpy(valid))
+        metric.update(
+            torch.from_numpy(p).float() / 255 if quantised else torch.from_numpy(p),
+            torch.from_numpy(gt),
+            torch.from_numpy(valid),
+        )
     check(metric.compute(), reference(frames), abs_tol=1e-3)
     if quantised:  # uint8 levels k are read as k/255 exactly
         direct = RoadMaxF(**SMALL)
@@ -137,15 +151,27 @@ def made_up_calib(road: bool = True) -> Calibration:
     camera's right and 0.25 m ahead of it (a road point (X, 0, Z) is the camera point (X - .5, 1.5, Z - .25))."""
     p2 = np.array([[100.0, 0, 50, 0], [0, 100, 20, 0], [0, 0, 1, 0]])
     cam_to_road = np.array([[1.0, 0, 0, 0.5], [0, 1, 0, -1.5], [0, 0, 1, 0.25]])
-    return Calibration(P2=p2, R0_rect=np.eye(3), Tr_velo_to_cam=np.eye(3, 4),
-                       Tr_cam_to_road=cam_to_road if road else None, path="made_up.txt")
+    return Calibration(
+        P2=p2,
+        R0_rect=np.eye(3),
+        Tr_velo_to_cam=np.eye(3, 4),
+        Tr_cam_to_road=cam_to_road if road else None,
+        path="made_up.txt",
+    )
 
 
 GRID = {"res": 0.5, "x_range": (-2.0, 2.0), "z_range": (6.0, 10.0)}  # 8 x 8 cells
 
 
-@pytest.mark.parametrize("road, lookup, pixel", [(True, "devkit", (37, 52)), (False, "devkit", (37, 58)),
-                                                 (True, "nearest", (39, 53)), (False, "nearest", (38, 59))])
+@pytest.mark.parametrize(
+    "road, lookup, pixel",
+    [
+        (True, "devkit", (37, 52)),
+        (False, "devkit", (37, 58)),
+        (True, "nearest", (39, 53)),
+        (False, "nearest", (38, 59)),
+    ],
+)
 def test_warp_puts_a_ground_point_in_its_cell(road, lookup, pixel):
     # Grid res .5, x in [-2, 2], z in [6, 10]: cell (row 3, column 5) has centre x = .75, z = 8.25.
     # Road frame: u = 100 (.75 - .5) / (8.25 - .25) + 50 = 53.125, v = 100 * 1.5 / 8 + 20 = 38.75:
@@ -169,12 +195,15 @@ def test_warp_puts_a_ground_point_in_its_cell(road, lookup, pixel):
     assert hit.tolist() == [3 * 8 + 5]
 
 
-@pytest.mark.parametrize("cell, devkit, nearest", [
-    # (row, column): centre (x, z) -> u = 100 (x - .5) / (z - .25) + 50, v = 150 / (z - .25) + 20
-    ((3, 5), (37, 52), (39, 53)),  # (.75, 8.25): u = 53.125, v = 38.75
-    ((0, 0), (34, 25), (36, 26)),  # (-1.75, 9.75): u = 50 - 225 / 9.5 = 26.316, v = 20 + 150 / 9.5 = 35.789
-    ((7, 7), (44, 69), (45, 71)),  # (1.75, 6.25): u = 50 + 125 / 6 = 70.833, v = 45.0 exactly: devkit row 45 - 1
-])
+@pytest.mark.parametrize(
+    "cell, devkit, nearest",
+    [
+        # (row, column): centre (x, z) -> u = 100 (x - .5) / (z - .25) + 50, v = 150 / (z - .25) + 20
+        ((3, 5), (37, 52), (39, 53)),  # (.75, 8.25): u = 53.125, v = 38.75
+        ((0, 0), (34, 25), (36, 26)),  # (-1.75, 9.75): u = 50 - 225 / 9.5 = 26.316, v = 20 + 150 / 9.5 = 35.789
+        ((7, 7), (44, 69), (45, 71)),  # (1.75, 6.25): u = 50 + 125 / 6 = 70.833, v = 45.0 exactly: devkit row 45 - 1
+    ],
+)
 def test_lookup_pixels_by_hand(cell, devkit, nearest):
     hom = road_homography(made_up_calib())
     for lookup, (row, col) in (("devkit", devkit), ("nearest", nearest)):
@@ -209,12 +238,15 @@ def test_missing_road_plane_is_a_loud_error():
         RoadMaxF().update(torch.zeros(60, 100), torch.zeros(60, 100), calib=made_up_calib(road=False))
 
 
-@pytest.mark.parametrize("preds, target, match", [
-    (torch.full((4, 4), 2.0), torch.zeros(4, 4), "probabilities"),
-    (torch.zeros(4, 4), torch.full((4, 4), 255), "0/1"),
-    (torch.zeros(5, 4), torch.zeros(5, 4), r"must be \(4, 4\)"),
-    (torch.zeros(4, 4), torch.zeros(3, 4, 4), "one shape"),
-])
+@pytest.mark.parametrize(
+    "preds, target, match",
+    [
+        (torch.full((4, 4), 2.0), torch.zeros(4, 4), "probabilities"),
+        (torch.zeros(4, 4), torch.full((4, 4), 255), "0/1"),
+        (torch.zeros(5, 4), torch.zeros(5, 4), r"must be \(4, 4\)"),
+        (torch.zeros(4, 4), torch.zeros(3, 4, 4), "one shape"),
+    ],
+)
 def test_bad_inputs_are_named(preds, target, match):
     with pytest.raises(ValueError, match=match):
         RoadMaxF(**SMALL).update(preds, target)
@@ -275,7 +307,7 @@ def devkit_bev(image: np.ndarray, calib: Calibration) -> np.ndarray:
     u, v = uvw[0] / uvw[2], uvw[1] / uvw[2]
     h, w = image.shape
     keep = (v >= 1) & (u >= 1) & (v <= h) & (u <= w)
-    z_ind, x_ind = np.mgrid[1:rows + 1, 1:cols + 1]
+    z_ind, x_ind = np.mgrid[1 : rows + 1, 1 : cols + 1]
     z_ind, x_ind = z_ind.ravel(order="F")[keep], x_ind.ravel(order="F")[keep]
     out = np.zeros((rows, cols), image.dtype)
     out[z_ind - 1, x_ind - 1] = image[v[keep].astype(np.uint32) - 1, u[keep].astype(np.uint32) - 1]

@@ -1,4 +1,5 @@
 """The ChiNet family (ChiNet Table I): outputs, branches and where the skips go."""
+
 import pytest
 import torch
 
@@ -31,7 +32,9 @@ def test_chinet_decoders_take_both_encoders_and_iimo_ignores_depth():
     x = _inputs()
     a = iimo(x)["free_space"]
     x["dense_depth"] = torch.rand_like(x["dense_depth"])
-    assert torch.equal(iimo.eval()(x)["free_space"], iimo.eval()(_inputs() | {"intensity": x["intensity"]})["free_space"])
+    assert torch.equal(
+        iimo.eval()(x)["free_space"], iimo.eval()(_inputs() | {"intensity": x["intensity"]})["free_space"]
+    )
     assert a.shape == (2, 1, 32, 48)
 
 

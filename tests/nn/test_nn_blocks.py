@@ -1,4 +1,5 @@
 """YOLACT-style FPN, VGG-16 SSD trunk and U-Net blocks."""
+
 import pytest
 import torch
 
@@ -59,7 +60,9 @@ def test_vgg16_ssd_with_batch_norm_has_vgg16_bn_layout_and_the_same_maps():
 
 def test_vgg16_loads_torchvision_features(tmp_path):
     src = VGG16SSD(width=0.125)
-    state = {f"features.{k}": v for k, v in src.features.state_dict().items()} | {"classifier.0.weight": torch.zeros(2, 2)}
+    state = {f"features.{k}": v for k, v in src.features.state_dict().items()} | {
+        "classifier.0.weight": torch.zeros(2, 2)
+    }
     torch.save(state, tmp_path / "vgg16.pth")
     dhi = VGG16SSD(in_channels=1, width=0.125, weights=tmp_path / "vgg16.pth")
     torch.testing.assert_close(dhi.features[2].weight, src.features[2].weight)

@@ -1,12 +1,17 @@
 """ResNet trunk: torchvision-equal sizes, C2-C5 strides, width, input channels, local weights."""
+
 import pytest
 import torch
 
 from ablate.nn import ResNet, WeightsError
 
 # torchvision resnet{18,34,50,101} parameter counts minus their 1000-class fc layer
-TRUNK_PARAMS = {18: 11_689_512 - 513_000, 34: 21_797_672 - 513_000, 50: 25_557_032 - 2_049_000,
-                101: 44_549_160 - 2_049_000}
+TRUNK_PARAMS = {
+    18: 11_689_512 - 513_000,
+    34: 21_797_672 - 513_000,
+    50: 25_557_032 - 2_049_000,
+    101: 44_549_160 - 2_049_000,
+}
 
 
 @pytest.mark.parametrize("depth", [18, 34, 50, 101])

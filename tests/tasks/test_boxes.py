@@ -1,4 +1,5 @@
 """The box module SSD and YOLACT share: anchor layouts, greedy NMS, box overlap, and YOLACT's layout through it."""
+
 import math
 
 import pytest
@@ -24,7 +25,7 @@ def test_ssd300_layout_has_8732_default_boxes_in_normalised_units():
     anchors = Anchors(ssd_scales(6), [ssd_ratios(r) for r in SSD300_RATIOS], relative_to="image", extra=True)
     assert anchors.num_per_level == [4, 6, 6, 6, 4, 4]
     with pytest.raises(ValueError, match="vary by level"):
-        anchors.num_per_location
+        _ = anchors.num_per_location
     a = anchors((300, 600), SSD300_MAPS)
     assert a.shape == (8732, 4)
     # conv4_3 cell (0, 0): centre at half a step; ratio 1 box s W x s H; ratio 2 box sqrt(2) wider, lower

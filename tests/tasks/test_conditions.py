@@ -1,4 +1,5 @@
 """Test conditions and training corruptions on batches, and the task base's test per condition with pooling."""
+
 import functools
 from collections import Counter
 
@@ -13,15 +14,28 @@ from ablate.data.datamodule import collate
 from ablate.tasks.base import FusionTask
 from ablate.tasks.conditions import EvalConditions, TrainCorruptions, corrupt, parse_spec
 
-DGFN_CHOICES = [{}, [{"camera": "blank"}, {"lidar": "blank"}], [{"camera": "occlusion"}, {"lidar": "occlusion"}],
-                {"camera": "noise"}, {"camera": "illumination"}]
-CONDITIONS = {"normal": {}, "camera_blank": {"camera": "blank"}, "lidar_blank": {"lidar": "blank"},
-              "camera_occlusion": {"camera": "occlusion"}}
+DGFN_CHOICES = [
+    {},
+    [{"camera": "blank"}, {"lidar": "blank"}],
+    [{"camera": "occlusion"}, {"lidar": "occlusion"}],
+    {"camera": "noise"},
+    {"camera": "illumination"},
+]
+CONDITIONS = {
+    "normal": {},
+    "camera_blank": {"camera": "blank"},
+    "lidar_blank": {"lidar": "blank"},
+    "camera_occlusion": {"camera": "occlusion"},
+}
 
 
 def batch(n: int = 4, rgb: float = 0.5, dhi: float = 0.25) -> dict:
-    return collate([{"frame": f"{i:06d}", "rgb": torch.full((3, 16, 24), rgb), "dhi": torch.full((3, 16, 24), dhi)}
-                    for i in range(n)])
+    return collate(
+        [
+            {"frame": f"{i:06d}", "rgb": torch.full((3, 16, 24), rgb), "dhi": torch.full((3, 16, 24), dhi)}
+            for i in range(n)
+        ]
+    )
 
 
 def test_specs_are_checked_and_name_the_option():
@@ -61,9 +75,15 @@ def test_conditions_hit_their_sensor_alike_for_every_model_and_not_others():
 def test_training_draws_five_choices_equally_and_the_sensor_50_50():
     tc = TrainCorruptions(DGFN_CHOICES, seed=0)
     drawn = Counter(tuple(sorted(tc.draw(step)[0].items())) for step in range(5000))
-    choice = Counter({"none": drawn[()], "blank": drawn[(("camera", "blank"),)] + drawn[(("lidar", "blank"),)],
-                      "occlusion": drawn[(("camera", "occlusion"),)] + drawn[(("lidar", "occlusion"),)],
-                      "noise": drawn[(("camera", "noise"),)], "illumination": drawn[(("camera", "illumination"),)]})
+    choice = Counter(
+        {
+            "none": drawn[()],
+            "blank": drawn[(("camera", "blank"),)] + drawn[(("lidar", "blank"),)],
+            "occlusion": drawn[(("camera", "occlusion"),)] + drawn[(("lidar", "occlusion"),)],
+            "noise": drawn[(("camera", "noise"),)],
+            "illumination": drawn[(("camera", "illumination"),)],
+        }
+    )
     assert sum(choice.values()) == 5000 and all(900 <= c <= 1100 for c in choice.values()), choice
     camera_share = drawn[(("camera", "blank"),)] / choice["blank"]
     assert 0.44 <= camera_share <= 0.56
@@ -103,8 +123,9 @@ def loader(n: int = 6) -> DataLoader:
 
 
 def trainer(**kw) -> L.Trainer:
-    return L.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
-                     **kw)
+    return L.Trainer(
+        logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False, **kw
+    )
 
 
 def test_a_task_is_tested_once_per_condition_and_pooled():
@@ -128,8 +149,9 @@ def test_training_batches_carry_the_corruption_drawn_for_their_weight_update():
     task = Toy(train_corruptions=tc)
     trainer(max_steps=8, limit_val_batches=0).fit(task, loader(24))
     draws = TrainCorruptions(**tc)
-    assert [(step, "camera" not in draws.draw(step)[0], "lidar" not in draws.draw(step)[0]) for step in range(8)] \
-        == task.seen
+    assert [
+        (step, "camera" not in draws.draw(step)[0], "lidar" not in draws.draw(step)[0]) for step in range(8)
+    ] == task.seen
     assert {rgb for _, rgb, _ in task.seen} == {True, False}  # both sensors were blanked in 8 updates
     (res,) = trainer().test(task, loader(), verbose=False)  # testing sees the data as it is
     assert res["test/rgb"] == pytest.approx(0.5)

@@ -1,4 +1,5 @@
 """The DGFN configs: recipes per scale, the rows of Tables I and II, and Table II reusing Table I's DGFN runs."""
+
 from pathlib import Path
 
 import pytest
@@ -32,8 +33,15 @@ def test_table1_rows_differ_only_in_the_gates_and_train_with_the_five_corruption
     assert (gfu.fusion.gated, base.fusion.gated) == (True, False)
     assert gfu.model.l2norm_scale == base.model.l2norm_scale == 1.0  # before a GFU (ablate.tasks.ssd.model.DGFN)
     assert gfu.task.train_corruptions == base.task.train_corruptions and len(gfu.task.train_corruptions.choices) == 5
-    assert list(gfu.task.eval_conditions) == ["normal", "camera_blank", "lidar_blank", "camera_occlusion",
-                                              "lidar_occlusion", "camera_noise", "camera_illumination"]
+    assert list(gfu.task.eval_conditions) == [
+        "normal",
+        "camera_blank",
+        "lidar_blank",
+        "camera_occlusion",
+        "lidar_occlusion",
+        "camera_noise",
+        "camera_illumination",
+    ]
     assert gfu.task.eval_pooled == "full" and [c.condition for c in gfu.table.conditions][0] == "full"
 
 
@@ -49,8 +57,9 @@ def test_table2_reuses_table1s_dgfn_and_trains_plain_single_sensor_ssds():
     assert dict(table.metrics) == {"car_easy": "Easy", "car_moderate": "Moderate", "car_hard": "Hard"}
 
 
-@pytest.mark.parametrize("overrides", [["experiment=dgfn_table1", "row=dgfn"],
-                                       ["task=detection", "model=fusion", "stage=late"]])
+@pytest.mark.parametrize(
+    "overrides", [["experiment=dgfn_table1", "row=dgfn"], ["task=detection", "model=fusion", "stage=late"]]
+)
 def test_the_detection_task_builds_on_dgfn_and_on_a_fusion_model(overrides):
     c = cfg(*overrides, "scale=smoke")
     task = instantiate(c.task, model=instantiate(c.model))

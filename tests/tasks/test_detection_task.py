@@ -1,5 +1,6 @@
 """DetectionTask end to end on hand-made frames: an oracle model's boxes through decoding and KITTI AP per test
 condition, the pooled "Full" result, and a small DGFN's GFU weights and figures."""
+
 import functools
 
 import lightning as L
@@ -14,17 +15,28 @@ from ablate.tasks.boxes import box_iou, cxcywh_to_xyxy, encode
 from ablate.tasks.detection import DGFN, DetectionTask, SSDHead
 
 H, W = 64, 208
-CONDITIONS = {"normal": {}, "camera_blank": {"camera": "blank"}, "lidar_blank": {"lidar": "blank"},
-              "camera_occlusion": {"camera": "occlusion"}}
+CONDITIONS = {
+    "normal": {},
+    "camera_blank": {"camera": "blank"},
+    "lidar_blank": {"lidar": "blank"},
+    "camera_occlusion": {"camera": "occlusion"},
+}
 SGD = functools.partial(torch.optim.SGD, lr=0.0)
 
 
 def frame(i: int) -> dict:
     """8 easy Cars in a row (12 px tall: easy from 40 x 64 / 375 = 6.8 px), and a DontCare region."""
     cars = [[4.0 + 25 * k, 20, 24 + 25 * k, 32] for k in range(8)]
-    return {"frame": f"{i:06d}", "rgb": torch.full((3, H, W), 0.5), "dhi": torch.full((3, H, W), 0.5),
-            "boxes2d": {"boxes": torch.tensor(cars + [[0.0, 40, 60, 64]]),
-                        "labels": torch.tensor([0] * 8 + [5]), "difficulty": torch.tensor([0] * 8 + [-1])}}
+    return {
+        "frame": f"{i:06d}",
+        "rgb": torch.full((3, H, W), 0.5),
+        "dhi": torch.full((3, H, W), 0.5),
+        "boxes2d": {
+            "boxes": torch.tensor(cars + [[0.0, 40, 60, 64]]),
+            "labels": torch.tensor([0] * 8 + [5]),
+            "difficulty": torch.tensor([0] * 8 + [-1]),
+        },
+    }
 
 
 class Oracle(nn.Module):
@@ -52,9 +64,13 @@ class Oracle(nn.Module):
             cls[b, best] = torch.tensor([0.0, 15, 0, 0])
             loc[b, best] = encode(t["boxes"][real], anchors[best])
         cls, loc = cls + self.weight, loc + self.weight
-        split = lambda x, d: [m.reshape(x.shape[0], hl, wl, -1).permute(0, 3, 1, 2)  # noqa: E731
-                              for m, (hl, wl) in zip(x.split([hl * wl * k for (hl, wl), k in zip(self.levels, a)], 1),
-                                                     self.levels)]
+
+        def split(x, d):
+            return [
+                m.reshape(x.shape[0], hl, wl, -1).permute(0, 3, 1, 2)
+                for m, (hl, wl) in zip(x.split([hl * wl * k for (hl, wl), k in zip(self.levels, a)], 1), self.levels)
+            ]
+
         return {"cls": split(cls, 4), "box": split(loc, 4)}
 
 
@@ -63,8 +79,9 @@ def loader(n: int = 6) -> DataLoader:
 
 
 def trainer(**kw) -> L.Trainer:
-    return L.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
-                     **kw)
+    return L.Trainer(
+        logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False, **kw
+    )
 
 
 def test_kitti_ap_per_condition_and_pooled_from_an_oracle():
@@ -83,13 +100,23 @@ def test_kitti_ap_per_condition_and_pooled_from_an_oracle():
 
 def small_dgfn(gated: bool = True) -> DGFN:
     torch.manual_seed(0)
-    return DGFN({"rgb": 3, "dhi": 3}, functools.partial(SSDHead, num_classes=3),
-                functools.partial(build, "gfu", gated=gated), width=0.0625, input_size=(272, 272))
+    return DGFN(
+        {"rgb": 3, "dhi": 3},
+        functools.partial(SSDHead, num_classes=3),
+        functools.partial(build, "gfu", gated=gated),
+        width=0.0625,
+        input_size=(272, 272),
+    )
 
 
 def test_dgfn_trains_tests_under_conditions_and_logs_its_gates():
-    task = DetectionTask(small_dgfn(), functools.partial(torch.optim.Adam, lr=1e-3), eval_conditions=CONDITIONS,
-                         eval_pooled="full", train_corruptions={"choices": [{}, {"camera": "noise"}]})
+    task = DetectionTask(
+        small_dgfn(),
+        functools.partial(torch.optim.Adam, lr=1e-3),
+        eval_conditions=CONDITIONS,
+        eval_pooled="full",
+        train_corruptions={"choices": [{}, {"camera": "noise"}]},
+    )
     trainer(max_steps=2, limit_val_batches=1).fit(task, loader(), loader(3))
     (res,) = trainer().test(task, loader(3), verbose=False)
     gates = {c: (res[f"test/{c}/gate_rgb"], res[f"test/{c}/gate_dhi"]) for c in [*CONDITIONS, "full"]}

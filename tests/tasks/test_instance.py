@@ -1,4 +1,5 @@
 """YOLACT head pieces: anchors, matching, box encoding, head maps, Fast NMS, mask assembly, decode."""
+
 from __future__ import annotations
 
 import math
@@ -33,13 +34,18 @@ def test_anchor_count_centres_and_sizes():
 
 
 def test_matching_on_hand_made_boxes():
-    anchors = xyxy_to_cxcywh(torch.tensor([
-        [0, 0, 10, 10],      # IoU 1 with gt 0            -> positive
-        [5, 0, 15, 10],      # IoU 50/150 = 0.33           -> negative
-        [3, 0, 13, 10],      # IoU 70/130 = 0.54           -> positive
-        [4, 0, 14, 10],      # IoU 60/140 = 0.43           -> neutral
-        [95, 95, 115, 115],  # IoU 16/400 = 0.04 with gt 1, its best anchor -> forced positive
-    ], dtype=torch.float32))
+    anchors = xyxy_to_cxcywh(
+        torch.tensor(
+            [
+                [0, 0, 10, 10],  # IoU 1 with gt 0            -> positive
+                [5, 0, 15, 10],  # IoU 50/150 = 0.33           -> negative
+                [3, 0, 13, 10],  # IoU 70/130 = 0.54           -> positive
+                [4, 0, 14, 10],  # IoU 60/140 = 0.43           -> neutral
+                [95, 95, 115, 115],  # IoU 16/400 = 0.04 with gt 1, its best anchor -> forced positive
+            ],
+            dtype=torch.float32,
+        )
+    )
     gt = torch.tensor([[0, 0, 10, 10], [100, 100, 104, 104]], dtype=torch.float32)
     idx, state = match(gt, anchors)
     assert state.tolist() == [1, 0, 1, -1, 1]
@@ -75,11 +81,15 @@ def test_head_maps_match_out_channels():
 
 
 def test_fast_nms_matches_hand_computation():
-    boxes = torch.tensor([[0, 0, 10, 10],     # A .9 kept
-                          [3, 0, 13, 10],     # B .8 IoU(A, B) = 0.54 -> suppressed
-                          [6, 0, 16, 10],     # C .7 IoU(A, C) = 0.25 but IoU(B, C) = 0.54 -> suppressed too
-                          [30, 30, 40, 40]],  # D .6 disjoint -> kept
-                         dtype=torch.float32)
+    boxes = torch.tensor(
+        [
+            [0, 0, 10, 10],  # A .9 kept
+            [3, 0, 13, 10],  # B .8 IoU(A, B) = 0.54 -> suppressed
+            [6, 0, 16, 10],  # C .7 IoU(A, C) = 0.25 but IoU(B, C) = 0.54 -> suppressed too
+            [30, 30, 40, 40],
+        ],  # D .6 disjoint -> kept
+        dtype=torch.float32,
+    )
     scores = torch.tensor([[0.9, 0.01], [0.8, 0.01], [0.7, 0.01], [0.6, 0.3]])
     idx, labels, s = fast_nms(boxes, scores, iou_threshold=0.5, score_threshold=0.05)
     assert idx.tolist() == [0, 3, 3]
@@ -92,8 +102,7 @@ def test_fast_nms_matches_hand_computation():
 
 def test_mask_assembly_crops_outside_the_box():
     proto = torch.ones(1, 8, 8)
-    masks = assemble_masks(proto, torch.tensor([[10.0], [-10.0]]), torch.tensor([[4.0, 2.0, 12.0, 9.0]] * 2),
-                           (16, 16))
+    masks = assemble_masks(proto, torch.tensor([[10.0], [-10.0]]), torch.tensor([[4.0, 2.0, 12.0, 9.0]] * 2), (16, 16))
     expected = torch.zeros(16, 16, dtype=torch.bool)
     expected[2:9, 4:12] = True
     assert torch.equal(masks[0], expected)
@@ -106,9 +115,12 @@ def test_decode_returns_the_confident_anchor_as_an_instance():
     for m in cls:
         m[:, 0::3] = 10.0  # background everywhere ...
     cls[1][0, 3 + 2, 1, 0] = 20.0  # ... except anchor (row 1, col 0, ratio 1/2) of P4: pedestrian
-    outputs = {"proto": torch.ones(1, k, 8, 8), "cls": cls,
-               "box": [torch.zeros(1, 12, h, w) for h, w in levels],
-               "coef": [torch.ones(1, 3 * k, h, w) for h, w in levels]}
+    outputs = {
+        "proto": torch.ones(1, k, 8, 8),
+        "cls": cls,
+        "box": [torch.zeros(1, 12, h, w) for h, w in levels],
+        "coef": [torch.ones(1, 3 * k, h, w) for h, w in levels],
+    }
     anchors = Anchors(scales=(0.1, 0.25, 0.5, 0.75, 1.0))
     (res,) = decode(outputs, image, score_thresh=0.5, anchors=anchors)
     assert res["labels"].tolist() == [1] and res["scores"].item() > 0.99

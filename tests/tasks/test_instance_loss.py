@@ -1,4 +1,5 @@
 """SMoE eq. 7 loss of the YOLACT head: hand values, empty images, and a short fit on one synthetic image."""
+
 from __future__ import annotations
 
 import math
@@ -15,29 +16,36 @@ LEVELS = [(8, 8), (4, 4), (2, 2), (1, 1), (1, 1)]
 
 def square_target(x1: int = 16, y1: int = 20, size: int = 24, label: int = 0) -> dict:
     masks = torch.zeros(1, *IMAGE, dtype=torch.bool)
-    masks[0, y1:y1 + size, x1:x1 + size] = True
-    return {"boxes": torch.tensor([[x1, y1, x1 + size, y1 + size]], dtype=torch.float32),
-            "labels": torch.tensor([label]), "masks": masks}
+    masks[0, y1 : y1 + size, x1 : x1 + size] = True
+    return {
+        "boxes": torch.tensor([[x1, y1, x1 + size, y1 + size]], dtype=torch.float32),
+        "labels": torch.tensor([label]),
+        "masks": masks,
+    }
 
 
 def disc_target(cx: float = 28.0, cy: float = 32.0, r: float = 12.0) -> dict:
     ys, xs = torch.meshgrid(torch.arange(IMAGE[0]) + 0.5, torch.arange(IMAGE[1]) + 0.5, indexing="ij")
     mask = (xs - cx) ** 2 + (ys - cy) ** 2 <= r * r
-    return {"boxes": torch.tensor([[cx - r, cy - r, cx + r, cy + r]]), "labels": torch.tensor([1]),
-            "masks": mask[None]}
+    return {"boxes": torch.tensor([[cx - r, cy - r, cx + r, cy + r]]), "labels": torch.tensor([1]), "masks": mask[None]}
 
 
 def empty_target() -> dict:
-    return {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.long),
-            "masks": torch.zeros(0, *IMAGE, dtype=torch.bool)}
+    return {
+        "boxes": torch.zeros(0, 4),
+        "labels": torch.zeros(0, dtype=torch.long),
+        "masks": torch.zeros(0, *IMAGE, dtype=torch.bool),
+    }
 
 
 def zero_outputs(batch: int = 1, k: int = 2, proto: torch.Tensor | None = None) -> dict:
     """Maps of an untrained head: uniform class logits, zero offsets, zero coefficients."""
-    return {"proto": (proto if proto is not None else torch.zeros(batch, k, 16, 16)).requires_grad_(),
-            "cls": [torch.zeros(batch, 9, h, w, requires_grad=True) for h, w in LEVELS],
-            "box": [torch.zeros(batch, 12, h, w, requires_grad=True) for h, w in LEVELS],
-            "coef": [torch.zeros(batch, 3 * k, h, w, requires_grad=True) for h, w in LEVELS]}
+    return {
+        "proto": (proto if proto is not None else torch.zeros(batch, k, 16, 16)).requires_grad_(),
+        "cls": [torch.zeros(batch, 9, h, w, requires_grad=True) for h, w in LEVELS],
+        "box": [torch.zeros(batch, 12, h, w, requires_grad=True) for h, w in LEVELS],
+        "coef": [torch.zeros(batch, 3 * k, h, w, requires_grad=True) for h, w in LEVELS],
+    }
 
 
 def test_hand_values_with_uniform_logits():
@@ -50,8 +58,9 @@ def test_hand_values_with_uniform_logits():
     anchors = Anchors()(IMAGE, LEVELS)
     _, state = match(square_target()["boxes"], anchors)
     assert (state == 1).sum() >= 1
-    assert math.isclose(out["total"].item(), out["cls"].item() + 1.5 * out["box"].item() + 6.125 * math.log(2),
-                        rel_tol=1e-5)
+    assert math.isclose(
+        out["total"].item(), out["cls"].item() + 1.5 * out["box"].item() + 6.125 * math.log(2), rel_tol=1e-5
+    )
 
 
 def test_image_without_gt_is_finite_and_uses_its_hardest_negatives():
@@ -86,8 +95,9 @@ class TinyNet(nn.Module):
 
     def __init__(self, c: int = 16) -> None:
         super().__init__()
-        self.stem = nn.Sequential(nn.Conv2d(3, c, 3, stride=2, padding=1), nn.ReLU(),
-                                  nn.Conv2d(c, c, 3, stride=2, padding=1), nn.ReLU())
+        self.stem = nn.Sequential(
+            nn.Conv2d(3, c, 3, stride=2, padding=1), nn.ReLU(), nn.Conv2d(c, c, 3, stride=2, padding=1), nn.ReLU()
+        )
         self.head = YolactHead(in_channels=c, num_prototypes=4)
 
     def forward(self, x: torch.Tensor) -> dict:

@@ -1,5 +1,6 @@
 """InstanceTask: loss and gradients through a tiny fusion model, mask AP on rigged outputs, per-condition AP,
 anchors taken from the head, figures."""
+
 from __future__ import annotations
 
 import functools
@@ -22,15 +23,20 @@ SGD = functools.partial(torch.optim.SGD, lr=0.01, momentum=0.9)
 
 
 def tiny_model(stage: str = "fpn", op: str = "smoe", **head) -> FusionModel:
-    return FusionModel(stage=stage, modalities={"rgb": 3, "ddm_jet": 3}, single="rgb",
-                       head=functools.partial(YolactHead, num_classes=2, num_prototypes=4, **head),
-                       fusion=functools.partial(build, name=op), backbone={"depth": 18, "width": 0.125},
-                       fpn_channels=16)
+    return FusionModel(
+        stage=stage,
+        modalities={"rgb": 3, "ddm_jet": 3},
+        single="rgb",
+        head=functools.partial(YolactHead, num_classes=2, num_prototypes=4, **head),
+        fusion=functools.partial(build, name=op),
+        backbone={"depth": 18, "width": 0.125},
+        fpn_channels=16,
+    )
 
 
 def box_mask(box: list[int]) -> torch.Tensor:
     mask = torch.zeros(SIZE, dtype=torch.bool)
-    mask[box[1]:box[3], box[0]:box[2]] = True
+    mask[box[1] : box[3], box[0] : box[2]] = True
     return mask
 
 
@@ -39,11 +45,18 @@ def make_batch(conditions: list[str]) -> dict:
     boxes = [[4, 24, 36, 48], [44, 8, 56, 40]]
     g = torch.Generator().manual_seed(0)
     n = len(conditions)
-    instance = {"masks": torch.stack([box_mask(b) for b in boxes]), "labels": torch.tensor([0, 1]),
-                "boxes": torch.tensor(boxes, dtype=torch.float32)}
-    return {"rgb": torch.rand(n, 3, *SIZE, generator=g), "ddm_jet": torch.rand(n, 3, *SIZE, generator=g),
-            "instances": [dict(instance) for _ in range(n)], "ignore": torch.zeros(n, *SIZE, dtype=torch.bool),
-            "condition": list(conditions)}
+    instance = {
+        "masks": torch.stack([box_mask(b) for b in boxes]),
+        "labels": torch.tensor([0, 1]),
+        "boxes": torch.tensor(boxes, dtype=torch.float32),
+    }
+    return {
+        "rgb": torch.rand(n, 3, *SIZE, generator=g),
+        "ddm_jet": torch.rand(n, 3, *SIZE, generator=g),
+        "instances": [dict(instance) for _ in range(n)],
+        "ignore": torch.zeros(n, *SIZE, dtype=torch.bool),
+        "condition": list(conditions),
+    }
 
 
 def rigged_outputs(batch: dict, anchors: Anchors, drop: set[tuple[int, int]] = frozenset()) -> dict:
@@ -71,7 +84,7 @@ def rigged_outputs(batch: dict, anchors: Anchors, drop: set[tuple[int, int]] = f
             i, col, r = local // (w * a), local // a % w, local % a
             cls[lvl][b, r * 3, i, col] = -10.0
             cls[lvl][b, r * 3 + 1 + int(label), i, col] = 10.0
-            box[lvl][b, r * 4:(r + 1) * 4, i, col] = encode(gt[None], table[idx][None])[0]
+            box[lvl][b, r * 4 : (r + 1) * 4, i, col] = encode(gt[None], table[idx][None])[0]
             coef[lvl][b, r * K + j, i, col] = 1.0
     return {"proto": proto, "cls": cls, "box": box, "coef": coef}
 
@@ -139,10 +152,18 @@ def test_test_logs_map_per_condition_group_present():
     batch = make_batch(["clear", "night", "rain_day", "rain_night"])
     # night: nothing detected; rain_night: its pedestrian missed
     outputs = rigged_outputs(batch, Anchors(), drop={(1, 0), (1, 1), (3, 1)})
-    trainer = L.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False)
-    (res,) = trainer.test(InstanceTask(Rigged(outputs), SGD),
-                          dataloaders=DataLoader([batch], batch_size=None, collate_fn=lambda b: b), verbose=False)
+    trainer = L.Trainer(
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
+    (res,) = trainer.test(
+        InstanceTask(Rigged(outputs), SGD),
+        dataloaders=DataLoader([batch], batch_size=None, collate_fn=lambda b: b),
+        verbose=False,
+    )
     assert res["test/map_clear"] == pytest.approx(100.0)
     assert res["test/map_night"] == pytest.approx(0.0)
     # rain pools rain_day and rain_night: cars 2/2 found (AP 100); pedestrians 1/2 found with the top score, so

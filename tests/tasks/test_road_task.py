@@ -1,5 +1,6 @@
 """BiFNet's road task: focal loss and eq. 13 against hand-computed values, the warps into the devkit's metric BEV
 against RoadMaxF's own, the network in its three modes with two-stage training, and one evaluation."""
+
 from __future__ import annotations
 
 import functools
@@ -23,11 +24,17 @@ def batch(b: int = 2, modalities=("rgb", "bev")) -> dict:
     torch.manual_seed(0)
     road = torch.zeros(b, 1, H, W)
     road[:, :, 40:, 60:150] = 1.0
-    out = {"free_space": road, "road_valid": torch.ones(b, 1, H, W), "road_bev": torch.zeros(b, 1, 80, 40),
-           "road_bev_valid": torch.ones(b, 1, 80, 40), "frame": [f"{i:06d}" for i in range(b)],
-           "calib": torch.from_numpy(calib_array(rig(H, W)))[None].repeat(b, 1, 1, 1),
-           "height_image": torch.full((b, 1, H, W), -1.73), "height_bev": torch.full((b, 1, 80, 40), -1.73),
-           "lidar_points": torch.tensor([[10.0, 0.0, -1.73], [20.0, 2.0, -1.73]]).repeat(b, 1, 1)}
+    out = {
+        "free_space": road,
+        "road_valid": torch.ones(b, 1, H, W),
+        "road_bev": torch.zeros(b, 1, 80, 40),
+        "road_bev_valid": torch.ones(b, 1, 80, 40),
+        "frame": [f"{i:06d}" for i in range(b)],
+        "calib": torch.from_numpy(calib_array(rig(H, W)))[None].repeat(b, 1, 1, 1),
+        "height_image": torch.full((b, 1, H, W), -1.73),
+        "height_bev": torch.full((b, 1, 80, 40), -1.73),
+        "lidar_points": torch.tensor([[10.0, 0.0, -1.73], [20.0, 2.0, -1.73]]).repeat(b, 1, 1),
+    }
     out["road_bev"][:, :, 30:78, 14:26] = 1.0
     channels = {"rgb": 3, "bev": 6, "dhi": 3}
     for m in modalities:
@@ -37,8 +44,14 @@ def batch(b: int = 2, modalities=("rgb", "bev")) -> dict:
 
 def net(stage="backbone", modalities=("rgb", "bev"), op="cbf", **kw) -> RoadNet:
     channels = {"rgb": 3, "bev": 6, "dhi": 3}
-    return RoadNet(stage, {m: channels[m] for m in modalities}, functools.partial(build, name=op) if op else None,
-                   backbone=BACKBONE, fpn_channels=8, **kw)
+    return RoadNet(
+        stage,
+        {m: channels[m] for m in modalities},
+        functools.partial(build, name=op) if op else None,
+        backbone=BACKBONE,
+        fpn_channels=8,
+        **kw,
+    )
 
 
 def test_focal_loss_hand_computed():
@@ -89,14 +102,20 @@ def test_lidar_raster_lands_where_the_road_frame_says():
     x = -10 + (np.arange(400) + 0.5) * 0.05
     z = 46 - (np.arange(800) + 0.5) * 0.05
     left, right = x < -0.05, x > 0.05
-    rows = (z < 45.5)  # beyond 46 - 0.27 m the cell centre leaves the raster: 0
+    rows = z < 45.5  # beyond 46 - 0.27 m the cell centre leaves the raster: 0
     assert (out[0][np.ix_(rows, left)] == 1).all() and (out[0][np.ix_(rows, right)] == 0).all()
     assert (out[0][z > 45.8] == 0).all()
 
 
-@pytest.mark.parametrize("stage,modalities,keys", [
-    ("single", ("rgb",), {"road_cam"}), ("single", ("bev",), {"road_bev"}),
-    ("backbone", ("rgb", "bev"), {"road_cam", "road_bev"}), ("backbone", ("rgb", "dhi"), {"road_cam"})])
+@pytest.mark.parametrize(
+    "stage,modalities,keys",
+    [
+        ("single", ("rgb",), {"road_cam"}),
+        ("single", ("bev",), {"road_bev"}),
+        ("backbone", ("rgb", "bev"), {"road_cam", "road_bev"}),
+        ("backbone", ("rgb", "dhi"), {"road_cam"}),
+    ],
+)
 def test_the_network_in_each_mode(stage, modalities, keys):
     model = net(stage, modalities, op="cbf" if stage == "backbone" else None, single=modalities[0])
     out = model(batch(modalities=modalities))

@@ -1,4 +1,5 @@
 """The ChiNet task: losses, the Det. Rate definition, the class-map precedence and the NaN guard."""
+
 import functools
 
 import pytest
@@ -29,15 +30,15 @@ def _onehot_logits(labels):
 
 
 def test_det_rate_is_accuracy_over_free_space_and_object_pixels():
-    target = torch.tensor([[[0, 0, 1, 1, 1, 2, 2, 2]]])          # 3 free-space, 3 object, 2 background pixels
-    pred = torch.tensor([[[1, 2, 1, 1, 0, 2, 1, 2]]])            # background mistakes must not count
+    target = torch.tensor([[[0, 0, 1, 1, 1, 2, 2, 2]]])  # 3 free-space, 3 object, 2 background pixels
+    pred = torch.tensor([[[1, 2, 1, 1, 0, 2, 1, 2]]])  # background mistakes must not count
     task = _task({"semantic": _onehot_logits(pred)})
     task._eval_step({"semantic": target}, "test")
     rate = 100.0 * task.test_rate.compute()
     assert rate.item() == pytest.approx(100.0 * 4 / 6)
     iou = task.test_iou.compute()
-    assert iou[1].item() == pytest.approx(2 / 5)                  # free space: tp 2, fp 2, fn 1
-    assert iou[2].item() == pytest.approx(2 / 4)                  # objects: tp 2, fp 1, fn 1
+    assert iou[1].item() == pytest.approx(2 / 5)  # free space: tp 2, fp 2, fn 1
+    assert iou[2].item() == pytest.approx(2 / 4)  # objects: tp 2, fp 1, fn 1
 
 
 def test_multilabel_class_map_object_wins_over_free_space():
@@ -54,8 +55,11 @@ def test_low_resolution_outputs_are_upsampled_to_the_labels():
 
 def test_multilabel_loss_is_bce_per_branch():
     free, obj = torch.zeros(1, 1, 2, 2), torch.zeros(1, 1, 2, 2)
-    batch = {"semantic": torch.zeros(1, 2, 2, dtype=torch.long), "free_space": torch.ones(1, 1, 2, 2),
-             "road_objects": torch.zeros(1, 1, 2, 2)}
+    batch = {
+        "semantic": torch.zeros(1, 2, 2, dtype=torch.long),
+        "free_space": torch.ones(1, 1, 2, 2),
+        "road_objects": torch.zeros(1, 1, 2, 2),
+    }
     loss = _task({"free_space": free, "road_objects": obj}).loss({"free_space": free, "road_objects": obj}, batch)
     assert loss.item() == pytest.approx(2 * torch.log(torch.tensor(2.0)).item())
 
@@ -72,8 +76,9 @@ def test_median_frequency_weights_are_the_median_share_over_each_class_share():
 def test_weighted_multiclass_loss_is_torchs_weighted_cross_entropy():
     logits = torch.randn(2, 3, 4, 5)
     target = torch.randint(0, 3, (2, 4, 5))
-    task = SemanticTask(Fixed({"semantic": logits}), functools.partial(torch.optim.SGD, lr=0.1),
-                        class_weights=[0.5, 1.0, 3.0])
+    task = SemanticTask(
+        Fixed({"semantic": logits}), functools.partial(torch.optim.SGD, lr=0.1), class_weights=[0.5, 1.0, 3.0]
+    )
     loss = task.loss({"semantic": logits}, {"semantic": target})
     w = torch.tensor([0.5, 1.0, 3.0])[target]  # sum of w_i * nll_i over sum of w_i
     nll = -logits.log_softmax(1).gather(1, target[:, None])[:, 0]

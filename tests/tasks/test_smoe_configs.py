@@ -1,5 +1,6 @@
 """SMoE Tables 1 and 2 as experiments: every row composes with Hydra, builds its model and trains a step;
 the paper's numbers match the paper's text."""
+
 from __future__ import annotations
 
 import re
@@ -19,11 +20,18 @@ SMOE_TEXT = REPO.parent / "shared" / "seeds" / "000_af90cf6c69eb2abf.txt"
 TABLES = ("smoe_table1", "smoe_table2")
 # row -> (stage, fusion operator, single modality)
 EXPECTED = {
-    "smoe_rgb": ("single", "sum", "rgb"), "smoe_ddm": ("single", "sum", "ddm_jet"),
-    "smoe_sum": ("fpn", "sum", None), "smoe_max": ("fpn", "max", None), "smoe_sharpen": ("fpn", "sharpen", None),
-    "smoe_moe_sum": ("fpn", "moe_sum", None), "smoe_moe_max": ("fpn", "moe_max", None),
-    "smoe_fpn": ("fpn", "smoe", None), "smoe_early": ("early", "smoe", None), "smoe_late": ("late", "smoe", None),
-    "smoe_backbone": ("backbone", "smoe", None)}
+    "smoe_rgb": ("single", "sum", "rgb"),
+    "smoe_ddm": ("single", "sum", "ddm_jet"),
+    "smoe_sum": ("fpn", "sum", None),
+    "smoe_max": ("fpn", "max", None),
+    "smoe_sharpen": ("fpn", "sharpen", None),
+    "smoe_moe_sum": ("fpn", "moe_sum", None),
+    "smoe_moe_max": ("fpn", "moe_max", None),
+    "smoe_fpn": ("fpn", "smoe", None),
+    "smoe_early": ("early", "smoe", None),
+    "smoe_late": ("late", "smoe", None),
+    "smoe_backbone": ("backbone", "smoe", None),
+}
 
 
 def table_rows(table: str) -> list[str]:
@@ -32,8 +40,9 @@ def table_rows(table: str) -> list[str]:
 
 def compose_row(table: str, row: str, *extra: str):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("config", overrides=[f"experiment={table}", f"row={row}", "scale=smoke", *extra],
-                       return_hydra_config=False)
+        return compose(
+            "config", overrides=[f"experiment={table}", f"row={row}", "scale=smoke", *extra], return_hydra_config=False
+        )
 
 
 @pytest.mark.parametrize("table", TABLES)
@@ -83,13 +92,14 @@ def test_experiment_has_only_the_smoe_modalities_and_metrics():
 def paper_table(title: str) -> list[tuple[float, float, float]]:
     """(AP, AP50, AP75) per line of the table headed ``title`` in the SMoE text, in order."""
     text = SMOE_TEXT.read_text(encoding="utf-8")
-    block = text[text.index(title):].split("\n\n", 2)[1]
+    block = text[text.index(title) :].split("\n\n", 2)[1]
     lines = [ln for ln in block.splitlines() if re.search(r"\d+\.\d+\s+\d+\.\d+\s+\d+\.\d+\s*$", ln)]
     return [tuple(float(v) for v in ln.split()[-3:]) for ln in lines]
 
 
-@pytest.mark.parametrize("table,title", [("smoe_table1", "Table 1 Comparison"),
-                                         ("smoe_table2", "**Table 2** Comparison")])
+@pytest.mark.parametrize(
+    "table,title", [("smoe_table1", "Table 1 Comparison"), ("smoe_table2", "**Table 2** Comparison")]
+)
 def test_paper_numbers_match_the_paper_text(table, title):
     if not SMOE_TEXT.is_file():
         pytest.skip(f"SMoE text not found at {SMOE_TEXT}")
@@ -106,14 +116,23 @@ def test_followup_rows_change_only_epochs_or_freezing_and_share_their_experts():
     cfgs = {r: compose_row("smoe_table1_followup", r, "scale=cpu") for r in rows}
     # (stage-2 epochs, the experts' epochs) per row
     assert {r: (cfgs[r].trainer.max_epochs, cfgs[r].experts.max_epochs) for r in rows} == {
-        "smoe_rgb": (4, 10), "smoe_rgb_long": (4, 20), "smoe_ddm": (4, 10), "smoe_ddm_long": (4, 20),
-        "smoe_fpn": (4, 10), "smoe_fpn_long": (8, 20), "smoe_fpn_finetuned": (4, 10)}
+        "smoe_rgb": (4, 10),
+        "smoe_rgb_long": (4, 20),
+        "smoe_ddm": (4, 10),
+        "smoe_ddm_long": (4, 20),
+        "smoe_fpn": (4, 10),
+        "smoe_fpn_long": (8, 20),
+        "smoe_fpn_finetuned": (4, 10),
+    }
     assert {r: expert_config(cfgs[r], "rgb").trainer.max_epochs for r in ("smoe_rgb", "smoe_rgb_long")} == {
-        "smoe_rgb": 10, "smoe_rgb_long": 20}
+        "smoe_rgb": 10,
+        "smoe_rgb_long": 20,
+    }
     assert cfgs["smoe_fpn_finetuned"].experts.freeze is False and cfgs["smoe_fpn_long"].experts.freeze is True
     # the long fused row stands on the long experts, so they are trained once, not twice
     for modality, single in (("rgb", "smoe_rgb_long"), ("ddm_jet", "smoe_ddm_long")):
-        assert config_hash(expert_config(cfgs["smoe_fpn_long"], modality)) == \
-            config_hash(expert_config(cfgs[single], modality))
+        assert config_hash(expert_config(cfgs["smoe_fpn_long"], modality)) == config_hash(
+            expert_config(cfgs[single], modality)
+        )
     # rows shared with Table 1 have Table 1's config hash, so they are reused
     assert config_hash(cfgs["smoe_fpn"]) == config_hash(compose_row("smoe_table1", "smoe_fpn", "scale=cpu"))

@@ -1,4 +1,5 @@
 """SSD matching, hard negative mining, loss and decoding on hand-made default boxes and rigged predictions."""
+
 import functools
 import math
 
@@ -18,8 +19,13 @@ def grid(cells: int) -> Anchors:
     return Anchors((1.0 / cells,), (1.0,), relative_to="image")
 
 
-def outputs(cells: int, logits: dict[int, list[float]] | None = None, loc: dict[int, list[float]] | None = None,
-            batch: int = 1, background: float = 0.0) -> dict:
+def outputs(
+    cells: int,
+    logits: dict[int, list[float]] | None = None,
+    loc: dict[int, list[float]] | None = None,
+    batch: int = 1,
+    background: float = 0.0,
+) -> dict:
     """Head maps on a cells x cells grid: every anchor's logits [background, 0, 0, 0] unless given; offsets 0."""
     cls = torch.zeros(batch, cells * cells, K + 1)
     cls[..., 0] = background
@@ -33,8 +39,10 @@ def outputs(cells: int, logits: dict[int, list[float]] | None = None, loc: dict[
 
 
 def target(*objects) -> dict:
-    return {"boxes": torch.tensor([o[1] for o in objects], dtype=torch.float32).reshape(-1, 4),
-            "labels": torch.tensor([o[0] for o in objects], dtype=torch.long)}
+    return {
+        "boxes": torch.tensor([o[1] for o in objects], dtype=torch.float32).reshape(-1, 4),
+        "labels": torch.tensor([o[0] for o in objects], dtype=torch.long),
+    }
 
 
 def test_matching_leaves_van_and_dontcare_out_of_positives_and_negatives():
@@ -63,7 +71,8 @@ def test_hard_negative_mining_takes_three_per_positive_by_background_loss():
     expected = math.log(4) + 2 * math.log(3 + math.exp(5)) + easy
     assert loss(rigged, t, IMAGE)["cls"].item() == pytest.approx(expected, rel=1e-5)
     assert SSDLoss(grid(4), K, neg_pos_ratio=1)(rigged, t, IMAGE)["cls"].item() == pytest.approx(
-        math.log(4) + math.log(3 + math.exp(5)), rel=1e-5)
+        math.log(4) + math.log(3 + math.exp(5)), rel=1e-5
+    )
 
 
 def test_an_image_without_objects_adds_nothing_and_no_objects_at_all_is_zero_loss():
@@ -88,19 +97,24 @@ def test_box_loss_is_smooth_l1_of_the_encoded_offsets_over_positives():
     out = outputs(4, loc={5: off.tolist()})
     assert loss(out, [target((0, gt))], IMAGE)["box"].item() == pytest.approx(0.125, abs=1e-6)
     assert SSDLoss(grid(4), K, alpha=2.0)(out, [target((0, gt))], IMAGE)["total"].item() == pytest.approx(
-        loss(out, [target((0, gt))], IMAGE)["cls"].item() + 0.25, abs=1e-5)
+        loss(out, [target((0, gt))], IMAGE)["cls"].item() + 0.25, abs=1e-5
+    )
 
 
 def test_decoding_keeps_the_best_box_per_class_and_clips_to_the_image():
     # anchor 1 moved onto anchor 0 (centre 15 -> 5: -10 in units of 0.1 x 10 px): the same Car, lower score;
     # anchor 2 moved onto it too but a Pedestrian: per-class NMS keeps it; anchor 3 sure background
-    out = outputs(2, {0: [0, 6, 0, 0], 1: [0, 5, 0, 0], 2: [0, 0, 5.5, 0], 3: [10, 0, 0, 0]},
-                  {1: [-10, 0, 0, 0], 2: [0, -10, 0, 0]})
+    out = outputs(
+        2,
+        {0: [0, 6, 0, 0], 1: [0, 5, 0, 0], 2: [0, 0, 5.5, 0], 3: [10, 0, 0, 0]},
+        {1: [-10, 0, 0, 0], 2: [0, -10, 0, 0]},
+    )
     (res,) = decode(out, IMAGE, grid(2))
     assert res["labels"].tolist() == [0, 1]
     torch.testing.assert_close(res["boxes"], torch.tensor([[0.0, 0, 10, 10], [0, 0, 10, 10]]))
-    torch.testing.assert_close(res["scores"], torch.tensor([math.exp(6) / (math.exp(6) + 3),
-                                                            math.exp(5.5) / (math.exp(5.5) + 3)]))
+    torch.testing.assert_close(
+        res["scores"], torch.tensor([math.exp(6) / (math.exp(6) + 3), math.exp(5.5) / (math.exp(5.5) + 3)])
+    )
     # without NMS overlap limit both Cars stay; a box pushed past the border is clipped
     (res,) = decode(out, IMAGE, grid(2), nms_iou=1.0)
     assert res["labels"].tolist() == [0, 1, 0]
@@ -116,8 +130,14 @@ def test_ssd_head_on_dgfn_maps_and_on_a_fusion_models_fpn():
     assert [tuple(m.shape[-2:]) for m in out["cls"]] == [(34, 34), (17, 17), (9, 9), (5, 5), (3, 3), (1, 1)]
     assert [m.shape[1] for m in out["cls"]] == [4 * 4, 6 * 4, 6 * 4, 6 * 4, 4 * 4, 4 * 4]
     assert len(dgfn.fusion_modules()) == 6 and dgfn.fusion_modules()[0].last_gates[0].shape == (1, 1, 34, 34)
-    fpn = FusionModel("fpn", {"rgb": 3, "dhi": 3}, functools.partial(build, "gfu"), head,
-                      backbone={"depth": 18, "width": 0.125}, fpn_channels=16)
+    fpn = FusionModel(
+        "fpn",
+        {"rgb": 3, "dhi": 3},
+        functools.partial(build, "gfu"),
+        head,
+        backbone={"depth": 18, "width": 0.125},
+        fpn_channels=16,
+    )
     out = fpn(x)
     assert len(out["cls"]) == 5 and out["cls"][0].shape == (1, 6 * 4, 8, 26)
     t = [target((0, [20, 20, 60, 50]))]

@@ -7,6 +7,7 @@
   :class:`~ablate.metrics.road.RoadMaxF`.
 * :class:`RoadTask` — the LightningModule: loss, MaxF / AP / PRE / REC per branch, figures.
 """
+
 from ablate.tasks.road_bev.evaluate import MetricBev
 from ablate.tasks.road_bev.loss import RoadLoss, focal_loss
 from ablate.tasks.road_bev.model import RoadNet

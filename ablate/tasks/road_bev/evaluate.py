@@ -12,6 +12,7 @@
 
 Lookups depend on the calibration only and are cached per calibration and image size.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,8 +28,9 @@ from ablate.metrics.road import BEV_RES, BEV_X, BEV_Z, bev_centres, bev_lookup, 
 class MetricBev:
     """Warps [B,H,W] camera maps and [B,Hb,Wb] LiDAR-BEV maps to the devkit grid [B,rows,cols]."""
 
-    def __init__(self, grid: BevGrid = BevGrid(), res: float = BEV_RES, x_range=BEV_X, z_range=BEV_Z,
-                 cache_size: int = 256) -> None:
+    def __init__(
+        self, grid: BevGrid = BevGrid(), res: float = BEV_RES, x_range=BEV_X, z_range=BEV_Z, cache_size: int = 256
+    ) -> None:
         self.grid, self.res, self.x_range, self.z_range = grid, res, tuple(x_range), tuple(z_range)
         self.shape = bev_shape(res, self.x_range, self.z_range)
         self.cache_size = cache_size
@@ -42,10 +44,15 @@ class MetricBev:
                 self._cache.clear()
             cal = calibration(a)
             if cal.Tr_cam_to_road is None:
-                raise DataError("road metrics in BEV need Tr_cam_to_road in each frame's calibration (KITTI road "
-                                "layout, or the generated data)")
-            index, inside = (bev_lookup(road_homography(cal), size, self.res, self.x_range, self.z_range)
-                             if kind == "camera" else self._lidar(cal))
+                raise DataError(
+                    "road metrics in BEV need Tr_cam_to_road in each frame's calibration (KITTI road "
+                    "layout, or the generated data)"
+                )
+            index, inside = (
+                bev_lookup(road_homography(cal), size, self.res, self.x_range, self.z_range)
+                if kind == "camera"
+                else self._lidar(cal)
+            )
             self._cache[key] = torch.from_numpy(index), torch.from_numpy(inside)
         return self._cache[key]
 

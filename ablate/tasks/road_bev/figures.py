@@ -1,5 +1,6 @@
 """Figures of the road task: predicted road beside the ground truth in camera space and in BEV (BiFNet Fig. 5), and
 CBF's gains per channel (eq. 10) at each fusion point."""
+
 from __future__ import annotations
 
 import matplotlib
@@ -28,8 +29,13 @@ def draw_roads(batch: dict, probs: dict[str, torch.Tensor]):
         columns += [("BEV ground truth", ("gt", "road_bev")), ("BEV prediction", ("p", "bev"))]
     n = len(next(iter(probs.values()))) if probs else 1
     widths = [3 if kind is None or "BEV" not in title else 1 for title, kind in columns]
-    fig, axes = plt.subplots(n, len(columns), figsize=(2.2 * sum(widths) / 1.5, 1.6 * n + 0.6), squeeze=False,
-                             gridspec_kw={"width_ratios": widths})
+    fig, axes = plt.subplots(
+        n,
+        len(columns),
+        figsize=(2.2 * sum(widths) / 1.5, 1.6 * n + 0.6),
+        squeeze=False,
+        gridspec_kw={"width_ratios": widths},
+    )
     for i in range(n):
         for ax, (title, kind) in zip(axes[i], columns):
             ax.set_axis_off()
@@ -44,8 +50,9 @@ def draw_roads(batch: dict, probs: dict[str, torch.Tensor]):
             data = batch.get(key) if src == "gt" else probs.get(key)
             if data is None:
                 continue
-            ax.imshow(data[i].reshape(data.shape[-2:]).float().numpy(), vmin=0, vmax=1, cmap="magma",
-                      interpolation="nearest")
+            ax.imshow(
+                data[i].reshape(data.shape[-2:]).float().numpy(), vmin=0, vmax=1, cmap="magma", interpolation="nearest"
+            )
     fig.tight_layout()
     return fig
 

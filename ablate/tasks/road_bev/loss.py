@@ -16,6 +16,7 @@ sees a valid image pixel (``road_bev_valid``). Logits below the target's resolut
 A model without a BEV output (image only, camera-space fusion) has the camera term only, and a BEV-only model the
 BEV term only.
 """
+
 from __future__ import annotations
 
 import torch
@@ -24,12 +25,16 @@ from torch import Tensor, nn
 
 
 def upsample(logits: Tensor, size: tuple[int, int]) -> Tensor:
-    return logits if logits.shape[-2:] == tuple(size) else F.interpolate(logits, size=size, mode="bilinear",
-                                                                        align_corners=False)
+    return (
+        logits
+        if logits.shape[-2:] == tuple(size)
+        else F.interpolate(logits, size=size, mode="bilinear", align_corners=False)
+    )
 
 
-def focal_loss(logits: Tensor, target: Tensor, valid: Tensor | None = None, alpha: float = 0.25,
-               gamma: float = 2.0) -> Tensor:
+def focal_loss(
+    logits: Tensor, target: Tensor, valid: Tensor | None = None, alpha: float = 0.25, gamma: float = 2.0
+) -> Tensor:
     """Mean over ``valid`` pixels of -alpha_t (1 - p_t)^gamma log(p_t) (Lin et al. [30]); 0 with no valid pixel."""
     target = target.to(logits.dtype)
     ce = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
@@ -50,8 +55,9 @@ class RoadLoss(nn.Module):
     def __init__(self, alpha: float = 0.25, gamma: float = 2.0, lam: float = 1.0) -> None:
         super().__init__()
         if not 0.0 <= alpha <= 1.0 or gamma < 0 or lam < 0:
-            raise ValueError(f"task.loss: need 0 <= alpha <= 1, gamma >= 0, lam >= 0; got alpha={alpha}, "
-                             f"gamma={gamma}, lam={lam}")
+            raise ValueError(
+                f"task.loss: need 0 <= alpha <= 1, gamma >= 0, lam >= 0; got alpha={alpha}, gamma={gamma}, lam={lam}"
+            )
         self.alpha, self.gamma, self.lam = float(alpha), float(gamma), float(lam)
 
     def forward(self, outputs: dict[str, Tensor], batch: dict) -> dict[str, Tensor]:
@@ -59,8 +65,10 @@ class RoadLoss(nn.Module):
             raise KeyError(f"road loss: the model returned neither road_cam nor road_bev, got {sorted(outputs)}")
         zero = next(iter(outputs.values())).new_zeros(())
         parts = {"loss_cam": zero, "loss_bev": zero}
-        for key, target, valid, name in (("road_cam", "free_space", "road_valid", "loss_cam"),
-                                         ("road_bev", "road_bev", "road_bev_valid", "loss_bev")):
+        for key, target, valid, name in (
+            ("road_cam", "free_space", "road_valid", "loss_cam"),
+            ("road_bev", "road_bev", "road_bev_valid", "loss_bev"),
+        ):
             if key in outputs:
                 if target not in batch:
                     raise KeyError(f"road loss: output {key} needs batch[{target!r}] (list it in targets)")

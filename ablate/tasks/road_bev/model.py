@@ -19,6 +19,7 @@ Two-stage training (BiFNet §V-B "the two networks are trained separately first"
 :meth:`load_expert` copies a trained single-modal branch in (its encoder frozen with ``freeze``; its decoder and
 head, which see the fused features afterwards, as a trainable start).
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
@@ -48,12 +49,19 @@ class Branch(nn.Module):
 
     def __init__(self, in_channels: int, backbone: Mapping, fpn_channels: int, decoder: bool = True) -> None:
         super().__init__()
-        self.encoder = ResNet(depth=int(backbone.get("depth", 18)), width=float(backbone.get("width", 1.0)),
-                              in_channels=in_channels, weights=backbone.get("weights"))
+        self.encoder = ResNet(
+            depth=int(backbone.get("depth", 18)),
+            width=float(backbone.get("width", 1.0)),
+            in_channels=in_channels,
+            weights=backbone.get("weights"),
+        )
         if decoder:
             self.decoder = FPN(self.encoder.channels, fpn_channels, num_downsample=0)
-            self.head = nn.Sequential(nn.Conv2d(fpn_channels, fpn_channels, 3, padding=1), nn.ReLU(inplace=True),
-                                      nn.Conv2d(fpn_channels, 1, 1))
+            self.head = nn.Sequential(
+                nn.Conv2d(fpn_channels, fpn_channels, 3, padding=1),
+                nn.ReLU(inplace=True),
+                nn.Conv2d(fpn_channels, 1, 1),
+            )
 
     def decode(self, features: list[Tensor]) -> Tensor:
         return self.head(self.decoder(features)[0])
@@ -70,26 +78,40 @@ class RoadNet(FreezableModel):
     ResNet ``depth``, ``width``, ``weights``.
     """
 
-    def __init__(self, stage: str, modalities: Mapping[str, int], fusion: Callable[..., nn.Module] | None = None,
-                 space: str = "dst", context: bool = False, backbone: Mapping | None = None, fpn_channels: int = 64,
-                 single: str | None = None, grid: Mapping | None = None,
-                 levels: tuple[int, ...] = (0, 1, 2, 3)) -> None:
+    def __init__(
+        self,
+        stage: str,
+        modalities: Mapping[str, int],
+        fusion: Callable[..., nn.Module] | None = None,
+        space: str = "dst",
+        context: bool = False,
+        backbone: Mapping | None = None,
+        fpn_channels: int = 64,
+        single: str | None = None,
+        grid: Mapping | None = None,
+        levels: tuple[int, ...] = (0, 1, 2, 3),
+    ) -> None:
         super().__init__()
         if stage not in STAGES:
             raise ValueError(f"model road: unknown stage {stage!r}; valid: {', '.join(STAGES)}")
         modalities = {str(k): int(v) for k, v in dict(modalities).items()}
         if stage == "single":
             if single not in modalities:
-                raise ValueError(f"model road: stage 'single' needs stage.modality in {list(modalities)}, "
-                                 f"got {single!r}")
+                raise ValueError(
+                    f"model road: stage 'single' needs stage.modality in {list(modalities)}, got {single!r}"
+                )
             modalities = {single: modalities[single]}
         self.stage, self.single, self.modalities = stage, single if stage == "single" else None, modalities
         self.grid, self.levels = BevGrid.from_config(grid), tuple(int(k) for k in levels)
         self.mode = "single" if stage == "single" else self._mode(modalities)
         backbone = dict(backbone or {})
         first = next(iter(modalities))
-        self.branches = nn.ModuleDict({m: Branch(c, backbone, fpn_channels, decoder=self.mode != "perspective"
-                                                 or m == first) for m, c in modalities.items()})
+        self.branches = nn.ModuleDict(
+            {
+                m: Branch(c, backbone, fpn_channels, decoder=self.mode != "perspective" or m == first)
+                for m, c in modalities.items()
+            }
+        )
         if self.mode == "single":
             return
         if fusion is None:
@@ -99,8 +121,12 @@ class RoadNet(FreezableModel):
         channels = {m: b.encoder.channels for m, b in self.branches.items()}
         if self.mode == "bidirectional":
             cam, bev = self.cam, self.bev
-            self.fuse = nn.ModuleList(BidirectionalFusion(channels[cam][k], channels[bev][k], build_space(space),
-                                                          2 ** (k + 2), fusion, context) for k in self.levels)
+            self.fuse = nn.ModuleList(
+                BidirectionalFusion(
+                    channels[cam][k], channels[bev][k], build_space(space), 2 ** (k + 2), fusion, context
+                )
+                for k in self.levels
+            )
         else:
             self.fuse = nn.ModuleList(fusion_op(fusion, channels[first][k], 2, context) for k in self.levels)
         self.space_name = space if self.mode == "bidirectional" else None
@@ -112,8 +138,10 @@ class RoadNet(FreezableModel):
             return "bidirectional"
         if len(modalities) == 2 and spaces == ["cam", "cam"]:
             return "perspective"
-        raise ValueError(f"model road: stage 'backbone' fuses a camera-space modality with `bev`, or two camera-space "
-                         f"modalities; got {list(modalities)}")
+        raise ValueError(
+            f"model road: stage 'backbone' fuses a camera-space modality with `bev`, or two camera-space "
+            f"modalities; got {list(modalities)}"
+        )
 
     @property
     def cam(self) -> str:

@@ -10,6 +10,7 @@ branch the model has: ``cam_max_f``, ``cam_ap``, ``cam_pre``, ``cam_rec`` from t
 ``pre``, ``rec``: the prediction, the camera-space branch when the model has one ("the output of the camera space
 branch is the final result for testing", Fig. 4), else the BEV branch (the BEV-only row).
 """
+
 from __future__ import annotations
 
 import torch
@@ -30,8 +31,17 @@ class RoadTask(FusionTask):
     """Road probability in camera space and in BEV with BiFNet's loss (:class:`RoadLoss`, ``loss`` its options)
     and the KITTI road measures. ``grid``: the BEV raster the model predicts on (``data.bev``)."""
 
-    def __init__(self, model: nn.Module, optimizer, scheduler=None, monitor: str = "val/max_f",
-                 loss: dict | None = None, grid: dict | None = None, figure_frames: int = 4, **options) -> None:
+    def __init__(
+        self,
+        model: nn.Module,
+        optimizer,
+        scheduler=None,
+        monitor: str = "val/max_f",
+        loss: dict | None = None,
+        grid: dict | None = None,
+        figure_frames: int = 4,
+        **options,
+    ) -> None:
         super().__init__(model, optimizer, scheduler, monitor, **options)
         loss = dict(loss or {})
         if unknown := sorted(set(loss) - {"alpha", "gamma", "lam"}):

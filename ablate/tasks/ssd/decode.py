@@ -1,4 +1,5 @@
 """SSD inference: default boxes + offsets -> boxes, per-class greedy NMS (SSD §3, "Inference time")."""
+
 from __future__ import annotations
 
 import torch
@@ -8,9 +9,16 @@ from ablate.tasks.boxes import VARIANCES, Anchors, decode_boxes, flatten_levels,
 
 
 @torch.no_grad()
-def decode(outputs: dict, image_size: tuple[int, int], anchors: Anchors, score_thresh: float = 0.01,
-           nms_iou: float = 0.45, top_k: int = 400, max_detections: int = 200,
-           variances: tuple[float, float] = VARIANCES) -> list[dict[str, Tensor]]:
+def decode(
+    outputs: dict,
+    image_size: tuple[int, int],
+    anchors: Anchors,
+    score_thresh: float = 0.01,
+    nms_iou: float = 0.45,
+    top_k: int = 400,
+    max_detections: int = 200,
+    variances: tuple[float, float] = VARIANCES,
+) -> list[dict[str, Tensor]]:
     """The head's maps -> one dict per image in :class:`~ablate.metrics.kitti.KittiAP`'s format: ``boxes`` (N, 4)
     xyxy pixels clipped to the image, ``scores`` (N,), ``labels`` (N,) in [0, K), highest score first.
 

@@ -1,4 +1,5 @@
 """Figures of the detection task: boxes over the camera image (ground truth beside predictions)."""
+
 from __future__ import annotations
 
 import matplotlib
@@ -19,15 +20,27 @@ def _rgb(image: torch.Tensor) -> torch.Tensor:
 
 def _boxes(ax, boxes: torch.Tensor, captions: list[str], colours: list[str], dashed: list[bool]) -> None:
     for (x1, y1, x2, y2), caption, colour, dash in zip(boxes.tolist(), captions, colours, dashed):
-        ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, lw=0.8, color=colour,
-                               ls="--" if dash else "-"))
+        ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, lw=0.8, color=colour, ls="--" if dash else "-"))
         if caption:
-            ax.text(x1, y1, caption, fontsize=5, color="white", va="bottom",
-                    bbox={"facecolor": colour, "alpha": 0.7, "pad": 0.5, "lw": 0})
+            ax.text(
+                x1,
+                y1,
+                caption,
+                fontsize=5,
+                color="white",
+                va="bottom",
+                bbox={"facecolor": colour, "alpha": 0.7, "pad": 0.5, "lw": 0},
+            )
 
 
-def draw_detections(images: torch.Tensor, targets: list[dict], preds: list[dict], conditions: list[str] | None,
-                    num_classes: int, score: float = 0.5):
+def draw_detections(
+    images: torch.Tensor,
+    targets: list[dict],
+    preds: list[dict],
+    conditions: list[str] | None,
+    num_classes: int,
+    score: float = 0.5,
+):
     """Rows: frames; columns: ground truth (classes solid, KITTI's ignored Van / Person_sitting / DontCare
     dashed grey) and predictions with score >= ``score`` (class and score captioned)."""
     n = images.shape[0]
@@ -41,14 +54,22 @@ def draw_detections(images: torch.Tensor, targets: list[dict], preds: list[dict]
         labels = gt["labels"].tolist()
         ignored = [c >= num_classes for c in labels]
         axes[i, 0].imshow(img)
-        _boxes(axes[i, 0], gt["boxes"].cpu().reshape(-1, 4), [LABEL_NAMES[c] if not x else "" for c, x in
-                                                               zip(labels, ignored)],
-               ["grey" if x else colour(c) for c, x in zip(labels, ignored)], ignored)
+        _boxes(
+            axes[i, 0],
+            gt["boxes"].cpu().reshape(-1, 4),
+            [LABEL_NAMES[c] if not x else "" for c, x in zip(labels, ignored)],
+            ["grey" if x else colour(c) for c, x in zip(labels, ignored)],
+            ignored,
+        )
         keep = p["scores"] >= score
         axes[i, 1].imshow(img)
-        _boxes(axes[i, 1], p["boxes"][keep].cpu(), [f"{LABEL_NAMES[c]} {s:.2f}" for c, s in
-                                                    zip(p["labels"][keep].tolist(), p["scores"][keep].tolist())],
-               [colour(c) for c in p["labels"][keep].tolist()], [False] * int(keep.sum()))
+        _boxes(
+            axes[i, 1],
+            p["boxes"][keep].cpu(),
+            [f"{LABEL_NAMES[c]} {s:.2f}" for c, s in zip(p["labels"][keep].tolist(), p["scores"][keep].tolist())],
+            [colour(c) for c in p["labels"][keep].tolist()],
+            [False] * int(keep.sum()),
+        )
         where = f" ({conditions[i]})" if conditions else ""
         axes[i, 0].set_title(f"ground truth{where}", fontsize=8)
         axes[i, 1].set_title(f"prediction, score >= {score:g}", fontsize=8)

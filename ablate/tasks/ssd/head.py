@@ -1,5 +1,6 @@
 """SSD's convolutional predictors and default boxes (SSD, Liu et al. 2016 §2.1-2.2; DGFN §III-A detects "as done
 in the SSD" on its fused maps)."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -39,9 +40,16 @@ class SSDHead(nn.Module):
     relative to the image, plus the extra box sqrt(s_k s_{k+1}) of ratio 1.
     """
 
-    def __init__(self, in_channels: int | Sequence[int], num_levels: int = 6, num_classes: int = 3,
-                 aspect_ratios: Sequence[Sequence[float]] | None = None, s_min: float = 0.2, s_max: float = 0.9,
-                 first_scale: float | None = 0.1) -> None:
+    def __init__(
+        self,
+        in_channels: int | Sequence[int],
+        num_levels: int = 6,
+        num_classes: int = 3,
+        aspect_ratios: Sequence[Sequence[float]] | None = None,
+        s_min: float = 0.2,
+        s_max: float = 0.9,
+        first_scale: float | None = 0.1,
+    ) -> None:
         super().__init__()
         channels = [int(in_channels)] * num_levels if isinstance(in_channels, int) else [int(c) for c in in_channels]
         if len(channels) != num_levels:
@@ -50,8 +58,12 @@ class SSDHead(nn.Module):
         if len(extra) != num_levels:
             raise ValueError(f"head.aspect_ratios: {len(extra)} lists for {num_levels} maps")
         self.num_levels, self.num_classes = num_levels, num_classes
-        self.anchors = Anchors(ssd_scales(num_levels, s_min, s_max, first_scale), [ssd_ratios(r) for r in extra],
-                               relative_to="image", extra=True)
+        self.anchors = Anchors(
+            ssd_scales(num_levels, s_min, s_max, first_scale),
+            [ssd_ratios(r) for r in extra],
+            relative_to="image",
+            extra=True,
+        )
         a = self.anchors.num_per_level
         self.cls = nn.ModuleList(nn.Conv2d(c, n * (num_classes + 1), 3, padding=1) for c, n in zip(channels, a))
         self.box = nn.ModuleList(nn.Conv2d(c, n * 4, 3, padding=1) for c, n in zip(channels, a))
@@ -64,5 +76,7 @@ class SSDHead(nn.Module):
     def forward(self, features: list[Tensor]) -> dict[str, list[Tensor]]:
         if len(features) != self.num_levels:
             raise ValueError(f"SSDHead: expected {self.num_levels} maps, got {len(features)}")
-        return {"cls": [conv(f) for conv, f in zip(self.cls, features)],
-                "box": [conv(f) for conv, f in zip(self.box, features)]}
+        return {
+            "cls": [conv(f) for conv, f in zip(self.cls, features)],
+            "box": [conv(f) for conv, f in zip(self.box, features)],
+        }

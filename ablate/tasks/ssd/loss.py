@@ -1,5 +1,6 @@
 """SSD's training objective (Liu et al. 2016 §2.2, eq. 1-3), which DGFN adopts with SSD's "matching strategy, hard
 negative mining, and loss function" (seed 002 §IV-A)."""
+
 from __future__ import annotations
 
 import torch
@@ -29,8 +30,16 @@ class SSDLoss(nn.Module):
     per image with ``boxes`` (G, 4) xyxy pixels and ``labels`` (G,); returns ``cls``, ``box`` and ``total``.
     """
 
-    def __init__(self, anchors: Anchors, num_classes: int, alpha: float = 1.0, neg_pos_ratio: int = 3,
-                 iou: float = 0.5, ignore_inside: float = 0.5, variances: tuple[float, float] = VARIANCES) -> None:
+    def __init__(
+        self,
+        anchors: Anchors,
+        num_classes: int,
+        alpha: float = 1.0,
+        neg_pos_ratio: int = 3,
+        iou: float = 0.5,
+        ignore_inside: float = 0.5,
+        variances: tuple[float, float] = VARIANCES,
+    ) -> None:
         super().__init__()
         if not 0 < iou <= 1 or not 0 < ignore_inside <= 1:
             raise ValueError(f"task.loss: iou and ignore_inside must be in (0, 1], got {iou}, {ignore_inside}")
@@ -58,8 +67,10 @@ class SSDLoss(nn.Module):
             raise ValueError(f"SSDLoss: {len(targets)} targets for a batch of {cls.shape[0]}")
         anchors = self.anchors(image_size, [tuple(m.shape[-2:]) for m in outputs["cls"]], cls.device)
         if anchors.shape[0] != cls.shape[1]:
-            raise ValueError(f"SSDLoss: {cls.shape[1]} predicted boxes for {anchors.shape[0]} default boxes; "
-                             "the loss needs the head's anchors")
+            raise ValueError(
+                f"SSDLoss: {cls.shape[1]} predicted boxes for {anchors.shape[0]} default boxes; "
+                "the loss needs the head's anchors"
+            )
         cls_sum, box_sum, num_pos = cls.sum() * 0, loc.sum() * 0, 0  # zeros that keep the outputs in the graph
         for b, t in enumerate(targets):
             boxes, labels = t["boxes"].to(loc.dtype).reshape(-1, 4), t["labels"].long().reshape(-1)
@@ -73,8 +84,7 @@ class SSDLoss(nn.Module):
             n_neg = min(self.neg_pos_ratio * n_pos, int((state == 0).sum()))
             cls_sum = cls_sum + ce[pos].sum() + ce[rank.topk(n_neg).indices].sum()
             gt = boxes[real][idx[pos]]
-            box_sum = box_sum + F.smooth_l1_loss(loc[b][pos], encode(gt, anchors[pos], self.variances),
-                                                 reduction="sum")
+            box_sum = box_sum + F.smooth_l1_loss(loc[b][pos], encode(gt, anchors[pos], self.variances), reduction="sum")
             num_pos += n_pos
         n = max(num_pos, 1)
         losses = {"cls": cls_sum / n, "box": box_sum / n}

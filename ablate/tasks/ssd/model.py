@@ -1,5 +1,6 @@
 """The DGFN network (Kim et al., seed 002 §III-A, Fig. 1): one VGG-16 SSD trunk per sensor, a fusion operator at
 each of the six SSD maps, SSD's predictors on the fused maps."""
+
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
@@ -45,10 +46,18 @@ class DGFN(nn.Module):
     the data's pixels: the default boxes are defined relative to the image (SSD eq. 4), so they follow the warp.
     """
 
-    def __init__(self, modalities: Mapping[str, int], head: Callable[..., nn.Module],
-                 fusion: Callable[..., nn.Module] | None = None, single: str | None = None, width: float = 1.0,
-                 input_size: tuple[int, int] | None = (300, 300), weights: str | Mapping | None = None,
-                 l2norm_scale: float = 20.0, batch_norm: bool = False) -> None:
+    def __init__(
+        self,
+        modalities: Mapping[str, int],
+        head: Callable[..., nn.Module],
+        fusion: Callable[..., nn.Module] | None = None,
+        single: str | None = None,
+        width: float = 1.0,
+        input_size: tuple[int, int] | None = (300, 300),
+        weights: str | Mapping | None = None,
+        l2norm_scale: float = 20.0,
+        batch_norm: bool = False,
+    ) -> None:
         super().__init__()
         modalities = {str(k): int(v) for k, v in dict(modalities).items()}
         if single is not None:
@@ -71,8 +80,11 @@ class DGFN(nn.Module):
             if files.get(m) is not None:
                 branch.load(files[m])
         channels = next(iter(self.branches.values())).channels
-        self.fuse = nn.ModuleList(fusion(channels=c, num_inputs=len(modalities)) for c in channels) \
-            if single is None else nn.ModuleList()
+        self.fuse = (
+            nn.ModuleList(fusion(channels=c, num_inputs=len(modalities)) for c in channels)
+            if single is None
+            else nn.ModuleList()
+        )
         self.head = head(in_channels=channels, num_levels=len(channels))
 
     @property

@@ -13,6 +13,7 @@ mean weight map of the first fusion point (conv4_3) over the test frames, DGFN F
 weights are fixed to one). With ``eval_conditions`` every test metric is logged once per condition,
 ``test/<condition>/<metric>`` (:class:`~ablate.tasks.base.FusionTask`).
 """
+
 from __future__ import annotations
 
 import inspect
@@ -30,8 +31,9 @@ from ablate.tasks.ssd.loss import SSDLoss
 from ablate.tasks.yolact.figures import draw_gates
 from ablate.tasks.yolact.task import select, task_head
 
-_DECODE_OPTIONS = tuple(p for p in inspect.signature(decode).parameters if p not in ("outputs", "image_size",
-                                                                                      "anchors"))
+_DECODE_OPTIONS = tuple(
+    p for p in inspect.signature(decode).parameters if p not in ("outputs", "image_size", "anchors")
+)
 _LOSS_OPTIONS = tuple(p for p in inspect.signature(SSDLoss).parameters if p not in ("anchors", "num_classes"))
 _METRIC_OPTIONS = ("devkit", "min_overlap")
 
@@ -46,25 +48,39 @@ class DetectionTask(FusionTask):
     :class:`~ablate.tasks.base.FusionTask`.
     """
 
-    def __init__(self, model: nn.Module, optimizer, scheduler=None, monitor: str = "val/ap11",
-                 loss: dict | None = None, decode: dict | None = None,
-                 classes: list[str] | tuple[str, ...] = ("Car", "Pedestrian"), figure_frames: int = 4,
-                 metric: dict | None = None, **conditions) -> None:
+    def __init__(
+        self,
+        model: nn.Module,
+        optimizer,
+        scheduler=None,
+        monitor: str = "val/ap11",
+        loss: dict | None = None,
+        decode: dict | None = None,
+        classes: list[str] | tuple[str, ...] = ("Car", "Pedestrian"),
+        figure_frames: int = 4,
+        metric: dict | None = None,
+        **conditions,
+    ) -> None:
         super().__init__(model, optimizer, scheduler, monitor, **conditions)
         head = task_head(model)
         if getattr(head, "anchors", None) is None or getattr(head, "num_classes", None) is None:
-            raise ValueError(f"DetectionTask needs a detection head with `anchors` and `num_classes` (head="
-                             f"ablate.tasks.detection.SSDHead); got {type(head).__name__}")
+            raise ValueError(
+                f"DetectionTask needs a detection head with `anchors` and `num_classes` (head="
+                f"ablate.tasks.detection.SSDHead); got {type(head).__name__}"
+            )
         self.anchors, self.num_classes = head.anchors, int(head.num_classes)
-        for option, given, valid in (("task.loss", loss, _LOSS_OPTIONS), ("task.decode", decode, _DECODE_OPTIONS),
-                                     ("task.metric", metric, _METRIC_OPTIONS)):
+        for option, given, valid in (
+            ("task.loss", loss, _LOSS_OPTIONS),
+            ("task.decode", decode, _DECODE_OPTIONS),
+            ("task.metric", metric, _METRIC_OPTIONS),
+        ):
             if bad := sorted(set(given or {}) - set(valid)):
                 raise ValueError(f"{option}: unknown option(s) {bad}; valid: {list(valid)}")
         self.criterion = SSDLoss(self.anchors, self.num_classes, **dict(loss or {}))
         self.decode_options = dict(decode or {})
         self.classes = tuple(classes)
-        if bad := [c for c in self.classes if c not in CLASSES[:self.num_classes]]:
-            raise ValueError(f"task.classes: {bad} not among the head's classes {list(CLASSES[:self.num_classes])}")
+        if bad := [c for c in self.classes if c not in CLASSES[: self.num_classes]]:
+            raise ValueError(f"task.classes: {bad} not among the head's classes {list(CLASSES[: self.num_classes])}")
         self.figure_frames = figure_frames
         self.val_ap, self.test_ap = (KittiAP(self.classes, **dict(metric or {})) for _ in range(2))
         fused = hasattr(model, "fusion_modules") and model.fusion_modules()
@@ -125,8 +141,14 @@ class DetectionTask(FusionTask):
         sub = select(batch, list(range(n)))
         preds = self.predict(self.forward_eval(sub), self.image_size(sub))
         key = "rgb" if "rgb" in sub else next(iter(self.model.modalities))
-        return draw_detections(sub[key], sub["boxes2d"], [{k: v.cpu() for k, v in p.items()} for p in preds],
-                               sub.get("condition"), self.num_classes, score)
+        return draw_detections(
+            sub[key],
+            sub["boxes2d"],
+            [{k: v.cpu() for k, v in p.items()} for p in preds],
+            sub.get("condition"),
+            self.num_classes,
+            score,
+        )
 
     def gate_figure(self, batch: dict):
         """DGFN Fig. 5: the weight maps of the first fusion point (conv4_3) over each input, for the first frame
@@ -146,10 +168,16 @@ class DetectionTask(FusionTask):
             for m, g in zip(self.model.modalities, ops[0].last_gates):
                 images[m].append(sub[m].cpu())
                 gates[m].append(g.mean(1).cpu())
-        captions = [name for name, _ in plan] if self.eval_conditions else \
-            [batch["condition"][i] for _, i in plan] if batch.get("condition") else None
-        return draw_gates({m: torch.cat(v) for m, v in images.items()}, [torch.cat(g) for g in gates.values()],
-                          captions)
+        captions = (
+            [name for name, _ in plan]
+            if self.eval_conditions
+            else [batch["condition"][i] for _, i in plan]
+            if batch.get("condition")
+            else None
+        )
+        return draw_gates(
+            {m: torch.cat(v) for m, v in images.items()}, [torch.cat(g) for g in gates.values()], captions
+        )
 
 
 def _percent(value: torch.Tensor) -> torch.Tensor:

@@ -4,6 +4,7 @@ matching are the shared ones of :mod:`ablate.tasks.boxes`.
 Boxes are in input-image pixels. ``xyxy`` boxes use pixel-edge coordinates (a box around pixel columns 3..5 has
 x1=3, x2=6); anchors are ``cxcywh``.
 """
+
 from __future__ import annotations
 
 import torch
@@ -12,8 +13,18 @@ from torch import Tensor
 from ablate.tasks import boxes
 from ablate.tasks.boxes import VARIANCES, box_iou, cxcywh_to_xyxy, decode_boxes, encode, match
 
-__all__ = ["ANCHOR_SCALES", "ASPECT_RATIOS", "VARIANCES", "Anchors", "box_iou", "box_region", "cxcywh_to_xyxy",
-           "decode_boxes", "encode", "match"]
+__all__ = [
+    "ANCHOR_SCALES",
+    "ASPECT_RATIOS",
+    "VARIANCES",
+    "Anchors",
+    "box_iou",
+    "box_region",
+    "cxcywh_to_xyxy",
+    "decode_boxes",
+    "encode",
+    "match",
+]
 
 #: Anchor sizes in units of each level's stride. YOLACT's 24, 48, 96, 192, 384 px on P3..P7 at its 550 px input
 #: are 3 strides each (24 / 8, 48 / 16, ...); tying the size to the stride keeps that layout at any input size.
@@ -30,8 +41,9 @@ class Anchors(boxes.Anchors):
     ratio r is ``s_l * d_l * sqrt(r)`` wide and ``s_l * d_l / sqrt(r)`` tall, with ``s_l = scales[l]`` in units of
     the level's stride ``d_l = H / Hl``."""
 
-    def __init__(self, scales: tuple[float, ...] = ANCHOR_SCALES,
-                 aspect_ratios: tuple[float, ...] = ASPECT_RATIOS) -> None:
+    def __init__(
+        self, scales: tuple[float, ...] = ANCHOR_SCALES, aspect_ratios: tuple[float, ...] = ASPECT_RATIOS
+    ) -> None:
         super().__init__(scales, aspect_ratios, relative_to="stride")
 
 

@@ -1,4 +1,5 @@
 """Figures of the instance task: masks over the image (SMoE Fig. 6) and gate maps over the inputs (DGFN Fig. 5)."""
+
 from __future__ import annotations
 
 import matplotlib
@@ -34,26 +35,46 @@ def _overlay(ax, image: torch.Tensor, masks: torch.Tensor, boxes: torch.Tensor, 
     for k, (box, caption) in enumerate(zip(boxes.tolist(), captions)):
         x1, y1, x2, y2 = box
         ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, lw=0.8, color=colours(k % 10)))
-        ax.text(x1, y1, caption, fontsize=6, color="white", va="bottom",
-                bbox={"facecolor": colours(k % 10), "alpha": 0.7, "pad": 0.5, "lw": 0})
+        ax.text(
+            x1,
+            y1,
+            caption,
+            fontsize=6,
+            color="white",
+            va="bottom",
+            bbox={"facecolor": colours(k % 10), "alpha": 0.7, "pad": 0.5, "lw": 0},
+        )
     ax.set_axis_off()
 
 
-def draw_instances(images: torch.Tensor, targets: list[dict], preds: list[dict], conditions: list[str] | None,
-                   score: float = 0.5):
+def draw_instances(
+    images: torch.Tensor, targets: list[dict], preds: list[dict], conditions: list[str] | None, score: float = 0.5
+):
     """Rows: frames; columns: ground truth, predictions with score >= ``score`` (class and score captioned)."""
     n = images.shape[0]
     fig, axes = plt.subplots(n, 2, figsize=_size(n, 2, images.shape[-2:]), squeeze=False)
     for i in range(n):
         img = _rgb(images[i])
         gt = targets[i]
-        _overlay(axes[i, 0], img, gt["masks"].cpu(), gt["boxes"].cpu().reshape(-1, 4),
-                 [CLASSES[c] if c < len(CLASSES) else str(c) for c in gt["labels"].tolist()])
+        _overlay(
+            axes[i, 0],
+            img,
+            gt["masks"].cpu(),
+            gt["boxes"].cpu().reshape(-1, 4),
+            [CLASSES[c] if c < len(CLASSES) else str(c) for c in gt["labels"].tolist()],
+        )
         keep = preds[i]["scores"] >= score
         p = {k: v[keep] for k, v in preds[i].items()}
-        _overlay(axes[i, 1], img, p["masks"], p["boxes"],
-                 [f"{CLASSES[c] if c < len(CLASSES) else c} {s:.2f}"
-                  for c, s in zip(p["labels"].tolist(), p["scores"].tolist())])
+        _overlay(
+            axes[i, 1],
+            img,
+            p["masks"],
+            p["boxes"],
+            [
+                f"{CLASSES[c] if c < len(CLASSES) else c} {s:.2f}"
+                for c, s in zip(p["labels"].tolist(), p["scores"].tolist())
+            ],
+        )
         where = f" ({conditions[i]})" if conditions else ""
         axes[i, 0].set_title(f"ground truth{where}", fontsize=8)
         axes[i, 1].set_title(f"prediction, score >= {score:g}", fontsize=8)
@@ -82,19 +103,21 @@ def draw_gates(images: dict[str, torch.Tensor], gates: list[torch.Tensor], condi
             where = f" ({conditions[i]})" if conditions else ""
             axes[i, 2 * k].set_title(f"{name}{where}", fontsize=8)
             axes[i, 2 * k + 1].set_title(f"gate of {name}, mean {up[i].mean():.2f}", fontsize=8)
-            for ax in axes[i, 2 * k:2 * k + 2]:
+            for ax in axes[i, 2 * k : 2 * k + 2]:
                 ax.set_axis_off()
     fig.colorbar(heat, ax=axes.ravel().tolist(), shrink=0.6, label="gate weight")
     return fig
 
 
-def draw_rows(images: torch.Tensor, targets: list[dict], preds: dict[str, list[dict]], captions: list[str],
-              score: float = 0.5):
+def draw_rows(
+    images: torch.Tensor, targets: list[dict], preds: dict[str, list[dict]], captions: list[str], score: float = 0.5
+):
     """SMoE Fig. 6: rows are frames, columns the ground truth and then each method's masks (score >= ``score``)
     on the same frames; ``preds[name][i]`` is method ``name``'s prediction on frame ``i``."""
     n, names = images.shape[0], list(preds)
-    fig, axes = plt.subplots(n, 1 + len(names), figsize=_size(n, 1 + len(names), images.shape[-2:], panel=2.6),
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        n, 1 + len(names), figsize=_size(n, 1 + len(names), images.shape[-2:], panel=2.6), squeeze=False
+    )
     for i in range(n):
         img = _rgb(images[i])
         gt = targets[i]

@@ -1,4 +1,5 @@
 """YOLACT-style instance head on an FPN (P3..P7), the prediction head of SMoE (seed 000 §4.1, Fig. 4)."""
+
 from __future__ import annotations
 
 import torch
@@ -23,10 +24,16 @@ class Protonet(nn.Module):
     def __init__(self, in_channels: int, num_prototypes: int, channels: int | None = None) -> None:
         super().__init__()
         c = channels or in_channels
-        self.pre = nn.Sequential(*[m for i in range(3) for m in (nn.Conv2d(in_channels if i == 0 else c, c, 3,
-                                                                           padding=1), nn.ReLU(inplace=True))])
-        self.post = nn.Sequential(nn.Conv2d(c, c, 3, padding=1), nn.ReLU(inplace=True),
-                                  nn.Conv2d(c, num_prototypes, 1), nn.ReLU())
+        self.pre = nn.Sequential(
+            *[
+                m
+                for i in range(3)
+                for m in (nn.Conv2d(in_channels if i == 0 else c, c, 3, padding=1), nn.ReLU(inplace=True))
+            ]
+        )
+        self.post = nn.Sequential(
+            nn.Conv2d(c, c, 3, padding=1), nn.ReLU(inplace=True), nn.Conv2d(c, num_prototypes, 1), nn.ReLU()
+        )
 
     def forward(self, p3: Tensor) -> Tensor:
         x = F.interpolate(self.pre(p3), scale_factor=2, mode="bilinear", align_corners=False)
@@ -48,9 +55,16 @@ class YolactHead(nn.Module):
     Class c of the targets (0 <= c < num_classes, e.g. 0 car, 1 pedestrian) is logit channel c + 1.
     """
 
-    def __init__(self, in_channels: int, num_levels: int = 5, num_classes: int = 2, num_prototypes: int = 32,
-                 aspect_ratios: tuple[float, ...] = ASPECT_RATIOS,
-                 anchor_scales: tuple[float, ...] = ANCHOR_SCALES, proto_channels: int | None = None) -> None:
+    def __init__(
+        self,
+        in_channels: int,
+        num_levels: int = 5,
+        num_classes: int = 2,
+        num_prototypes: int = 32,
+        aspect_ratios: tuple[float, ...] = ASPECT_RATIOS,
+        anchor_scales: tuple[float, ...] = ANCHOR_SCALES,
+        proto_channels: int | None = None,
+    ) -> None:
         super().__init__()
         if len(anchor_scales) != num_levels:
             raise ValueError(f"YolactHead: {len(anchor_scales)} anchor_scales for num_levels={num_levels}")
@@ -63,19 +77,20 @@ class YolactHead(nn.Module):
         self.box = nn.Conv2d(in_channels, a * 4, 3, padding=1)
         self.coef = nn.Conv2d(in_channels, a * num_prototypes, 3, padding=1)
         self.out_channels: dict[str, int | list[int]] = {
-            "proto": num_prototypes, "cls": [a * (num_classes + 1)] * num_levels,
-            "box": [a * 4] * num_levels, "coef": [a * num_prototypes] * num_levels}
+            "proto": num_prototypes,
+            "cls": [a * (num_classes + 1)] * num_levels,
+            "box": [a * 4] * num_levels,
+            "coef": [a * num_prototypes] * num_levels,
+        }
         _xavier(self)
 
     def forward(self, features: list[Tensor]) -> dict[str, Tensor | list[Tensor]]:
         if len(features) != self.num_levels:
             raise ValueError(f"YolactHead: expected {self.num_levels} FPN levels (P3..), got {len(features)}")
-        out: dict[str, Tensor | list[Tensor]] = {"proto": self.protonet(features[0]), "cls": [], "box": [],
-                                                 "coef": []}
+        out: dict[str, Tensor | list[Tensor]] = {"proto": self.protonet(features[0]), "cls": [], "box": [], "coef": []}
         for f in features:
             x = self.upfeature(f)
             out["cls"].append(self.cls(x))
             out["box"].append(self.box(x))
             out["coef"].append(torch.tanh(self.coef(x)))
         return out
-

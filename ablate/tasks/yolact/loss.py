@@ -1,4 +1,5 @@
 """YOLACT training loss, SMoE (seed 000) §4.3 eq. 7: L = L_cls + alpha L_box + beta L_mask."""
+
 from __future__ import annotations
 
 import torch
@@ -28,9 +29,17 @@ class YolactLoss(nn.Module):
     ``labels`` (G,) in [0, K) and ``masks`` (G, H, W); returns ``cls``, ``box``, ``mask`` and ``total``.
     """
 
-    def __init__(self, anchors: Anchors | None = None, alpha: float = 1.5, beta: float = 6.125,
-                 neg_pos_ratio: int = 3, pos_iou: float = 0.5, neg_iou: float = 0.4,
-                 variances: tuple[float, float] = VARIANCES, max_masks: int = 100) -> None:
+    def __init__(
+        self,
+        anchors: Anchors | None = None,
+        alpha: float = 1.5,
+        beta: float = 6.125,
+        neg_pos_ratio: int = 3,
+        pos_iou: float = 0.5,
+        neg_iou: float = 0.4,
+        variances: tuple[float, float] = VARIANCES,
+        max_masks: int = 100,
+    ) -> None:
         super().__init__()
         if not 0 < neg_iou <= pos_iou <= 1:
             raise ValueError(f"YolactLoss: need 0 < neg_iou <= pos_iou <= 1, got {neg_iou}, {pos_iou}")
@@ -65,22 +74,28 @@ class YolactLoss(nn.Module):
             if n_pos == 0:
                 continue
             num_pos += n_pos
-            box_sum = box_sum + F.smooth_l1_loss(loc[b][pos], encode(boxes[idx[pos]], anchors[pos], self.variances),
-                                                 reduction="sum")
+            box_sum = box_sum + F.smooth_l1_loss(
+                loc[b][pos], encode(boxes[idx[pos]], anchors[pos], self.variances), reduction="sum"
+            )
             pos_idx = pos.nonzero().squeeze(1)
             if n_pos > self.max_masks:
                 pos_idx = pos_idx[torch.randperm(n_pos, device=pos_idx.device)[: self.max_masks]]
-            mask_sum = mask_sum + self._mask_loss(proto[b], coef[b][pos_idx], t["masks"], boxes, idx[pos_idx],
-                                                  image_size)
+            mask_sum = mask_sum + self._mask_loss(
+                proto[b], coef[b][pos_idx], t["masks"], boxes, idx[pos_idx], image_size
+            )
             num_masks += len(pos_idx)
-        losses = {"cls": cls_sum / max(num_pos, 1), "box": box_sum / max(num_pos, 1),
-                  "mask": mask_sum / max(num_masks, 1)}
+        losses = {
+            "cls": cls_sum / max(num_pos, 1),
+            "box": box_sum / max(num_pos, 1),
+            "mask": mask_sum / max(num_masks, 1),
+        }
         losses["total"] = losses["cls"] + self.alpha * losses["box"] + self.beta * losses["mask"]
         return losses
 
     @staticmethod
-    def _mask_loss(proto: Tensor, coef: Tensor, gt_masks: Tensor, gt_boxes: Tensor, gt_idx: Tensor,
-                   image_size: tuple[int, int]) -> Tensor:
+    def _mask_loss(
+        proto: Tensor, coef: Tensor, gt_masks: Tensor, gt_boxes: Tensor, gt_idx: Tensor, image_size: tuple[int, int]
+    ) -> Tensor:
         """Sum over instances of the box-cropped, box-area-normalised BCE (SMoE eq. 7, L_mask)."""
         hp, wp = proto.shape[-2:]
         logits = torch.einsum("khw,nk->nhw", proto, coef)

@@ -1,5 +1,6 @@
 """YOLACT inference: mask assembly and decoding of the head's maps into per-image instances (Fast NMS is the
 shared one of :mod:`ablate.tasks.boxes`)."""
+
 from __future__ import annotations
 
 import torch
@@ -10,8 +11,9 @@ from ablate.tasks.boxes import VARIANCES, decode_boxes, fast_nms, flatten_levels
 from ablate.tasks.yolact.anchors import Anchors, box_region
 
 
-def assemble_masks(proto: Tensor, coef: Tensor, boxes: Tensor, image_size: tuple[int, int],
-                   threshold: float = 0.5) -> Tensor:
+def assemble_masks(
+    proto: Tensor, coef: Tensor, boxes: Tensor, image_size: tuple[int, int], threshold: float = 0.5
+) -> Tensor:
     """YOLACT mask assembly: sigmoid(proto @ coef) at prototype resolution, bilinear upsampling to the input
     size, crop to the detection box (pixels outside set to 0), threshold. ``proto`` [k, Hp, Wp], ``coef`` [n, k],
     ``boxes`` [n, 4] xyxy input pixels -> [n, H, W] bool. Cropping after upsampling keeps the crop exact."""
@@ -23,9 +25,16 @@ def assemble_masks(proto: Tensor, coef: Tensor, boxes: Tensor, image_size: tuple
 
 
 @torch.no_grad()
-def decode(outputs: dict, image_size: tuple[int, int], score_thresh: float = 0.05, nms_iou: float = 0.5,
-           top_k: int = 200, max_detections: int = 100, anchors: Anchors | None = None,
-           variances: tuple[float, float] = VARIANCES) -> list[dict[str, Tensor]]:
+def decode(
+    outputs: dict,
+    image_size: tuple[int, int],
+    score_thresh: float = 0.05,
+    nms_iou: float = 0.5,
+    top_k: int = 200,
+    max_detections: int = 100,
+    anchors: Anchors | None = None,
+    variances: tuple[float, float] = VARIANCES,
+) -> list[dict[str, Tensor]]:
     """Head maps -> one dict per image in :class:`~ablate.metrics.coco.MaskAP`'s format: ``masks`` (N, H, W)
     bool, ``scores`` (N,), ``labels`` (N,) in [0, K), ``boxes`` (N, 4) xyxy pixels clipped to the image.
 
@@ -50,6 +59,12 @@ def decode(outputs: dict, image_size: tuple[int, int], score_thresh: float = 0.0
         boxes = torch.minimum(boxes.clamp(min=0), limits)
         keep, labels, scores = fast_nms(boxes, probs[b][cand], nms_iou, score_thresh, top_k, max_detections)
         boxes = boxes[keep]
-        results.append({"masks": assemble_masks(proto[b], coef[b][cand][keep], boxes, image_size),
-                        "scores": scores, "labels": labels, "boxes": boxes})
+        results.append(
+            {
+                "masks": assemble_masks(proto[b], coef[b][cand][keep], boxes, image_size),
+                "scores": scores,
+                "labels": labels,
+                "boxes": boxes,
+            }
+        )
     return results

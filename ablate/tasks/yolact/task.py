@@ -10,6 +10,7 @@ per condition group as well (``test/map_clear``, ``test/map_night``, ``test/map_
 pools SMoE's light rain day and light rain night (§3.3); a group is logged only when the test set holds it. A
 value COCOeval leaves undefined (no counted ground truth) is logged as NaN.
 """
+
 from __future__ import annotations
 
 import inspect
@@ -26,11 +27,16 @@ from ablate.tasks.yolact.nms import decode
 
 #: Condition groups of the per-condition columns; members are ablate.data condition names (SMoE §3.3).
 CONDITION_GROUPS: dict[str, tuple[str, ...]] = {
-    "clear": ("clear",), "night": ("night",), "rain": ("rain_day", "rain_night"), "glare": ("glare",)}
+    "clear": ("clear",),
+    "night": ("night",),
+    "rain": ("rain_day", "rain_night"),
+    "glare": ("glare",),
+}
 #: The Complex KITTI conditions, spread equally over the data (SMoE §3.3).
 SMOE_CONDITIONS = ("clear", "night", "rain_day", "rain_night", "glare")
-_DECODE_OPTIONS = tuple(p for p in inspect.signature(decode).parameters if p not in ("outputs", "image_size",
-                                                                                      "anchors"))
+_DECODE_OPTIONS = tuple(
+    p for p in inspect.signature(decode).parameters if p not in ("outputs", "image_size", "anchors")
+)
 
 
 def condition_group(condition: str) -> str | None:
@@ -60,13 +66,14 @@ def select(batch: dict, index: list[int]) -> dict:
     return out
 
 
-def gate_frames(conditions: list[str] | None, batch_size: int, wanted: tuple[str, ...] = ("night", "glare"),
-                count: int = 2) -> list[int]:
+def gate_frames(
+    conditions: list[str] | None, batch_size: int, wanted: tuple[str, ...] = ("night", "glare"), count: int = 2
+) -> list[int]:
     """Indices of the first frame of each ``wanted`` condition present, filled up with the first frames."""
     conditions = list(conditions or [])
     picked = [conditions.index(c) for c in wanted if c in conditions]
     picked += [i for i in range(batch_size) if i not in picked]
-    return picked[:min(count, batch_size)]
+    return picked[: min(count, batch_size)]
 
 
 class InstanceTask(FusionTask):
@@ -78,9 +85,17 @@ class InstanceTask(FusionTask):
     group of ``CONDITION_GROUPS`` (default: the five of SMoE §3.3).
     """
 
-    def __init__(self, model: nn.Module, optimizer, scheduler=None, monitor: str = "val/map",
-                 loss: dict | None = None, decode: dict | None = None, conditions: list[str] | None = None,
-                 figure_frames: int = 4) -> None:
+    def __init__(
+        self,
+        model: nn.Module,
+        optimizer,
+        scheduler=None,
+        monitor: str = "val/map",
+        loss: dict | None = None,
+        decode: dict | None = None,
+        conditions: list[str] | None = None,
+        figure_frames: int = 4,
+    ) -> None:
         super().__init__(model, optimizer, scheduler, monitor)
         head = task_head(model)
         self.anchors: Anchors = getattr(head, "anchors", None) or Anchors()
@@ -159,8 +174,13 @@ class InstanceTask(FusionTask):
         n = min(self.figure_frames, len(batch["instances"]))
         sub, outputs = self._forward_frames(batch, list(range(n)))
         preds = self.predict(outputs, self.image_size(sub))
-        return draw_instances(_display_image(sub, self.model), sub["instances"],
-                              [{k: v.cpu() for k, v in p.items()} for p in preds], sub.get("condition"), score)
+        return draw_instances(
+            _display_image(sub, self.model),
+            sub["instances"],
+            [{k: v.cpu() for k, v in p.items()} for p in preds],
+            sub.get("condition"),
+            score,
+        )
 
     def gate_figure(self, batch: dict):
         """Gate maps of the first gated fusion op (finest fusion point) on a night and a glare frame, when the
@@ -185,6 +205,14 @@ def _percent(value: torch.Tensor) -> torch.Tensor:
 
 def _display_image(batch: dict, model: nn.Module) -> torch.Tensor:
     """The frames to draw on: ``rgb`` if present, else the model's first modality."""
-    key = "rgb" if "rgb" in batch else next(iter(getattr(model, "modalities", None) or
-                                                [k for k, v in batch.items() if torch.is_tensor(v) and v.ndim == 4]))
+    key = (
+        "rgb"
+        if "rgb" in batch
+        else next(
+            iter(
+                getattr(model, "modalities", None)
+                or [k for k, v in batch.items() if torch.is_tensor(v) and v.ndim == 4]
+            )
+        )
+    )
     return batch[key].detach().cpu()

@@ -1,0 +1,103 @@
+"""A job's fingerprint (ablate.run.fingerprint) and the provenance footer that judges runs by it: a rename or a move
+keeps every number, a changed loss or data pipeline changes the component it is in, and runs without a
+fingerprint fall back to the file check."""
+
+import sys
+
+import pandas as pd
+import pytest
+
+import ablate.data.kitti
+import ablate.tasks.semantic
+from ablate.config import compose
+from ablate.run.fingerprint import COMPONENTS, compute, decode, differs, encode
+from ablate.tables.provenance import ROOT, provenance
+
+
+@pytest.fixture(scope="module")
+def chinet():
+    cfg = compose(["experiment=chinet_table2", "row=chinet"])
+    return cfg, compute(cfg)
+
+
+def test_the_fingerprint_is_numbers_per_component_and_repeats(chinet):
+    cfg, fingerprint = chinet
+    assert list(fingerprint) == list(COMPONENTS) and all(len(v) for v in fingerprint.values())
+    assert differs(fingerprint, compute(cfg)) is None
+    assert differs(fingerprint, decode(encode(fingerprint))) is None
+
+
+def test_a_rename_or_a_move_keeps_every_number(chinet, tmp_path, monkeypatch):
+    """The task module copied to another package under another name, and the config pointed at it."""
+    cfg, fingerprint = chinet
+    source = (ROOT / "ablate" / "tasks" / "semantic.py").read_text()
+    (tmp_path / "moved_tasks").mkdir()
+    (tmp_path / "moved_tasks" / "__init__.py").write_text("")
+    (tmp_path / "moved_tasks" / "segmentation.py").write_text(source)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    moved = cfg.copy()
+    moved.task._target_ = "moved_tasks.segmentation." + cfg.task._target_.rsplit(".", 1)[1]
+    assert differs(fingerprint, compute(moved)) is None
+    sys.modules.pop("moved_tasks.segmentation", None)
+
+
+def test_a_changed_constant_in_the_loss_is_named(chinet, monkeypatch):
+    cfg, fingerprint = chinet
+    loss = ablate.tasks.semantic.SemanticTask.loss
+    monkeypatch.setattr(ablate.tasks.semantic.SemanticTask, "loss", lambda self, o, b: 1.5 * loss(self, o, b))
+    assert differs(fingerprint, compute(cfg)) == "loss"
+
+
+def test_a_changed_constant_in_the_data_pipeline_is_named(chinet, monkeypatch):
+    cfg, fingerprint = chinet
+    read = ablate.data.kitti.read_image
+    monkeypatch.setattr(ablate.data.kitti, "read_image", lambda path: (read(path) * 0.9).astype("uint8"))
+    assert differs(fingerprint, compute(cfg)) == "data"
+
+
+def test_within_the_tolerance_is_the_same_and_beyond_it_is_not():
+    a = {"data": [1.0, 2.0], "model": [3.0], "loss": [0.5], "schedule": [0.1], "metric": [0.0]}
+    assert differs(a, {**a, "model": [3.0 * (1 + 2e-5)]}) is None
+    assert differs(a, {**a, "model": [3.0 * (1 + 1e-3)]}) == "model"
+    assert differs(a, {**a, "metric": [1e-3]}) == "metric"
+
+
+OLD = "8edd5de63f9cb74394c0f2c4dea5b28b3c903f21"  # before the top of ablate became store/tables/run
+
+
+def runs(fingerprint: str, commit: str = OLD) -> pd.DataFrame:
+    return pd.DataFrame(
+        [
+            {
+                "row": "chinet",
+                "seed": "0",
+                "run_id": "r0",
+                "git_commit": commit,
+                "targets": "ablate.tasks.semantic.SemanticTask",
+                "evaluator": "",
+                "fingerprint": fingerprint,
+            }
+        ]
+    )
+
+
+def test_a_run_without_a_fingerprint_falls_back_to_the_file_check():
+    lines = provenance(runs(""), recompute=lambda cfg: {}, config=lambda run_id: None)
+    assert any(line.startswith("**Code changed since 8edd5de63f9c**") for line in lines)
+
+
+def test_a_matching_fingerprint_flags_nothing_and_a_differing_one_names_its_component(chinet):
+    _, fingerprint = chinet
+    same = provenance(runs(encode(fingerprint)), recompute=lambda cfg: fingerprint, config=lambda run_id: None)
+    assert same == [
+        "Runs made at commit 8edd5de63f9c (1 runs); the code they build changed since, and the "
+        "fingerprints of all 1 rows still match."
+    ]
+    moved = {**fingerprint, "loss": [v * 2 for v in fingerprint["loss"]]}
+    flagged = provenance(runs(encode(fingerprint)), recompute=lambda cfg: moved, config=lambda run_id: None)
+    assert any("**Numbers may have moved** for row chinet" in line and "loss differs" in line for line in flagged)
+
+
+def test_a_run_from_a_wheel_says_its_commit_is_unknown():
+    lines = provenance(runs("", commit="unknown"))
+    assert any("unknown commit (not a git checkout)" in line for line in lines)
