@@ -106,7 +106,7 @@ def test_table4_end_to_end_at_smoke_scale(tmp_path):
     artifacts = {a.path for a in client.list_artifacts(fused.info.run_id)}
     assert {"config.yaml", "predictions.png", "gates.png"} <= artifacts
     text = (tmp_path / "results" / "bifnet_table4.md").read_text()
-    rows = [line for line in text.splitlines() if line.startswith("| ")][1:]
+    rows = [line for line in text.split("All metrics:")[0].splitlines() if line.startswith("| ")][1:]
     assert [r.split("|")[1].strip() for r in rows] == [
         "Image",
         "LiDAR BEV",

@@ -105,7 +105,8 @@ def test_table_marks_significant_rows_names_the_reference_and_flags_commits():
     from ablate.tables.summary import summarise
 
     text = to_markdown(summarise(runs, table), runs, table)
-    rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")}
+    main = text.split("All metrics:")[0]
+    rows = {line.split("|")[1].strip(): line for line in main.splitlines() if line.startswith("| ")}
     assert "AP 95% CI" in text and "Δ AP vs DDM [95% CI]" in text  # the better of the two experts
     assert "reference" in rows["DDM"]
     assert "+5.00 [+5.00, +5.00] *" in rows["Sum"]  # the same +5 on every shared seed

@@ -48,8 +48,8 @@ MAIN_COSTS = ("ratio", "Params", "MACs")
 
 def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, footer: list[str] | None = None) -> str:
     """The markdown: a main table (the row, the primary metric ours ± std and the paper's, its 95 % CI, the
-    difference from the reference row, the latency ratio, parameters, MACs and n), then "All metrics" (every other
-    metric, ours beside the paper's, the text columns and the latency) when there is more to show; the footer
+    difference from the reference row, the latency ratio, parameters, MACs and n; a table's text columns after
+    the row), then "All metrics" (every other metric, ours beside the paper's, and the latency) when there is more to show; the footer
     under them. ``footer``: the provenance lines (:func:`ablate.tables.provenance.provenance` of ``runs`` when
     None). A table without any paper number (an ad-hoc sweep) has no paper columns and no τ line."""
     lines = [f"# {table.title}", ""]
@@ -57,6 +57,8 @@ def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, fo
         lines.append("No finished runs yet.")
     else:
         main: dict[str, list[str]] = {"Row": list(summary["name"])}
+        for key, label in (table.get("text_columns") or {}).items():  # what the row is (DGFN Table II's "Data")
+            main[label] = list(summary[key])
         main.update(metric_columns(summary, table, [table.primary]))
         sig_columns, sig_lines = significance(summary, runs, table)
         main.update(sig_columns)
@@ -68,8 +70,6 @@ def to_markdown(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, fo
         lines.append(pd.DataFrame(main).to_markdown(index=False, disable_numparse=True))
         others = [k for k in table.metrics if k not in COSTS and k != table.primary]
         rest: dict[str, list[str]] = {"Row": list(summary["name"])}
-        for key, label in (table.get("text_columns") or {}).items():
-            rest[label] = list(summary[key])
         rest.update(metric_columns(summary, table, others))
         rest.update({k: v for k, v in cost_columns.items() if k not in main and set(v) != {"—"}})
         if len(rest) > 1:
