@@ -1,6 +1,8 @@
 """``python -m ablate.report``: regenerate every table that has runs under ``results/``; ``python -m ablate.report
 experiment=chinet_table2`` just one (other ``key=value`` overrides, e.g. ``logger.tracking_uri=...``, apply too).
-A multirun writes its table at the end by itself. The tables are built by :mod:`ablate.tables`."""
+A multirun writes its table at the end by itself. The tables are built by :mod:`ablate.tables`. Last, the results
+summary (one line per paper table, :mod:`ablate.tables.index`) is rewritten in ``results/README.md`` and in
+``README.md`` where they hold its markers, from the tables there, whether or not this store had their runs."""
 
 from __future__ import annotations
 
@@ -9,7 +11,8 @@ import sys
 from ablate.config import CONF, compose
 from ablate.run.fingerprint import compute as fingerprint
 from ablate.store import KIND_SWEEP, Tracker, retry
-from ablate.tables import write_table
+from ablate.tables import table_spec, write_table
+from ablate.tables.index import write_index
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -34,6 +37,11 @@ def main(argv: list[str] | None = None) -> int:
         written += 1
     if not written:
         print(f"No tables written: no runs in {Tracker.from_config(compose(rest)).uri}", file=sys.stderr)
+    experiments = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
+    for path in write_index(
+        [table_spec(compose(rest + [f"experiment={n}"])) for n in experiments], "results", "README.md"
+    ):
+        print(path)
     return 0
 
 
