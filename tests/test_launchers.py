@@ -110,7 +110,7 @@ def test_ray_on_a_cluster_started_elsewhere_writes_the_table_into_the_drivers_st
 def compose_launcher(*overrides: str):
     from hydra import compose, initialize_config_dir
 
-    import ablate.run.sweep  # noqa: F401  (what `python -m ablate` imports before Hydra composes)
+    import ablate.run  # noqa: F401  (what `python -m ablate` imports before Hydra composes)
 
     with initialize_config_dir(str(REPO / "conf"), version_base="1.3"):
         return compose("config", overrides=list(overrides), return_hydra_config=True).hydra
