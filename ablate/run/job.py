@@ -2,7 +2,10 @@
 
 A job whose config hash already has a FINISHED run is skipped unless ``force=true``. A job that crashed or was
 killed is recorded FAILED or KILLED and runs again next time, resuming from its last checkpoint
-(``checkpoints/<table>/<config hash>/last.ckpt``) when one exists.
+(``checkpoints/<table>/<config hash>/last.ckpt``) when one exists and loads, else from ``best.ckpt``, else from
+scratch (:mod:`ablate.run.checkpoint`, which also writes every checkpoint atomically). SIGTERM or SIGINT stops a job
+after the batch in progress with its checkpoint saved, its run KILLED with the reason, and exit status 143 (130)
+(:mod:`ablate.run.preempt`). A full disk fails the job with one message naming the file.
 
 A job runs in the launch directory, whichever process runs it, so that its relative paths (``checkpoints/``,
 ``data/``, the SQLite store, the artifact root) are the ones the sweep was launched with.
@@ -28,17 +31,20 @@ import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
-from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException, ValidationError
 
 from ablate import hardware
 from ablate.run import fingerprint
+from ablate.run.checkpoint import AtomicCheckpointIO, resume_point
 from ablate.run.experts import attach as attach_experts
 from ablate.run.experts import feature_cache
 from ablate.run.experts import prepare as prepare_experts
+from ablate.run.preempt import STOP, SaveOnStop, Stopped, exit_status, loky_worker
 from ablate.store import (
     KIND_JOB,
+    SKIPPED_FRAMES,
     RunLogger,
     Tracker,
     config_hash,
@@ -159,19 +165,48 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
         tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
         record_fingerprint(cfg, tracker, run_id)
         metrics = fit_and_test(cfg, tracker, run_id, ckpt_dir)
-    except KeyboardInterrupt:
-        tracker.end(run_id, "KILLED")
+    except Stopped as stop:
+        stop.reason = stopped_reason(stop, ckpt_dir)
+        record_end(tracker, run_id, "KILLED", {"killed_by": stop.signame, "kill_reason": stop.reason})
+        log.warning("%s %s (seed %s) KILLED: %s", kind, row, cfg.seed, stop.reason)
+        raise
+    except (KeyboardInterrupt, SystemExit) as err:  # Lightning turns Ctrl+C inside fit into sys.exit(1)
+        record_end(tracker, run_id, "KILLED", {"killed_by": type(err).__name__})
         raise
     except Exception as err:
         message = f"{type(err).__name__}: {err}"
-        tracker.set_tags(run_id, {"error": message[:5000]})
-        tracker.log_text(run_id, traceback.format_exc(), "error.txt")
-        tracker.end(run_id, "FAILED")
+        record_end(tracker, run_id, "FAILED", {"error": message[:5000]}, traceback.format_exc())
         log.error("%s %s (seed %s) FAILED: %s", kind, row, cfg.seed, message)
         raise JobFailed(message) from err
     tracker.end(run_id, "FINISHED")
     log.info("FINISHED %s seed %s: %s", row, cfg.seed, ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items())))
     return Outcome("FINISHED", run_id, ckpt_dir)
+
+
+def record_end(tracker: Tracker, run_id: str, status: str, tags: dict[str, str], error: str | None = None) -> None:
+    """End ``run_id`` as ``status`` with ``tags`` (and ``error.txt``): each step tried on its own, so that a tag or
+    an artifact the store cannot take (a full disk) never keeps the status from being recorded."""
+    for step, call in (
+        ("tags", lambda: tracker.set_tags(run_id, tags)),
+        ("error.txt", lambda: tracker.log_text(run_id, error, "error.txt") if error else None),
+        ("status", lambda: tracker.end(run_id, status)),
+    ):
+        try:
+            call()
+        except Exception as err:
+            log.error("Could not record the %s of run %s (%s): %s", step, run_id, status, err)
+
+
+def stopped_reason(stop: Stopped, ckpt_dir: Path) -> str:
+    """What a stopped job tells its run and its user: the signal, and where a rerun resumes."""
+    saved = stop.checkpoint
+    if saved is not None:
+        where = f"checkpoint {saved[0]} saved at step {saved[1]}"
+    elif (ckpt_dir / "last.ckpt").exists():
+        where = f"not training; {ckpt_dir / 'last.ckpt'} is kept"
+    else:
+        where = "stopped before training"
+    return f"stopped by {stop.signame} (preemption or interrupt); {where}; the same command again resumes it"
 
 
 def record_fingerprint(cfg: DictConfig, tracker: Tracker, run_id: str) -> None:
@@ -198,11 +233,16 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     checkpoint = ModelCheckpoint(
         dirpath=ckpt_dir, filename="best", monitor=task.monitor, mode="max", save_last=True, save_top_k=1
     )
+    on_stop = SaveOnStop(ckpt_dir / "last.ckpt")
     lightning_options = {
         k: v for k, v in OmegaConf.to_container(cfg.trainer, resolve=True).items() if k not in hardware.OPTIONS
     }
     trainer = instantiate(
-        lightning_options, logger=RunLogger(tracker, run_id), callbacks=[checkpoint], default_root_dir=str(ckpt_dir)
+        lightning_options,
+        logger=RunLogger(tracker, run_id),
+        callbacks=[checkpoint, on_stop, DataCount(tracker, run_id)],
+        plugins=[AtomicCheckpointIO()],
+        default_root_dir=str(ckpt_dir),
     )
     best = attach_experts(cfg, model, experts, tracker, run_id) if cfg.get("experts") else None
     if cfg.trainer.get("channels_last"):  # after the experts' weights are in
@@ -211,13 +251,20 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
         backend = cfg.trainer.compile
         model.compile(**({"backend": backend} if isinstance(backend, str) else {}))
     if best is None:
-        last = ckpt_dir / "last.ckpt"
         if cfg.force and ckpt_dir.exists():  # a forced rerun trains afresh
             shutil.rmtree(ckpt_dir)
-        if last.exists():
-            log.info("Resuming from %s", last)
+        start = resume_point(ckpt_dir)
+        if start.path is not None:
+            log.info("Resuming from %s (step %d, epoch %d)", start.path, start.step, start.epoch)
+        tracker.set_tags(run_id, start.tags)
         task.feature_cache = feature_cache(cfg, model)
-        trainer.fit(task, datamodule=datamodule, ckpt_path=str(last) if last.exists() else None)
+        try:
+            with STOP.training(trainer):
+                trainer.fit(task, datamodule=datamodule, ckpt_path=str(start.path) if start.path else None)
+        except Stopped as stop:
+            if on_stop.saved_step is not None:
+                stop.checkpoint = (on_stop.path, on_stop.saved_step)
+            raise
         if task.feature_cache is not None:
             log.info(
                 "Expert feature cache: %d frames, %.0f MiB",
@@ -226,7 +273,8 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
             )
             task.feature_cache = None  # testing runs the whole model, whatever its data
         best = checkpoint.best_model_path or None
-    results = trainer.test(task, datamodule=datamodule, ckpt_path=best, verbose=False)[0]
+    with STOP.training(trainer):
+        results = trainer.test(task, datamodule=datamodule, ckpt_path=best, verbose=False)[0]
     metrics = {k.split("/", 1)[-1]: float(v) for k, v in results.items() if k.startswith("test/")}
     sample = next(iter(datamodule.test_dataloader()))
     metrics["params_m"] = sum(p.numel() for p in task.model.parameters()) / 1e6
@@ -242,6 +290,20 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     if best and cfg.logger.get("log_checkpoint", True) and Path(best).resolve().parent == ckpt_dir.resolve():
         tracker.log_artifact(run_id, best, "checkpoints")
     return metrics
+
+
+class DataCount(Callback):
+    """Once the data module is set up, log how many bad frames it left out (``data.on_bad_frame=skip``) as the
+    run's metric ``data/skipped_frames``."""
+
+    def __init__(self, tracker: Tracker, run_id: str) -> None:
+        self.tracker, self.run_id, self.logged = tracker, run_id, False
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        count = getattr(trainer.datamodule, "skipped_frames", None)
+        if count is not None and not self.logged:
+            self.tracker.log_metrics(self.run_id, {SKIPPED_FRAMES: float(count)})
+            self.logged = True
 
 
 @contextmanager
@@ -283,8 +345,15 @@ def main(cfg: DictConfig) -> str:
     summary and the other jobs go on; a failed single run exits with status 1 and one clear line."""
     standard_start_method()
     try:
-        with in_launch_dir():
+        with STOP.installed(), in_launch_dir():
             return run(cfg).status
+    except Stopped as stop:
+        reason = stop.reason
+        if loky_worker():  # a sweep's worker goes with its parent, which is stopping too
+            logging.shutdown()
+            os._exit(exit_status(stop.signame))
+        print(f"stopped: {reason}", file=sys.stderr)
+        raise SystemExit(exit_status(stop.signame)) from None
     except (JobFailed, OmegaConfBaseException) as err:  # a config that does not resolve fails before any run
         if sweep_dir() is None:
             print(f"error: {err}", file=sys.stderr)

@@ -25,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from ablate.config import compose
 from ablate.run import fingerprint, progress
 from ablate.run.latency import measure
+from ablate.run.preempt import GRACE_S, install_parent
 from ablate.store import KIND_SWEEP, Tracker, is_server, provenance_tags, sweep_dir
 from ablate.store.sweepdir import FAILURES, PARENT_FILE, STORE_FILE, SWEPT_FILE
 from ablate.tables import COSTS, table_spec, write_table
@@ -59,6 +60,20 @@ def _alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def stop_sweep(tracker: Tracker, run_id: str, signame: str, stopped: int, killed: int) -> None:
+    """Record a sweep stopped by ``signame`` (its workers already stopped, :func:`ablate.run.preempt.stop_workers`):
+    its parent run KILLED with the reason, and one line for the user."""
+    reason = f"stopped by {signame}: {stopped} worker(s) stopped" + (
+        f", {killed} killed after {GRACE_S:.0f} s" if killed else ", each job checkpointed and marked KILLED"
+    )
+    try:
+        tracker.set_tags(run_id, {"killed_by": signame, "kill_reason": reason})
+        tracker.end(run_id, "KILLED")
+    except Exception as err:
+        log.error("Could not mark the sweep's run %s KILLED: %s", run_id, err)
+    print(f"stopped: sweep {reason}; the same command again resumes its jobs", file=sys.stderr)
 
 
 #: The extra of pyproject.toml that installs a launcher plugin, by the plugin's package.
@@ -155,6 +170,8 @@ class SweepCallback(Callback):
             },
         )
         (sdir / PARENT_FILE).write_text(run_id)
+        if "joblib" in str(OmegaConf.select(config, "hydra.launcher._target_", default="")):
+            install_parent(lambda name, stopped, killed: stop_sweep(tracker, run_id, name, stopped, killed))
         parsed = OverridesParser.create().parse_overrides(list(config.hydra.overrides.task))
         (sdir / SWEPT_FILE).write_text(" ".join(o.get_key_element() for o in parsed if o.is_sweep_override()))
         log.info("MLflow parent run %s in experiment '%s' (%s)", run_id, config.table.name, tracker.uri)

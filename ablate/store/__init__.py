@@ -21,6 +21,8 @@ from ablate.store.sweepdir import parent_run_id, record_failure, sweep_dir, swee
 from ablate.store.tracker import (
     KIND_JOB,
     KIND_SWEEP,
+    SKIPPED_FRAMES,
+    DiskFull,
     RunLogger,
     Tracker,
     file_lock,
@@ -33,6 +35,8 @@ from ablate.store.tracker import (
 __all__ = [
     "KIND_JOB",
     "KIND_SWEEP",
+    "SKIPPED_FRAMES",
+    "DiskFull",
     "UNHASHED",
     "RunLogger",
     "Tracker",

@@ -13,6 +13,7 @@ and experiment creation tolerates a concurrent creator.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import logging
@@ -41,6 +42,8 @@ T = TypeVar("T")
 
 #: Tags every job run carries; the report reads them.
 KIND_JOB, KIND_SWEEP = "job", "sweep"
+#: The metric a job logs once its data module is set up: the bad frames it left out (``data.on_bad_frame=skip``).
+SKIPPED_FRAMES = "data/skipped_frames"
 #: Every experiment's kind (model training, not GenAI). MLflow 3.17's UI still opens on its GenAI view until the
 #: browser's "Model training" switch is set (a per-browser setting, default GenAI), so a sweep also prints
 #: :func:`runs_link`, which sets it.
@@ -62,6 +65,36 @@ def file_lock(path: Path) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+class DiskFull(OSError):
+    """No space left on the device (or the quota is spent) while writing a checkpoint or an artifact; the message
+    names the file and where it was going."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(errno.ENOSPC, message)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+@contextmanager
+def naming_full_disk(what: str, where: Callable[[], str]) -> Iterator[None]:
+    """Turn ``ENOSPC`` / ``EDQUOT`` raised in the block into one :class:`DiskFull` naming ``what`` and ``where()``
+    (called only then)."""
+    try:
+        yield
+    except DiskFull:
+        raise
+    except OSError as err:
+        if err.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        try:
+            dest = where()
+        except Exception:
+            dest = "the artifact store"
+        raise DiskFull(f"no space left on the device writing {what} to {dest} ({err.strerror})") from err
 
 
 def retry(fn: Callable[..., T], *args: Any, attempts: int = 12, **kwargs: Any) -> T:
@@ -255,14 +288,22 @@ class Tracker:
     def set_tags(self, run_id: str, tags: dict[str, str]) -> None:
         retry(self.client.log_batch, run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
 
+    def artifact_uri(self, run_id: str) -> str:
+        """Where ``run_id`` keeps its artifacts."""
+        return str(retry(self.client.get_run, run_id).info.artifact_uri)
+
     def log_artifact(self, run_id: str, path: str | Path, artifact_path: str | None = None) -> None:
-        retry(self.client.log_artifact, run_id, str(path), artifact_path)
+        """Upload the file ``path``; a full disk is one :class:`DiskFull` naming it and the run's artifact store."""
+        with naming_full_disk(f"the artifact {path}", lambda: self.artifact_uri(run_id)):
+            retry(self.client.log_artifact, run_id, str(path), artifact_path)
 
     def log_figure(self, run_id: str, figure: Figure, name: str) -> None:
-        retry(self.client.log_figure, run_id, figure, name)
+        with naming_full_disk(f"the artifact {name}", lambda: self.artifact_uri(run_id)):
+            retry(self.client.log_figure, run_id, figure, name)
 
     def log_text(self, run_id: str, text: str, name: str) -> None:
-        retry(self.client.log_text, run_id, text, name)
+        with naming_full_disk(f"the artifact {name}", lambda: self.artifact_uri(run_id)):
+            retry(self.client.log_text, run_id, text, name)
 
     def share_table_view(self, experiment_id: str, metrics: list[str]) -> str:
         """Store the runs table view of a table's experiment, with the table's ``metrics`` as columns and the

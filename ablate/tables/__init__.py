@@ -1,7 +1,8 @@
 """Tables from runs: the store's runs -> pandas -> ``results/<table>.md`` and ``results/<table>.png``.
 
 Only FINISHED job runs count (per row and seed the latest, at the scale of the latest run), so a failed job never
-becomes a row; a row with no finished run is listed under the table instead. The same runs give the same bytes:
+becomes a row; a row with no finished run is listed under the table instead, and the footer counts the runs still
+RUNNING (a report while a sweep writes) and the bad frames the runs skipped. The same runs give the same bytes:
 no timestamps, rows in the paper's order, PNG written without metadata. It imports the store, never the job or the
 sweep (:mod:`ablate.run`): what it needs from them (recomputing a run's fingerprint) is passed in.
 
@@ -18,7 +19,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from ablate.store import Tracker
-from ablate.tables.collect import collect
+from ablate.tables.collect import collect, running, state_lines
 from ablate.tables.conditions import write_conditions
 from ablate.tables.provenance import Recompute, config_of, provenance
 from ablate.tables.rows import write_rows
@@ -46,4 +47,5 @@ def write_table(
         raise ValueError(f"table.layout: {layout!r} is not one of {', '.join(LAYOUTS)}")
     runs = collect(tracker, table.name)
     footer = provenance(runs, fingerprint, lambda run_id: config_of(tracker, run_id))
+    footer += state_lines(runs, running(tracker, table.name))
     return LAYOUTS[layout](cfg, table, runs, tracker, parent_run, results_dir, footer)

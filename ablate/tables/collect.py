@@ -5,7 +5,7 @@ from __future__ import annotations
 import pandas as pd
 from omegaconf import DictConfig
 
-from ablate.store import KIND_JOB, Tracker, retry
+from ablate.store import KIND_JOB, SKIPPED_FRAMES, Tracker, retry
 
 
 def collect(tracker: Tracker, table: str) -> pd.DataFrame:
@@ -40,6 +40,33 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     df = pd.DataFrame.from_records(records).sort_values(["start", "config_hash"], kind="stable")
     df = df[df["scale"] == df["scale"].iloc[-1]]
     return df.drop_duplicates(["row", "seed"], keep="last").drop(columns="start").reset_index(drop=True)
+
+
+def running(tracker: Tracker, table: str) -> int:
+    """How many job runs of ``table`` are RUNNING (a sweep writing now, or a killed job not yet closed): never rows."""
+    exp = retry(tracker.client.get_experiment_by_name, table)
+    if exp is None:
+        return 0
+    return len(tracker.runs(exp.experiment_id, f"attributes.status = 'RUNNING' and tags.kind = '{KIND_JOB}'"))
+
+
+def state_lines(runs: pd.DataFrame, in_progress: int) -> list[str]:
+    """The footer's lines on what the table leaves out: the RUNNING runs, and the bad frames the runs' data
+    modules skipped (``data.on_bad_frame=skip``), where there are any."""
+    lines = []
+    if in_progress:
+        lines.append(
+            f"{in_progress} run(s) still RUNNING are left out (a sweep is writing, or a killed job not yet rerun); "
+            "regenerate with `python -m ablate.report` when they end."
+        )
+    if len(runs) and SKIPPED_FRAMES in runs:
+        skipped = runs[SKIPPED_FRAMES].fillna(0)
+        if skipped.sum() > 0:
+            lines.append(
+                f"{int(skipped.sum())} bad frame(s) skipped (data.on_bad_frame=skip) in {int((skipped > 0).sum())} "
+                "run(s); each run's log names them."
+            )
+    return lines
 
 
 def under_condition(runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:

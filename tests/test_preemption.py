@@ -1,0 +1,145 @@
+"""Real signals on smoke jobs: SIGTERM (SLURM's preemption) to a job saves its checkpoint, marks its run KILLED
+with the reason and exits 143, and the rerun resumes losing less than an epoch; SIGTERM to a joblib sweep's parent
+takes its workers with it, each job checkpointed and KILLED; ``python -m ablate.report`` during a sweep leaves the
+RUNNING runs out and counts them in the footer."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from test_cli import REPO, TINY, ablate, runs
+
+EPOCHS = 30  # 3 steps an epoch at TINY: long enough to be stopped in the middle
+
+
+def start(cwd: Path, *args: str) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    return subprocess.Popen(
+        [sys.executable, "-m", "ablate", *args],
+        cwd=cwd,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def wait_for(cwd: Path, pattern: str, count: int, proc: subprocess.Popen, timeout: float = 300) -> None:
+    deadline = time.monotonic() + timeout
+    while len(list(cwd.glob(pattern))) < count:
+        assert proc.poll() is None, proc.communicate()[1][-3000:]
+        assert time.monotonic() < deadline, f"no {pattern} after {timeout} s"
+        time.sleep(0.1)
+
+
+def steps(client, run_id: str) -> list[int]:
+    return sorted(m.step for m in client.get_metric_history(run_id, "train/loss"))
+
+
+def test_sigterm_checkpoints_a_job_marks_it_killed_and_the_rerun_loses_less_than_an_epoch(tmp_path):
+    job = ["row=unet", "experiment=chinet_table2", *TINY, f"trainer.max_epochs={EPOCHS}"]
+    proc = start(tmp_path, *job)
+    wait_for(tmp_path, "checkpoints/chinet_table2/*/last.ckpt", 1, proc)  # an epoch is done: it is training
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, out[-3000:] + err[-3000:]
+    stopped = [ln for ln in err.splitlines() if ln.startswith("stopped:")]
+    assert len(stopped) == 1 and "last.ckpt saved at step" in stopped[0], err[-3000:]
+    assert "Traceback" not in err
+    client, (killed,) = runs(tmp_path, "chinet_table2")
+    assert killed.info.status == "KILLED" and killed.data.tags["killed_by"] == "SIGTERM"
+    assert "last.ckpt saved at step" in killed.data.tags["kill_reason"]
+    done = steps(client, killed.info.run_id)
+    again = ablate(tmp_path, *job)
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    _, jobs = runs(tmp_path, "chinet_table2")
+    (rerun,) = [r for r in jobs if r.info.status == "FINISHED"]
+    resumed = int(rerun.data.tags["resumed_step"])
+    assert rerun.data.tags["resumed_from"].endswith("last.ckpt")
+    total = max(steps(client, rerun.info.run_id)) + 1
+    per_epoch = total / EPOCHS
+    lost = (max(done) + 1 - resumed) / per_epoch  # steps trained before the signal that the rerun does again
+    print(
+        f"preempted at step {max(done) + 1} of {total} ({per_epoch:.0f} an epoch); resumed at {resumed}; lost {lost:.2f} epochs"
+    )
+    assert 0 <= lost < 1
+    assert min(steps(client, rerun.info.run_id)) == resumed and total == EPOCHS * per_epoch
+
+
+def children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if stat.read_text().rsplit(")", 1)[1].split()[1] == str(pid):
+                out.append(int(stat.parent.name))
+        except (OSError, IndexError):
+            pass
+    return out
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_sigterm_to_a_joblib_sweep_takes_its_workers_with_it(tmp_path):
+    sweep = [
+        "-m",
+        "row=unet,fusenet",
+        "experiment=chinet_table2",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        *TINY,
+        f"trainer.max_epochs={EPOCHS}",
+    ]
+    proc = start(tmp_path, *sweep)
+    wait_for(tmp_path, "checkpoints/chinet_table2/*/last.ckpt", 2, proc)  # both jobs are training
+    workers = children(proc.pid)
+    assert workers
+    sent = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    ended = time.monotonic()
+    assert proc.returncode == 143, out[-3000:] + err[-3000:]
+    assert "stopped: sweep stopped by SIGTERM" in err
+    while any(alive(p) for p in workers) and time.monotonic() - ended < 10:
+        time.sleep(0.1)
+    left = [p for p in workers if alive(p)]
+    assert not left, f"workers {left} outlived their parent by 10 s"
+    after = time.monotonic() - ended
+    print(f"sweep parent exited {ended - sent:.1f} s after SIGTERM; its {len(workers)} workers {after:.1f} s after it")
+    _, jobs = runs(tmp_path, "chinet_table2")
+    assert sorted(r.data.tags["row"] for r in jobs) == ["fusenet", "unet"]
+    for job in jobs:
+        assert job.info.status == "KILLED" and job.data.tags["killed_by"] == "SIGTERM", job.data.tags
+        assert "saved at step" in job.data.tags["kill_reason"]
+    _, (parent,) = runs(tmp_path, "chinet_table2", kind="sweep")
+    assert parent.info.status == "KILLED" and parent.data.tags["killed_by"] == "SIGTERM"
+
+
+def test_a_report_while_a_sweep_writes_leaves_running_runs_out_and_counts_them(tmp_path):
+    # one job at a time (hydra/launcher=basic): the report runs beside it
+    sweep = ["-m", "row=unet,fusenet", "experiment=chinet_table2", "hydra/launcher=basic", *TINY]
+    proc = start(tmp_path, *sweep, "trainer.max_epochs=15")
+    reports = []
+    while proc.poll() is None:
+        report = ablate(tmp_path, "experiment=chinet_table2", module="ablate.report")
+        md = tmp_path / "results" / "chinet_table2.md"
+        reports.append((report, md.read_text() if md.exists() else ""))
+    out, err = proc.communicate()
+    assert proc.returncode == 0, out[-3000:] + err[-3000:]
+    for report, _ in reports:
+        assert report.returncode == 0 or "no runs for experiment" in report.stderr, report.stderr[-3000:]
+    texts = [text for report, text in reports if report.returncode == 0]
+    assert any("1 run(s) still RUNNING are left out" in t for t in texts), texts
+    assert ablate(tmp_path, "experiment=chinet_table2", module="ablate.report").returncode == 0
+    final = (tmp_path / "results" / "chinet_table2.md").read_text()
+    assert "still RUNNING" not in final and "| U-Net" in final and "| FuseNet" in final
