@@ -196,6 +196,27 @@ def test_with_credentials_a_run_is_written_and_read_back(auth_server, tmp_path):
     assert (store / "artifacts" / exp / run.info.run_id / "artifacts" / "note.txt").is_file()
 
 
+@pytest.mark.parametrize("password", [None, "wrong"])
+def test_a_job_the_server_refuses_ends_in_one_line_naming_the_credentials(auth_server, tmp_path, password):
+    uri, _, credentials = auth_server
+    env = {"MLFLOW_TRACKING_URI": uri, "MLFLOW_TRACKING_USERNAME": credentials["MLFLOW_TRACKING_USERNAME"]}
+    if password is None:
+        env = {"MLFLOW_TRACKING_URI": uri, "MLFLOW_TRACKING_USERNAME": "", "MLFLOW_TRACKING_PASSWORD": ""}
+    else:
+        env["MLFLOW_TRACKING_PASSWORD"] = password
+    for args in (
+        ["row=unet", "experiment=chinet_table2", *TINY],
+        ["-m", "row=unet", "experiment=chinet_table2", *TINY],
+    ):
+        out = ablate(tmp_path, *args, env=env)
+        assert out.returncode == 1, output(out)
+        errors = [ln for ln in out.stderr.splitlines() if ln.startswith("error:")]
+        assert len(errors) == 1, output(out)
+        assert uri in errors[0] and "HTTP 401" in errors[0], errors[0]
+        assert "MLFLOW_TRACKING_USERNAME" in errors[0] and "MLFLOW_TRACKING_PASSWORD" in errors[0]
+        assert "Traceback" not in out.stderr and (password or "x") not in errors[0].replace("wrong ones", "")
+
+
 @pytest.fixture(scope="module")
 def sweep(server, tmp_path_factory):
     uri, store = server

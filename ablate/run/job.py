@@ -45,6 +45,7 @@ from ablate.run.preempt import STOP, SaveOnStop, Stopped, exit_status, loky_work
 from ablate.store import (
     KIND_JOB,
     SKIPPED_FRAMES,
+    AccessDenied,
     RunLogger,
     Tracker,
     config_hash,
@@ -354,7 +355,8 @@ def main(cfg: DictConfig) -> str:
             os._exit(exit_status(stop.signame))
         print(f"stopped: {reason}", file=sys.stderr)
         raise SystemExit(exit_status(stop.signame)) from None
-    except (JobFailed, OmegaConfBaseException) as err:  # a config that does not resolve fails before any run
+    # a config that does not resolve, or a server that refuses the credentials, fails before any run
+    except (JobFailed, OmegaConfBaseException, AccessDenied) as err:
         if sweep_dir() is None:
             print(f"error: {err}", file=sys.stderr)
             raise SystemExit(1) from None

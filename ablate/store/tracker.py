@@ -97,12 +97,39 @@ def naming_full_disk(what: str, where: Callable[[], str]) -> Iterator[None]:
         raise DiskFull(f"no space left on the device writing {what} to {dest} ({err.strerror})") from err
 
 
+class AccessDenied(RuntimeError):
+    """The tracking server refused this client (HTTP 401 or 403): no, wrong or insufficient credentials. The
+    message names the server (where known) and the variables that hold the credentials."""
+
+    def __init__(self, code: int, uri: str | None = None) -> None:
+        self.code, self.uri = code, uri
+        user = os.environ.get("MLFLOW_TRACKING_USERNAME")
+        who = f"as user {user!r}" if user else "without MLFLOW_TRACKING_USERNAME"
+        meaning = "no credentials, or wrong ones" if code == 401 else "this user may not do that"
+        server = f"the tracking server {uri}" if uri else "the tracking server"
+        super().__init__(
+            f"{server} refused this client {who} (HTTP {code}: {meaning}): set MLFLOW_TRACKING_USERNAME and "
+            "MLFLOW_TRACKING_PASSWORD to an account of the server (scripts/tracking_server.py start --auth "
+            "prints them)"
+        )
+
+
+def refusal(err: BaseException) -> AccessDenied | None:
+    """An :class:`AccessDenied` if ``err`` is a request the tracking server refused (HTTP 401 or 403), else None."""
+    for code in (401, 403):
+        if f"error code {code}" in str(err):
+            return AccessDenied(code)
+    return None
+
+
 def retry(fn: Callable[..., T], *args: Any, attempts: int = 12, **kwargs: Any) -> T:
     """Call ``fn``, retrying with jittered backoff while SQLite says the database is locked or busy."""
     for i in range(attempts):
         try:
             return fn(*args, **kwargs)
         except Exception as err:  # sqlalchemy's OperationalError arrives wrapped in MlflowException
+            if isinstance(err, MlflowException) and (denied := refusal(err)) is not None:
+                raise denied from None
             text = str(err).lower()
             if i == attempts - 1 or not ("locked" in text or "busy" in text):
                 raise
@@ -180,6 +207,11 @@ class Tracker:
                 retry(self.client.search_experiments, max_results=1)
         else:
             self.client = MlflowClient(tracking_uri=uri)
+            if is_server(uri):  # credentials the server refuses stop here, with the server's name
+                try:
+                    retry(self.client.search_experiments, max_results=1)
+                except AccessDenied as err:
+                    raise AccessDenied(err.code, uri) from None
 
     def __getstate__(self) -> dict[str, Any]:
         return {"uri": self.uri, "artifact_location": self.artifact_location}
