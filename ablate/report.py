@@ -10,12 +10,21 @@ import sys
 
 from ablate.config import CONF, compose
 from ablate.run.fingerprint import compute as fingerprint
-from ablate.store import KIND_SWEEP, Tracker, retry
+from ablate.store import KIND_SWEEP, AccessDenied, Tracker, retry
 from ablate.tables import table_spec, write_table
 from ablate.tables.index import write_index
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Write the tables (and the results summary); a store that refuses this client is one line and status 1."""
+    try:
+        return _main(argv)
+    except AccessDenied as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+
+
+def _main(argv: list[str] | None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     named = [a.split("=", 1)[1] for a in args if a.startswith("experiment=")]
     rest = [a for a in args if not a.startswith("experiment=")]
