@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import sys
 
+from hydra.errors import HydraException
+
 from ablate.config import CONF, compose
 from ablate.run.fingerprint import compute as fingerprint
 from ablate.store import KIND_SWEEP, AccessDenied, Tracker, retry
@@ -16,10 +18,11 @@ from ablate.tables.index import write_index
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Write the tables (and the results summary); a store that refuses this client is one line and status 1."""
+    """Write the tables (and the results summary); a store that refuses this client, or an override that does not
+    compose (``experiment=<unknown>``), is one error and status 1."""
     try:
         return _main(argv)
-    except AccessDenied as err:
+    except (AccessDenied, HydraException) as err:  # a refused store; an override that does not compose
         print(f"error: {err}", file=sys.stderr)
         return 1
 

@@ -14,7 +14,6 @@ import os
 import socket
 import sys
 import time
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -31,14 +30,6 @@ from ablate.store.sweepdir import FAILURES, PARENT_FILE, STORE_FILE, SWEPT_FILE
 from ablate.tables import COSTS, table_spec, write_table
 
 log = logging.getLogger(__name__)
-
-# conf/hydra/launcher/ray.yaml and submitit_local.yaml replace the plugins' configs of the same names, holding
-# exactly their keys. Hydra 1.3 still validates a file against a ConfigStore entry of the same name and warns that
-# this "automatic schema matching" is deprecated
-# (https://hydra.cc/docs/1.2/upgrades/1.0_to_1.1/automatic_schema_matching); the files compose the same with or
-# without it, so the warning tells a user nothing. This module is imported with the task function, before Hydra
-# composes (in the launching process and in every submitit job).
-warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/(ray|submitit_local)' is validated against ConfigStore")
 
 
 def close_dead_sweeps(tracker: Tracker, experiment_id: str) -> int:
