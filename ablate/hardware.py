@@ -99,6 +99,12 @@ def parallel_jobs(threads: int | None, devices: int | str = 1, accelerator: str 
     return max(1, cores() // (int(threads) * processes)) if processes > 0 else 1
 
 
+def loader_workers(at_most: int = 8) -> int:
+    """Config resolver ``${loader_workers:8}``: data loader worker processes, one per core this process may use and
+    at most ``at_most`` (``min(8, cores)`` at ``scale=paper``): more workers than cores only contend for them."""
+    return max(1, min(int(at_most), cores()))
+
+
 def _on_gpu(trainer: DictConfig) -> bool:
     return str(trainer.get("accelerator", "auto")) in ("gpu", "cuda")
 
@@ -187,3 +193,5 @@ def register_resolvers() -> None:
     """The config resolvers this module serves (idempotent)."""
     if not OmegaConf.has_resolver("parallel_jobs"):
         OmegaConf.register_new_resolver("parallel_jobs", parallel_jobs)
+    if not OmegaConf.has_resolver("loader_workers"):
+        OmegaConf.register_new_resolver("loader_workers", loader_workers)

@@ -184,3 +184,27 @@ def test_a_fit_fills_the_cache_in_the_first_epoch_and_reads_it_afterwards(tmp_pa
     assert sorted(task.feature_cache.frames) == ["t0", "t1", "t2", "t3", "v0", "v1"]
     assert (task.feature_cache.misses, task.feature_cache.hits) == (6, 6)  # epoch 2 reads train and val frames
     assert len(seen) == 3 * 4  # 3 first batches x (2 encoders + 2 FPNs); none in epoch 2
+
+
+def test_on_a_gpu_the_cache_is_kept_there_where_the_features_fit_and_turned_off_where_not(monkeypatch, caplog):
+    gib = 2**30
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (10 * gib, 80 * gib))
+    gpu = torch.device("cuda", 0)
+    fits = FeatureCache(fit_frames=1000)
+    assert fits._place(gpu, 4 * 2**20) == gpu and not fits.off  # 3.9 GiB of the 5 GiB half of the free memory
+    assert FeatureCache()._place(gpu, 4 * 2**20) == torch.device("cpu")  # frames unknown: the CPU, as before
+    assert FeatureCache(fit_frames=10**6)._place(torch.device("cpu"), 4 * 2**20) == torch.device("cpu")
+    too_big = FeatureCache(fit_frames=5985)
+    with caplog.at_level("INFO", logger="ablate.run.experts"):
+        too_big._place(gpu, 19 * 2**20)  # SMoE's P3-P7 at scale=paper: 111 GiB
+    assert too_big.off
+    assert [r.getMessage() for r in caplog.records if "cache_features is off" in r.getMessage()] == [
+        "experts.cache_features is off: the frozen experts' features of 5985 frames (19.0 MiB a frame, 111.0 GiB) "
+        "exceed 50 % of the 10.0 GiB free on cuda:0; the experts run every step"
+    ]
+    model, b = stage2("fpn"), batch(["a", "b"])
+    features = too_big(model, b)  # off: the experts run, nothing is stored
+    assert not too_big.frames and too_big.nbytes == 0
+    for m in MODALITIES:
+        for got, want in zip(features[m], model.frozen_features(b)[m]):
+            torch.testing.assert_close(got, want)

@@ -141,3 +141,12 @@ def test_a_bad_numerics_option_is_one_error_naming_it(override, named):
 
     with pytest.raises(ValidationError, match=named.replace(".", r"\.")):
         resolve(job(override), EPYC)
+
+
+def test_loader_workers_are_the_cores_up_to_a_bound(monkeypatch):
+    from ablate import hardware
+
+    monkeypatch.setattr(hardware, "cores", lambda: 2)
+    assert (hardware.loader_workers(8), hardware.loader_workers(1)) == (2, 1)
+    monkeypatch.setattr(hardware, "cores", lambda: 64)
+    assert hardware.loader_workers(8) == 8

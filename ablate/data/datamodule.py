@@ -231,8 +231,10 @@ class KittiDataModule(L.LightningDataModule):
             raise DataError(f"{d}: the {split} split has no frames ({n} in all{cap}); list them in "
                             f"{d / 'ImageSets' / (split + '.txt')} or give more frames")
         gen = torch.Generator().manual_seed(self.seed)
+        # pinned (page-locked) host memory where a CUDA device will read the batches: faster, asynchronous copies
         return DataLoader(self.datasets[split], self.batch_size, shuffle=shuffle, num_workers=self.num_workers,
-                          collate_fn=collate, generator=gen, persistent_workers=self.num_workers > 0)
+                          collate_fn=collate, generator=gen, persistent_workers=self.num_workers > 0,
+                          pin_memory=torch.cuda.is_available())
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train", True)

@@ -128,17 +128,28 @@ class FeatureCache:
     handed to the model as float32 on its device. ``max_bytes`` caps the memory: frames beyond it are not stored,
     and each step runs the experts on its frames that are not in the cache only (eval-mode BatchNorm treats each
     frame on its own, so a frame's features do not depend on its batch).
+
+    On a GPU (the model's device is CUDA) with ``fit_frames`` given, the features are kept on the GPU, where they are
+    read, when those frames' features (one frame's size, known at the first batch, x ``fit_frames``) fit in
+    ``GPU_CACHE_SHARE`` of the GPU's free memory then (the rest is the training step's); where they would not, the
+    cache turns itself off (:attr:`off`, one log line saying why) and the experts run every step.
     """
 
-    def __init__(self, max_bytes: float = float("inf"), dtype: torch.dtype = torch.float32) -> None:
-        self.max_bytes, self.dtype = max_bytes, dtype
+    def __init__(
+        self, max_bytes: float = float("inf"), dtype: torch.dtype = torch.float32, fit_frames: int | None = None
+    ) -> None:
+        self.max_bytes, self.dtype, self.fit_frames = max_bytes, dtype, fit_frames
         self.frames: dict[str, Any] = {}
         self.nbytes = 0  # bytes held by the cached features
         self.hits = self.misses = 0
+        self.device: torch.device | None = None  # where the features are kept; chosen at the first batch
+        self.off = False  # turned off at the first batch: the features would not fit the GPU
 
     def __call__(self, model: torch.nn.Module, batch: dict) -> dict:
         """``model.frozen_features(batch)``, its frames in the cache read from it, the others computed (and stored
         while the cache has room)."""
+        if self.off:
+            return model.frozen_features(batch)
         if "frame" not in batch:
             raise KeyError(f"FeatureCache needs batch['frame'] (frame ids) to key the features; got {sorted(batch)}")
         frames = list(batch["frame"])
@@ -149,15 +160,53 @@ class FeatureCache:
             sub = batch if len(missing) == len(frames) else {m: batch[m][missing] for m in model.modalities}
             fresh = model.frozen_features(sub)
             size = sum(t[0].numel() for t in _leaves(fresh)) * self.dtype.itemsize  # one frame's features
+            if self.device is None:
+                self.device = self._place(next(model.parameters()).device, size)
+            if self.off:
+                return fresh
             for j, i in enumerate(missing):
                 if self.nbytes + size <= self.max_bytes:
-                    self.frames[frames[i]] = _map(lambda t: t[j].to(device="cpu", dtype=self.dtype, copy=True), fresh)
+                    self.frames[frames[i]] = _map(
+                        lambda t: t[j].to(device=self.device, dtype=self.dtype, copy=True), fresh
+                    )
                     self.nbytes += size
             if len(missing) == len(frames):
                 return fresh
         per_frame = {i: self.frames[f] for i, f in enumerate(frames) if i not in missing}
         per_frame.update({i: _map(lambda t: t[j], fresh) for j, i in enumerate(missing)})
         return _stack([per_frame[i] for i in range(len(frames))], next(model.parameters()).device)
+
+    def _place(self, device: torch.device, size: int) -> torch.device:
+        """Where to keep features of ``size`` bytes a frame for a model on ``device``: the CPU, or on a GPU the GPU
+        when ``fit_frames`` of them fit in ``GPU_CACHE_SHARE`` of its free memory; else :attr:`off` is set."""
+        if device.type != "cuda" or self.fit_frames is None:
+            return torch.device("cpu")
+        need, free = size * self.fit_frames, torch.cuda.mem_get_info(device)[0]
+        if need <= GPU_CACHE_SHARE * free:
+            log.info(
+                "Expert feature cache on %s: %d frames x %.1f MiB = %.2f GiB",
+                device,
+                self.fit_frames,
+                size / 2**20,
+                need / 2**30,
+            )
+            return device
+        self.off = True
+        log.info(
+            "experts.cache_features is off: the frozen experts' features of %d frames (%.1f MiB a frame, %.1f GiB) "
+            "exceed %.0f %% of the %.1f GiB free on %s; the experts run every step",
+            self.fit_frames,
+            size / 2**20,
+            need / 2**30,
+            100 * GPU_CACHE_SHARE,
+            free / 2**30,
+            device,
+        )
+        return device
+
+
+#: The share of a GPU's free memory (at the first training batch) that the frozen experts' features may take there.
+GPU_CACHE_SHARE = 0.5
 
 
 def _map(fn, tree):
@@ -200,4 +249,15 @@ def feature_cache(cfg: DictConfig, model: torch.nn.Module) -> FeatureCache | Non
         log.info("experts.cache_features is off: data.augment gives each frame a new view every epoch")
         return None
     max_gb = experts.get("cache_max_gb")
-    return FeatureCache(float("inf") if max_gb is None else float(max_gb) * 2**30)
+    return FeatureCache(float("inf") if max_gb is None else float(max_gb) * 2**30, fit_frames=fit_frames(cfg))
+
+
+def fit_frames(cfg: DictConfig) -> int | None:
+    """The training and validation frames of a job whose fit runs on a GPU (their features are what a feature
+    cache holds), from its data module; None where no GPU is used."""
+    accelerator = str(OmegaConf.select(cfg, "trainer.accelerator", default="auto"))
+    if not torch.cuda.is_available() or accelerator not in ("gpu", "cuda", "auto"):
+        return None
+    datamodule = instantiate(cfg.data)
+    datamodule.setup("fit")
+    return sum(len(datamodule.datasets[split]) for split in ("train", "val"))
