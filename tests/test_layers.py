@@ -20,7 +20,7 @@ LAYERS = [
     ["ablate.store"],
     ["ablate.tables"],
     ["ablate.run"],
-    ["ablate.__main__", "ablate.report", "ablate.latency", "ablate.diagnose"],
+    ["ablate.__main__", "ablate.report", "ablate.latency", "ablate.diagnose", "ablate.check_paper"],
 ]
 RANK = {piece: i for i, layer in enumerate(LAYERS) for piece in layer}
 

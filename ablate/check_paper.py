@@ -1,0 +1,12 @@
+"""``python -m ablate.check_paper [experiment=a,b] [row=x,y] [budget_min=N]``: every row of every table at
+``scale=paper`` runs one training and one test step on the CPU, with its memory and GPU-hours estimated; the figures
+go to ``results/paper_scale.md`` (:mod:`ablate.run.paper_check`)."""
+
+import logging
+import sys
+
+from ablate.run.paper_check import main
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s", datefmt="%H:%M:%S")
+    raise SystemExit(main(sys.argv[1:]))
