@@ -498,11 +498,11 @@ def report(record: dict[str, Any]) -> str:
     for experiment in sorted({e["table"] for e in rows}):
         entries = [e for e in rows if e["table"] == experiment]
         hours, missing = table_hours(entries, measured)
-        others = "; ".join(f"{table_hours(entries, measured, g)[0]:,.0f} on an {g.name}" for g in OTHER_GPUS)
+        others = "; ".join(f"{table_hours(entries, measured, g)[0]:,.1f} on an {g.name}" for g in OTHER_GPUS)
         out += [f"## {experiment}", ""]
         note = f" (not counted, not measured: {', '.join(missing)})" if missing else ""
         out += [
-            f"GPU-hours for the table, {entries[0]['seeds']} seeds: **{hours:,.0f}** on an {GPU.name}; {others}{note}.",
+            f"GPU-hours for the table, {entries[0]['seeds']} seeds: **{hours:,.1f}** on an {GPU.name}; {others}{note}.",
             "",
         ]
         out += [
