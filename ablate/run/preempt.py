@@ -172,7 +172,8 @@ def _children() -> list[int]:
     return sorted(pids)
 
 
-def _alive(pid: int) -> bool:
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (one of another user counts; a zombie child of ours is reaped, and does not)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -196,9 +197,9 @@ def stop_workers(grace_s: float = GRACE_S) -> tuple[int, int]:
         except ProcessLookupError:
             pass
     deadline = time.monotonic() + grace_s
-    while time.monotonic() < deadline and any(_alive(p) for p in pids):
+    while time.monotonic() < deadline and any(alive(p) for p in pids):
         time.sleep(0.1)
-    killed = [p for p in pids if _alive(p)]
+    killed = [p for p in pids if alive(p)]
     for pid in killed:
         try:
             os.kill(pid, signal.SIGKILL)

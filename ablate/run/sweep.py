@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from ablate.config import compose
 from ablate.run import fingerprint, progress
 from ablate.run.latency import measure
-from ablate.run.preempt import GRACE_S, install_parent
+from ablate.run.preempt import GRACE_S, alive, install_parent
 from ablate.store import KIND_SWEEP, Tracker, is_server, provenance_tags, sweep_dir
 from ablate.store.sweepdir import FAILURES, PARENT_FILE, STORE_FILE, SWEPT_FILE
 from ablate.tables import COSTS, table_spec, write_table
@@ -37,19 +37,11 @@ def close_dead_sweeps(tracker: Tracker, experiment_id: str) -> int:
     closed = 0
     for run in tracker.runs(experiment_id, f"tags.kind = '{KIND_SWEEP}' and attributes.status = 'RUNNING'"):
         tags = run.data.tags
-        if tags.get("host") == socket.gethostname() and tags.get("pid", "").isdigit() and not _alive(int(tags["pid"])):
+        if tags.get("host") == socket.gethostname() and tags.get("pid", "").isdigit() and not alive(int(tags["pid"])):
             tracker.end(run.info.run_id, "KILLED")
             closed += 1
     return closed
 
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
     return True
 
 
