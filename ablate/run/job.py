@@ -7,6 +7,12 @@ scratch (:mod:`ablate.run.checkpoint`, which also writes every checkpoint atomic
 after the batch in progress with its checkpoint saved, its run KILLED with the reason, and exit status 143 (130)
 (:mod:`ablate.run.preempt`). A full disk fails the job with one message naming the file.
 
+A tracking server that does not answer never stops training: the run's metrics wait in the job's outbox
+(``outbox.jsonl`` beside its checkpoints, :mod:`ablate.store.outbox`) and are delivered once it answers. Where the
+job needs the server (to start, to upload, to end its run) it waits up to ``logger.outage_s``; past that it fails
+with one message naming the server, its checkpoint and outbox kept, and the same command again delivers the outbox
+(the earlier run then ends FAILED) and resumes from the checkpoint.
+
 A job runs in the launch directory, whichever process runs it, so that its relative paths (``checkpoints/``,
 ``data/``, the SQLite store, the artifact root) are the ones the sweep was launched with.
 """
@@ -42,11 +48,14 @@ from ablate.run.experts import attach as attach_experts
 from ablate.run.experts import feature_cache
 from ablate.run.experts import prepare as prepare_experts
 from ablate.run.preempt import STOP, SaveOnStop, Stopped, exit_status, loky_worker
+from ablate.run.record import deliver_earlier, kept_for_later, record_end, unreachable
 from ablate.store import (
     KIND_JOB,
     SKIPPED_FRAMES,
     AccessDenied,
+    Outbox,
     RunLogger,
+    ServerUnreachable,
     Tracker,
     config_hash,
     flatten,
@@ -57,6 +66,7 @@ from ablate.store import (
     sweep_dir,
     swept_keys,
 )
+from ablate.store.outbox import FILE as OUTBOX_FILE
 
 log = logging.getLogger(__name__)
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
@@ -120,6 +130,8 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
     chash = config_hash(cfg)
     row = row or row_name(cfg)
     ckpt_dir = Path("checkpoints") / cfg.table.name / chash
+    outbox = Outbox(ckpt_dir / OUTBOX_FILE)
+    deliver_earlier(tracker, outbox)
     done = None if cfg.force else tracker.finished_run(exp, chash)
     if done is not None:
         log.info(
@@ -165,37 +177,26 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
         tracker.log_params(run_id, flatten(OmegaConf.to_container(cfg, resolve=True)))
         tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
         record_fingerprint(cfg, tracker, run_id)
-        metrics = fit_and_test(cfg, tracker, run_id, ckpt_dir)
+        metrics = fit_and_test(cfg, tracker, run_id, ckpt_dir, outbox)
     except Stopped as stop:
         stop.reason = stopped_reason(stop, ckpt_dir)
-        record_end(tracker, run_id, "KILLED", {"killed_by": stop.signame, "kill_reason": stop.reason})
+        record_end(tracker, run_id, "KILLED", {"killed_by": stop.signame, "kill_reason": stop.reason}, outbox=outbox)
         log.warning("%s %s (seed %s) KILLED: %s", kind, row, cfg.seed, stop.reason)
         raise
     except (KeyboardInterrupt, SystemExit) as err:  # Lightning turns Ctrl+C inside fit into sys.exit(1)
-        record_end(tracker, run_id, "KILLED", {"killed_by": type(err).__name__})
+        record_end(tracker, run_id, "KILLED", {"killed_by": type(err).__name__}, outbox=outbox)
         raise
     except Exception as err:
-        message = f"{type(err).__name__}: {err}"
-        record_end(tracker, run_id, "FAILED", {"error": message[:5000]}, traceback.format_exc())
+        if (down := unreachable(err)) is not None:  # the server is not there to take the end: the outbox keeps it
+            message = f"{down}; {kept_for_later(outbox, run_id, ckpt_dir, str(down))}"
+        else:
+            message = f"{type(err).__name__}: {err}"
+            record_end(tracker, run_id, "FAILED", {"error": message[:5000]}, traceback.format_exc(), outbox)
         log.error("%s %s (seed %s) FAILED: %s", kind, row, cfg.seed, message)
         raise JobFailed(message) from err
     tracker.end(run_id, "FINISHED")
     log.info("FINISHED %s seed %s: %s", row, cfg.seed, ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items())))
     return Outcome("FINISHED", run_id, ckpt_dir)
-
-
-def record_end(tracker: Tracker, run_id: str, status: str, tags: dict[str, str], error: str | None = None) -> None:
-    """End ``run_id`` as ``status`` with ``tags`` (and ``error.txt``): each step tried on its own, so that a tag or
-    an artifact the store cannot take (a full disk) never keeps the status from being recorded."""
-    for step, call in (
-        ("tags", lambda: tracker.set_tags(run_id, tags)),
-        ("error.txt", lambda: tracker.log_text(run_id, error, "error.txt") if error else None),
-        ("status", lambda: tracker.end(run_id, status)),
-    ):
-        try:
-            call()
-        except Exception as err:
-            log.error("Could not record the %s of run %s (%s): %s", step, run_id, status, err)
 
 
 def stopped_reason(stop: Stopped, ckpt_dir: Path) -> str:
@@ -217,8 +218,12 @@ def record_fingerprint(cfg: DictConfig, tracker: Tracker, run_id: str) -> None:
     log.info("Fingerprint in %.1f s", seconds)
 
 
-def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path) -> dict[str, float]:
+def fit_and_test(
+    cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path, outbox: Outbox | None = None
+) -> dict[str, float]:
     """Train with Lightning, test the best checkpoint, and log metrics, checkpoint and figures to ``run_id``.
+    Metrics logged while the tracking server does not answer wait in ``outbox``, and are all delivered before the
+    test's results are logged.
 
     With ``experts`` set (SMoE §4.3), a fused model first gets its frozen single-modal experts (whose features
     per frame are computed once and cached for the fit with ``experts.cache_features``), and a single-modal job
@@ -238,10 +243,11 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
     lightning_options = {
         k: v for k, v in OmegaConf.to_container(cfg.trainer, resolve=True).items() if k not in hardware.OPTIONS
     }
+    logger = RunLogger(tracker, run_id, outbox)
     trainer = instantiate(
         lightning_options,
-        logger=RunLogger(tracker, run_id),
-        callbacks=[checkpoint, on_stop, DataCount(tracker, run_id)],
+        logger=logger,
+        callbacks=[checkpoint, on_stop, DataCount(logger)],
         plugins=[AtomicCheckpointIO()],
         default_root_dir=str(ckpt_dir),
     )
@@ -276,6 +282,7 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
         best = checkpoint.best_model_path or None
     with STOP.training(trainer):
         results = trainer.test(task, datamodule=datamodule, ckpt_path=best, verbose=False)[0]
+    logger.deliver()  # what waits in the outbox first, waiting for the server up to logger.outage_s
     metrics = {k.split("/", 1)[-1]: float(v) for k, v in results.items() if k.startswith("test/")}
     sample = next(iter(datamodule.test_dataloader()))
     metrics["params_m"] = sum(p.numel() for p in task.model.parameters()) / 1e6
@@ -295,15 +302,16 @@ def fit_and_test(cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path)
 
 class DataCount(Callback):
     """Once the data module is set up, log how many bad frames it left out (``data.on_bad_frame=skip``) as the
-    run's metric ``data/skipped_frames``."""
+    run's metric ``data/skipped_frames``, through the run's logger (so into its outbox while the server does not
+    answer)."""
 
-    def __init__(self, tracker: Tracker, run_id: str) -> None:
-        self.tracker, self.run_id, self.logged = tracker, run_id, False
+    def __init__(self, logger: RunLogger) -> None:
+        self.logger, self.logged = logger, False
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         count = getattr(trainer.datamodule, "skipped_frames", None)
         if count is not None and not self.logged:
-            self.tracker.log_metrics(self.run_id, {SKIPPED_FRAMES: float(count)})
+            self.logger.log_metrics({SKIPPED_FRAMES: float(count)})
             self.logged = True
 
 
@@ -355,8 +363,8 @@ def main(cfg: DictConfig) -> str:
             os._exit(exit_status(stop.signame))
         print(f"stopped: {reason}", file=sys.stderr)
         raise SystemExit(exit_status(stop.signame)) from None
-    # a config that does not resolve, or a server that refuses the credentials, fails before any run
-    except (JobFailed, OmegaConfBaseException, AccessDenied) as err:
+    # a config that does not resolve, or a server that refuses the credentials or does not answer, fails before any run
+    except (JobFailed, OmegaConfBaseException, AccessDenied, ServerUnreachable) as err:
         if sweep_dir() is None:
             print(f"error: {err}", file=sys.stderr)
             raise SystemExit(1) from None

@@ -4,7 +4,9 @@
 - :mod:`~ablate.store.tracker`: the MLflow :class:`Tracker` and the Lightning :class:`RunLogger`, the store's URI
   and artifact root, :func:`retry` and :func:`file_lock`;
 - :mod:`~ablate.store.identity`: the config hash, params, the launch directory and the code's version;
-- :mod:`~ablate.store.sweepdir`: the store and parent run a running multirun recorded in its sweep directory.
+- :mod:`~ablate.store.sweepdir`: the store and parent run a running multirun recorded in its sweep directory;
+- :mod:`~ablate.store.outage` and :mod:`~ablate.store.outbox`: a tracking server that does not answer (how long a
+  job waits for it, :class:`ServerUnreachable`), and the outbox that keeps a job's metrics meanwhile.
 """
 
 from ablate.store.identity import (
@@ -17,6 +19,8 @@ from ablate.store.identity import (
     provenance_tags,
     resolve_path,
 )
+from ablate.store.outage import DEFAULT_OUTAGE_S, ServerUnreachable
+from ablate.store.outbox import Outbox
 from ablate.store.sweepdir import parent_run_id, record_failure, sweep_dir, sweep_store, swept_keys
 from ablate.store.tracker import (
     KIND_JOB,
@@ -34,13 +38,16 @@ from ablate.store.tracker import (
 )
 
 __all__ = [
+    "DEFAULT_OUTAGE_S",
     "KIND_JOB",
     "KIND_SWEEP",
     "SKIPPED_FRAMES",
     "AccessDenied",
     "DiskFull",
     "UNHASHED",
+    "Outbox",
     "RunLogger",
+    "ServerUnreachable",
     "Tracker",
     "code_version",
     "config_hash",

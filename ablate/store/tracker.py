@@ -8,7 +8,9 @@ in (a Ray job runs where its cluster was started). Two set-ups are supported: a 
 through the server. Several processes (``hydra/launcher=joblib``, ``submitit_local``) write one SQLite file: the
 first use of the store (where MLflow creates and migrates its schema, which two processes cannot do at once) is
 serialised by a file lock beside it, every write goes through :func:`retry`, which waits out "database is locked",
-and experiment creation tolerates a concurrent creator.
+and experiment creation tolerates a concurrent creator. A store that does not answer (a server stopped or
+restarting) is waited for up to ``logger.outage_s`` (:mod:`ablate.store.outage`), except by :class:`RunLogger` while
+a job trains: its metrics wait in the job's outbox meanwhile (:mod:`ablate.store.outbox`).
 """
 
 from __future__ import annotations
@@ -35,6 +37,17 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
 
 from ablate.store.identity import resolve_path
+from ablate.store.outage import (
+    DEFAULT_OUTAGE_S,
+    ServerUnreachable,
+    answers,
+    backoff,
+    server_of,
+    short_http_retries,
+    shown,
+    symptom,
+)
+from ablate.store.outbox import Batch, Outbox, Row
 from ablate.store.sweepdir import sweep_store
 
 log = logging.getLogger(__name__)
@@ -122,19 +135,54 @@ def refusal(err: BaseException) -> AccessDenied | None:
     return None
 
 
-def retry(fn: Callable[..., T], *args: Any, attempts: int = 12, **kwargs: Any) -> T:
-    """Call ``fn``, retrying with jittered backoff while SQLite says the database is locked or busy."""
-    for i in range(attempts):
+def retry(
+    fn: Callable[..., T],
+    *args: Any,
+    attempts: int = 12,
+    outage_s: float | None = None,
+    server: str | None = None,
+    **kwargs: Any,
+) -> T:
+    """Call ``fn``, retrying with jittered backoff while SQLite says the database is locked or busy, and while the
+    tracking store does not answer (:func:`~ablate.store.outage.symptom`: a refused connection, a timeout, HTTP
+    5xx) for up to ``outage_s`` seconds (default :data:`~ablate.store.outage.DEFAULT_OUTAGE_S`; 0: not at all),
+    after which it raises :class:`~ablate.store.outage.ServerUnreachable` naming ``server`` (else the address in
+    the error). A refused credential is :class:`AccessDenied` at once."""
+    budget = DEFAULT_OUTAGE_S if outage_s is None else float(outage_s)
+    locked = down = 0
+    down_since: float | None = None
+    where = server
+    while True:
         try:
-            return fn(*args, **kwargs)
+            result = fn(*args, **kwargs)
         except Exception as err:  # sqlalchemy's OperationalError arrives wrapped in MlflowException
             if isinstance(err, MlflowException) and (denied := refusal(err)) is not None:
                 raise denied from None
+            what = symptom(err)
+            if what is not None:
+                now = time.monotonic()
+                down_since = now if down_since is None else down_since
+                where = server or server_of(err)
+                named = f"The tracking server {shown(where)}" if where else "The tracking server"
+                if now - down_since >= budget:
+                    raise ServerUnreachable(where, now - down_since, budget, what) from err
+                if down == 0:
+                    log.warning(
+                        "%s does not answer (%s): waiting up to %.0f s for it (logger.outage_s)", named, what, budget
+                    )
+                time.sleep(min(backoff(down), max(budget - (now - down_since), 0.0)))
+                down += 1
+                continue
             text = str(err).lower()
-            if i == attempts - 1 or not ("locked" in text or "busy" in text):
+            if locked >= attempts - 1 or not ("locked" in text or "busy" in text):
                 raise
-            time.sleep(min(0.1 * 2**i, 5.0) * (0.5 + random.random()))
-    raise AssertionError("unreachable")
+            time.sleep(min(0.1 * 2**locked, 5.0) * (0.5 + random.random()))
+            locked += 1
+            continue
+        if down_since is not None:
+            named = f"The tracking server {shown(where)}" if where else "The tracking server"
+            log.warning("%s answers again after %.0f s of waiting", named, time.monotonic() - down_since)
+        return result
 
 
 def resolve_uri(uri: str) -> str:
@@ -193,58 +241,70 @@ class Tracker:
     """A thin, retrying wrapper over :class:`MlflowClient` for the run lifecycle of a table.
 
     ``uri`` is used as given (:func:`tracking_uri` resolves the configured one); ``artifact_root`` is turned into
-    :attr:`artifact_location` by :func:`artifact_location`. A Tracker pickles as its URI and artifact location, so
-    that Lightning's ``ddp_spawn`` can hand the run's logger to its processes, each opening its own client.
+    :attr:`artifact_location` by :func:`artifact_location`. Every call waits up to ``outage_s`` seconds
+    (``logger.outage_s``) for a store that does not answer (:func:`retry`); against a server, MLflow's own HTTP
+    retries are made short (:func:`~ablate.store.outage.short_http_retries`). A Tracker pickles as its URI,
+    artifact location and budget, so that Lightning's ``ddp_spawn`` can hand the run's logger to its processes,
+    each opening its own client.
     """
 
-    def __init__(self, uri: str, artifact_root: str | None = None) -> None:
+    def __init__(self, uri: str, artifact_root: str | None = None, outage_s: float = DEFAULT_OUTAGE_S) -> None:
         self.uri = uri
+        self.outage_s = float(outage_s)
         self.artifact_location = artifact_location(uri, artifact_root)
         if uri.startswith("sqlite:///"):  # MLflow creates the schema on first use: one process at a time
             db = Path(uri[len("sqlite:///") :].split("?", 1)[0])
             with file_lock(db.with_name(db.name + "-lock")):
                 self.client = MlflowClient(tracking_uri=uri)
-                retry(self.client.search_experiments, max_results=1)
+                self.call(self.client.search_experiments, max_results=1)
         else:
             self.client = MlflowClient(tracking_uri=uri)
             if is_server(uri):  # credentials the server refuses stop here, with the server's name
+                short_http_retries()
                 try:
-                    retry(self.client.search_experiments, max_results=1)
+                    self.call(self.client.search_experiments, max_results=1)
                 except AccessDenied as err:
                     raise AccessDenied(err.code, uri) from None
 
     def __getstate__(self) -> dict[str, Any]:
-        return {"uri": self.uri, "artifact_location": self.artifact_location}
+        return {"uri": self.uri, "artifact_location": self.artifact_location, "outage_s": self.outage_s}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        Tracker.__init__(self, state["uri"], state["artifact_location"])
+        Tracker.__init__(self, state["uri"], state["artifact_location"], state.get("outage_s", DEFAULT_OUTAGE_S))
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> Tracker:
         """The store of ``cfg``; inside a multirun, the store its sweep recorded (where its parent run is), whatever
-        this process's environment says."""
+        this process's environment says. The outage budget is ``logger.outage_s``."""
+        lg = cfg.get("logger") or {}
+        budget = float(lg.get("outage_s", DEFAULT_OUTAGE_S))
         recorded = sweep_store()
         if recorded is not None:
-            return cls(str(recorded["uri"]), recorded["artifact_location"])
-        lg = cfg.get("logger") or {}
+            return cls(str(recorded["uri"]), recorded["artifact_location"], budget)
         root = lg.get("artifact_root")
-        return cls(tracking_uri(lg), None if root is None else str(root))
+        return cls(tracking_uri(lg), None if root is None else str(root), budget)
+
+    def call(self, fn: Callable[..., T], *args: Any, outage_s: float | None = None, **kwargs: Any) -> T:
+        """``fn(*args, **kwargs)`` through :func:`retry`, waiting up to ``outage_s`` (default :attr:`outage_s`)
+        for a store that does not answer, which is then named in :class:`ServerUnreachable`."""
+        budget = self.outage_s if outage_s is None else outage_s
+        return retry(fn, *args, outage_s=budget, server=self.uri, **kwargs)
 
     def experiment_id(self, name: str) -> str:
         """The id of experiment ``name``, created if missing (tagged :data:`EXPERIMENT_KIND`, with its artifacts
         under :attr:`artifact_location`, or the server's when that is None); safe when another process creates it
         too. An existing experiment without the tag gets it."""
-        exp = retry(self.client.get_experiment_by_name, name)
+        exp = self.call(self.client.get_experiment_by_name, name)
         if exp is not None:
             if any(exp.tags.get(k) != v for k, v in EXPERIMENT_KIND.items()):
                 for key, value in EXPERIMENT_KIND.items():
-                    retry(self.client.set_experiment_tag, exp.experiment_id, key, value)
+                    self.call(self.client.set_experiment_tag, exp.experiment_id, key, value)
             return exp.experiment_id
         try:
             location = None if self.artifact_location is None else f"{self.artifact_location.rstrip('/')}/{name}"
-            return retry(self.client.create_experiment, name, artifact_location=location, tags=EXPERIMENT_KIND)
+            return self.call(self.client.create_experiment, name, artifact_location=location, tags=EXPERIMENT_KIND)
         except MlflowException:
-            exp = retry(self.client.get_experiment_by_name, name)
+            exp = self.call(self.client.get_experiment_by_name, name)
             if exp is None:
                 raise
             return exp.experiment_id
@@ -254,7 +314,9 @@ class Tracker:
         out: list[Run] = []
         token = None
         while True:
-            page = retry(self.client.search_runs, [experiment_id], filter_string, max_results=1000, page_token=token)
+            page = self.call(
+                self.client.search_runs, [experiment_id], filter_string, max_results=1000, page_token=token
+            )
             out.extend(page)
             token = page.token
             if not token:
@@ -268,9 +330,9 @@ class Tracker:
     def finished_elsewhere(self, chash: str) -> Run | None:
         """A FINISHED job run with this config hash in any experiment, or None (tables share rows: ChiNet
         Tables II-V all hold the ChiNet row)."""
-        ids = [e.experiment_id for e in retry(self.client.search_experiments)]
+        ids = [e.experiment_id for e in self.call(self.client.search_experiments)]
         runs = (
-            retry(
+            self.call(
                 self.client.search_runs,
                 ids,
                 f"tags.config_hash = '{chash}' and attributes.status = 'FINISHED' and tags.kind = '{KIND_JOB}'",
@@ -296,46 +358,58 @@ class Tracker:
         """Mark runs of this config hash still RUNNING (a killed process left them) as KILLED; return how many."""
         stale = self.runs(experiment_id, f"tags.config_hash = '{chash}' and attributes.status = 'RUNNING'")
         for run in stale:
-            retry(self.client.set_terminated, run.info.run_id, "KILLED")
+            self.call(self.client.set_terminated, run.info.run_id, "KILLED")
         return len(stale)
 
     def start(self, experiment_id: str, name: str, tags: dict[str, str]) -> str:
-        run = retry(self.client.create_run, experiment_id, tags=tags, run_name=name)
+        run = self.call(self.client.create_run, experiment_id, tags=tags, run_name=name)
         return run.info.run_id
 
     def end(self, run_id: str, status: str) -> None:
-        retry(self.client.set_terminated, run_id, status)
+        self.call(self.client.set_terminated, run_id, status)
 
     def log_params(self, run_id: str, params: dict[str, str]) -> None:
         items = [Param(k[:250], v[:6000]) for k, v in sorted(params.items())]
         for i in range(0, len(items), 100):
-            retry(self.client.log_batch, run_id, params=items[i : i + 100])
+            self.call(self.client.log_batch, run_id, params=items[i : i + 100])
 
     def log_metrics(self, run_id: str, metrics: dict[str, float], step: int = 0) -> None:
-        now = int(time.time() * 1000)
-        items = [Metric(k, float(v), now, step) for k, v in sorted(metrics.items())]
-        for i in range(0, len(items), 500):
-            retry(self.client.log_batch, run_id, metrics=items[i : i + 500])
+        self.log_rows(run_id, rows(metrics, step))
+
+    def log_rows(self, run_id: str, items: list[Row], outage_s: float | None = None) -> None:
+        """Log metric rows (key, value, timestamp, step) as they are: a batch sent twice adds no row twice."""
+        metrics = [Metric(k, v, t, s) for k, v, t, s in items]
+        for i in range(0, len(metrics), 500):
+            self.call(self.client.log_batch, run_id, metrics=metrics[i : i + 500], outage_s=outage_s)
+
+    def send(self, batch: Batch, outage_s: float | None = None) -> None:
+        """Deliver an outbox batch: its metric rows, its tags, then its status."""
+        self.log_rows(batch.run, batch.metrics, outage_s)
+        if batch.tags:
+            tags = [RunTag(k, str(v)) for k, v in batch.tags.items()]
+            self.call(self.client.log_batch, batch.run, tags=tags, outage_s=outage_s)
+        if batch.status:
+            self.call(self.client.set_terminated, batch.run, batch.status, outage_s=outage_s)
 
     def set_tags(self, run_id: str, tags: dict[str, str]) -> None:
-        retry(self.client.log_batch, run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
+        self.call(self.client.log_batch, run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
 
     def artifact_uri(self, run_id: str) -> str:
         """Where ``run_id`` keeps its artifacts."""
-        return str(retry(self.client.get_run, run_id).info.artifact_uri)
+        return str(self.call(self.client.get_run, run_id).info.artifact_uri)
 
     def log_artifact(self, run_id: str, path: str | Path, artifact_path: str | None = None) -> None:
         """Upload the file ``path``; a full disk is one :class:`DiskFull` naming it and the run's artifact store."""
         with naming_full_disk(f"the artifact {path}", lambda: self.artifact_uri(run_id)):
-            retry(self.client.log_artifact, run_id, str(path), artifact_path)
+            self.call(self.client.log_artifact, run_id, str(path), artifact_path)
 
     def log_figure(self, run_id: str, figure: Figure, name: str) -> None:
         with naming_full_disk(f"the artifact {name}", lambda: self.artifact_uri(run_id)):
-            retry(self.client.log_figure, run_id, figure, name)
+            self.call(self.client.log_figure, run_id, figure, name)
 
     def log_text(self, run_id: str, text: str, name: str) -> None:
         with naming_full_disk(f"the artifact {name}", lambda: self.artifact_uri(run_id)):
-            retry(self.client.log_text, run_id, text, name)
+            self.call(self.client.log_text, run_id, text, name)
 
     def share_table_view(self, experiment_id: str, metrics: list[str]) -> str:
         """Store the runs table view of a table's experiment, with the table's ``metrics`` as columns and the
@@ -347,7 +421,7 @@ class Tracker:
             "orderByKey": "attributes.start_time",
             "orderByAsc": False,
         }
-        retry(self.client.set_experiment_tag, experiment_id, SHARED_VIEW_TAG + SHARED_VIEW_KEY, json.dumps(state))
+        self.call(self.client.set_experiment_tag, experiment_id, SHARED_VIEW_TAG + SHARED_VIEW_KEY, json.dumps(state))
         return runs_link(self.uri, experiment_id)
 
 
@@ -360,16 +434,35 @@ def runs_link(uri: str, experiment_id: str) -> str:
     )
 
 
+def rows(metrics: dict[str, float], step: int = 0) -> list[Row]:
+    """``metrics`` at ``step`` as metric rows stamped now (ms), sorted by key."""
+    now = int(time.time() * 1000)
+    return [(k, float(v), now, int(step)) for k, v in sorted(metrics.items())]
+
+
 class RunLogger(Logger):
     """A Lightning logger writing metrics into an existing MLflow run, through :func:`retry`.
 
     Unlike Lightning's ``MLFlowLogger`` it never ends the run: the job ends it once testing and artifact logging
     are done, so a run is FINISHED only when everything it should hold is there.
+
+    With an ``outbox`` (:mod:`ablate.store.outbox`), a tracking server that does not answer never stops training:
+    the metrics go to the outbox, and each later call (no sooner than a backoff of 0.5 s doubling up to 10 s after
+    the last try, and only once the server answers its health check) delivers what waits there, in order. The job
+    then calls :meth:`deliver`, which waits up to the outage budget for the rest. Without one, every call waits for
+    the server as :class:`Tracker`'s do.
     """
 
-    def __init__(self, tracker: Tracker, run_id: str) -> None:
+    #: The longest pause between two tries of a server that does not answer, while training.
+    MAX_PAUSE_S = 10.0
+
+    def __init__(self, tracker: Tracker, run_id: str, outbox: Outbox | None = None) -> None:
         super().__init__()
-        self.tracker, self.run_id = tracker, run_id
+        self.tracker, self.run_id, self.outbox = tracker, run_id, outbox
+        self.down_since: float | None = None  # time.monotonic() of the first call the server did not answer
+        self.tries = 0
+        self.next_try = 0.0
+        self.kept = 0  # metric values put in the outbox since then
 
     @property
     def name(self) -> str:
@@ -385,4 +478,72 @@ class RunLogger(Logger):
 
     @rank_zero_only
     def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
-        self.tracker.log_metrics(self.run_id, metrics, step or 0)
+        self.log_rows(rows(metrics, step or 0))
+
+    def log_rows(self, items: list[Row]) -> None:
+        """Log metric rows now, or keep them in the outbox while the server does not answer."""
+        if self.outbox is None:
+            self.tracker.log_rows(self.run_id, items)
+            return
+        if self.down_since is None and not self.outbox.pending:
+            try:
+                self.tracker.log_rows(self.run_id, items, outage_s=0)
+                return
+            except ServerUnreachable as err:
+                self.went_down(err)
+        self.outbox.add(self.run_id, items)
+        self.kept += len(items)
+        self.try_delivery()
+
+    def went_down(self, err: ServerUnreachable) -> None:
+        self.down_since, self.tries, self.kept = time.monotonic(), 0, 0
+        self.next_try = self.down_since + backoff(0, self.MAX_PAUSE_S)
+        log.warning(
+            "The tracking server %s does not answer (%s): training goes on, and the metrics of run %s wait in %s "
+            "until it does",
+            shown(self.tracker.uri),
+            err.what,
+            self.run_id,
+            self.outbox.path if self.outbox is not None else None,
+        )
+
+    def try_delivery(self) -> None:
+        """Deliver the outbox if the last try is long enough ago and the server answers; else try again later."""
+        if self.outbox is None or time.monotonic() < self.next_try:
+            return
+        try:
+            if is_server(self.tracker.uri) and not answers(self.tracker.uri):
+                raise ServerUnreachable(self.tracker.uri, 0.0, 0.0, "no answer to its health check")
+            self.outbox.deliver(lambda batch: self.tracker.send(batch, outage_s=0))
+        except ServerUnreachable:
+            self.tries += 1
+            self.next_try = time.monotonic() + backoff(self.tries, self.MAX_PAUSE_S)
+            return
+        self.delivered()
+
+    def deliver(self) -> None:
+        """Deliver everything in the outbox, waiting up to the outage budget for the server; raise
+        :class:`ServerUnreachable` if it does not answer in that time (the outbox then keeps the rest)."""
+        if self.outbox is not None and self.outbox.pending:
+            self.outbox.deliver(self.tracker.send)
+            self.delivered()
+
+    def delivered(self) -> None:
+        """Note that the outbox is delivered: the server answers again."""
+        if self.down_since is not None:
+            log.warning(
+                "The tracking server %s answers again, %.0f s after it stopped answering; training went on, and the "
+                "%d metric value(s) logged meanwhile are delivered to run %s",
+                shown(self.tracker.uri),
+                time.monotonic() - self.down_since,
+                self.kept,
+                self.run_id,
+            )
+        self.down_since, self.tries, self.next_try, self.kept = None, 0, 0.0, 0
+
+    @rank_zero_only
+    def finalize(self, status: str) -> None:
+        """At the end of a fit or a test, deliver what the outbox holds if the server answers (never waiting)."""
+        if self.outbox is not None and self.outbox.pending:
+            self.next_try = 0.0
+            self.try_delivery()
