@@ -32,14 +32,19 @@ KIND_EXPERT = "expert"
 
 
 def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
-    """The stage-1 config of ``modality``'s expert, derived from a job's config."""
+    """The stage-1 config of ``modality``'s expert, derived from a job's config: its trainer with the experts' own
+    ``experts.max_epochs`` and ``experts.max_steps`` where the job sets them (SMoE §4.3 at scale=paper: 80k steps
+    for each stage, conf/recipe/instance_paper.yaml)."""
     if modality not in cfg.modalities:
         raise KeyError(f"no modality {modality!r} to train an expert on; modalities are {list(cfg.modalities)}")
     ecfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
-    epochs = (cfg.get("experts") or {}).get("max_epochs")
+    experts = cfg.get("experts") or {}
+    epochs, steps = experts.get("max_epochs"), experts.get("max_steps")  # resolved here, where `table` is the row's
     with open_dict(ecfg):
         if epochs is not None:  # the experts' own epochs (stage 1), where the recipe sets them
             ecfg.trainer.max_epochs = int(epochs)
+        if steps is not None:  # the experts' own optimiser steps (stage 1), where the recipe sets them
+            ecfg.trainer.max_steps = int(steps)
         ecfg.stage = {"name": "single", "modality": modality}
         ecfg.fusion = None
         ecfg.experts = None
