@@ -67,6 +67,7 @@ class Cpu:
 def cpu() -> Cpu:
     """This machine's CPU, read from ``/proc/cpuinfo`` (Linux); elsewhere the platform's name and no flags."""
     model, flags = platform.processor() or platform.machine(), frozenset()
+    family = number = ""
     try:
         with open("/proc/cpuinfo") as handle:
             for line in handle:
@@ -74,12 +75,18 @@ def cpu() -> Cpu:
                 key = key.strip()
                 if key == "model name":
                     model = value.strip()
+                elif key == "cpu family":
+                    family = value.strip()
+                elif key == "model":
+                    number = value.strip()
                 elif key == "flags":
                     flags = frozenset(value.split())
                 if key == "flags" and model:
                     break
     except OSError:
         pass
+    if family and number:  # a virtual machine's name ("AMD EPYC") hides the generation: two EPYCs differ in ISA
+        model = f"{model} (family {family}, model {number})"
     return Cpu(model, flags)
 
 

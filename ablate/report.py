@@ -2,7 +2,10 @@
 experiment=chinet_table2`` just one (other ``key=value`` overrides, e.g. ``logger.tracking_uri=...``, apply too).
 A multirun writes its table at the end by itself. The tables are built by :mod:`ablate.tables`. Last, the results
 summary (one line per paper table, :mod:`ablate.tables.index`) is rewritten in ``results/README.md`` and in
-``README.md`` where they hold its markers, from the tables there, whether or not this store had their runs."""
+``README.md`` where they hold its markers, from the tables there, whether or not this store had their runs.
+
+``python -m ablate.report --reproduce experiment=<table> row=<row> [seed=N]`` reruns one seed of a row here and says
+whether it holds (:mod:`ablate.run.reproduce`)."""
 
 from __future__ import annotations
 
@@ -12,6 +15,7 @@ from hydra.errors import HydraException
 
 from ablate.config import CONF, compose
 from ablate.run.fingerprint import compute as fingerprint
+from ablate.run.reproduce import reproduce
 from ablate.store import KIND_SWEEP, AccessDenied, Tracker, retry
 from ablate.tables import table_spec, write_table
 from ablate.tables.index import write_index
@@ -29,6 +33,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
+    if "--reproduce" in args:
+        return _reproduce([a for a in args if a != "--reproduce"])
     named = [a.split("=", 1)[1] for a in args if a.startswith("experiment=")]
     rest = [a for a in args if not a.startswith("experiment=")]
     names = named or ["ablate"] + sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
@@ -55,6 +61,21 @@ def _main(argv: list[str] | None) -> int:
     ):
         print(path)
     return 0
+
+
+def _reproduce(args: list[str]) -> int:
+    """Rerun one seed of a row and print whether it lies in the row's prediction interval; 0 inside, 2 outside."""
+    if not any(a.startswith("experiment=") for a in args):
+        print("error: --reproduce needs experiment=<table> and row=<row>", file=sys.stderr)
+        return 1
+    cfg = compose([a for a in args if not a.startswith(("row=", "seed="))])
+    try:
+        outcome = reproduce(cfg, args)
+    except (ValueError, RuntimeError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    print("\n".join(outcome.lines()))
+    return 0 if outcome.inside else 2
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ A job runs in the launch directory, whichever process runs it, so that its relat
 
 from __future__ import annotations
 
+import json
 import logging
 import multiprocessing
 import os
@@ -153,6 +154,8 @@ def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcom
         "scale": cfg.scale.name,
         **hardware.tags(cfg),
     }
+    if cfg.table.get("seeds"):  # the race this run belongs to: its table replays that race (ablate.tables.racing)
+        tags["race_plan"] = json.dumps(OmegaConf.to_container(cfg.table.seeds, resolve=True), sort_keys=True)
     if parent:
         tags.update({"mlflow.parentRunId": parent, "sweep_id": parent, "job_num": str(HydraConfig.get().job.num)})
     source = None if cfg.force or kind != KIND_JOB else tracker.finished_elsewhere(chash)

@@ -25,11 +25,20 @@ PROGRESS_FILE = ".progress"
 def planned_jobs(config: DictConfig) -> int:
     """How many jobs the multirun of ``config`` launches: the product of its swept values, the sweeper's
     ``params`` and the command line's overrides together (a key on the command line wins), as Hydra's basic
-    sweeper splits them."""
+    sweeper splits them; for a table that races its seeds (``table.seeds``), times the seeds of its first look
+    (each later look replans, :func:`replan`)."""
     params = OmegaConf.select(config, "hydra.sweeper.params", default=None) or {}
     lines = [f"{key}={value}" for key, value in params.items()] + list(config.hydra.overrides.task)
     overrides = OverridesParser.create().parse_overrides(lines)
-    return sum(len(batch) for batch in BasicSweeper.split_arguments(overrides, None))
+    jobs = sum(len(batch) for batch in BasicSweeper.split_arguments(overrides, None))
+    looks = OmegaConf.select(config, "table.seeds.looks", default=None)
+    seeded = any(o.get_key_element().lstrip("+~") == "seed" for o in overrides)
+    return jobs * int(looks[0]) if looks and not seeded else jobs  # a race plans its first look
+
+
+def replan(sweep_dir: Path, planned: int) -> None:
+    """Record a new planned job count (a race's next look adds jobs)."""
+    (sweep_dir / PLANNED_FILE).write_text(str(planned))
 
 
 def start(sweep_dir: Path, config: DictConfig) -> int:

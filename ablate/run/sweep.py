@@ -25,7 +25,7 @@ from ablate.config import compose
 from ablate.run import fingerprint, progress
 from ablate.run.latency import measure
 from ablate.run.preempt import GRACE_S, alive, install_parent
-from ablate.store import KIND_SWEEP, Tracker, is_server, provenance_tags, sweep_dir
+from ablate.store import KIND_SWEEP, AccessDenied, ServerUnreachable, Tracker, is_server, provenance_tags, sweep_dir
 from ablate.store.sweepdir import FAILURES, PARENT_FILE, STORE_FILE, SWEPT_FILE
 from ablate.tables import COSTS, table_spec, write_table
 
@@ -41,8 +41,6 @@ def close_dead_sweeps(tracker: Tracker, experiment_id: str) -> int:
             tracker.end(run.info.run_id, "KILLED")
             closed += 1
     return closed
-
-    return True
 
 
 def stop_sweep(tracker: Tracker, run_id: str, signame: str, stopped: int, killed: int) -> None:
@@ -177,6 +175,15 @@ class SweepCallback(Callback):
             log.warning("Could not record the sweep's progress: %s", err)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        """Time the rows, write the table, close the parent run and list the failures; a store that does not
+        answer (past ``logger.outage_s``) or refuses this client is one line and status 1."""
+        try:
+            self._end(config)
+        except (ServerUnreachable, AccessDenied) as err:
+            print(f"error: {err}", file=sys.stderr)
+            raise SystemExit(1) from None
+
+    def _end(self, config: DictConfig) -> None:
         sdir = Path(str(config.hydra.runtime.cwd)) / str(config.hydra.sweep.dir)
         tracker = Tracker.from_config(config)
         parent = (sdir / PARENT_FILE).read_text().strip() if (sdir / PARENT_FILE).exists() else None

@@ -33,6 +33,7 @@ UNHASHED = (
     "logger",
     "hydra",
     "table",
+    "scale.race",
     "trainer.enable_progress_bar",
     "data.num_workers",
     "experts.cache_features",

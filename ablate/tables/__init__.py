@@ -19,7 +19,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from ablate.store import Tracker
-from ablate.tables.collect import collect, running, state_lines
+from ablate.tables.collect import collect, made_lines, running, state_lines
 from ablate.tables.conditions import write_conditions
 from ablate.tables.provenance import Recompute, config_of, provenance
 from ablate.tables.rows import write_rows
@@ -46,6 +46,6 @@ def write_table(
     if layout not in LAYOUTS:
         raise ValueError(f"table.layout: {layout!r} is not one of {', '.join(LAYOUTS)}")
     runs = collect(tracker, table.name)
-    footer = provenance(runs, fingerprint, lambda run_id: config_of(tracker, run_id))
+    footer = made_lines(runs) + provenance(runs, fingerprint, lambda run_id: config_of(tracker, run_id))
     footer += state_lines(runs, running(tracker, table.name))
     return LAYOUTS[layout](cfg, table, runs, tracker, parent_run, results_dir, footer)

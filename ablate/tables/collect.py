@@ -7,6 +7,9 @@ from omegaconf import DictConfig
 
 from ablate.store import KIND_JOB, SKIPPED_FRAMES, Tracker, retry
 
+#: The run tags that say where and how a row was computed (ablate.hardware.tags), for the footer.
+MADE = ("cpu", "precision", "threads")
+
 
 def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     """One row per (row, seed) of ``table``: its latest FINISHED job run, at the scale of the latest such run.
@@ -30,6 +33,11 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
             "fingerprint": r.data.tags.get("fingerprint", ""),
             "job_num": int(r.data.tags.get("job_num", "0") or 0),
             "targets": " ".join(sorted({v for k, v in r.data.params.items() if k.endswith("_target_")})),
+            **{f"made_{k}": r.data.tags.get(k, "?") for k in MADE},
+            "sweep_id": r.data.tags.get("sweep_id", ""),
+            "race_plan": r.data.tags.get("race_plan", ""),
+            "started": r.info.start_time,
+            "ended": r.info.end_time or r.info.start_time,
             "start": r.info.start_time,
             **r.data.metrics,
         }
@@ -40,6 +48,27 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     df = pd.DataFrame.from_records(records).sort_values(["start", "config_hash"], kind="stable")
     df = df[df["scale"] == df["scale"].iloc[-1]]
     return df.drop_duplicates(["row", "seed"], keep="last").drop(columns="start").reset_index(drop=True)
+
+
+def made_lines(runs: pd.DataFrame) -> list[str]:
+    """The footer's line on how the rows were made: the CPU, precision and threads of the runs (each set with its
+    run count where they differ: the numerics are a source of variation of their own), and the wall time: per
+    sweep the runs came from, its first job's start to its last job's end, added up (from the runs alone, so the
+    same runs give the same line), beside the jobs' own time added up."""
+    if not len(runs) or "made_cpu" not in runs:
+        return []
+    kinds = runs.groupby([f"made_{k}" for k in MADE]).size()
+    made = [
+        f"{cpu}, precision {precision}, {threads} thread(s) per job" + (f" ({n} runs)" if len(kinds) > 1 else "")
+        for (cpu, precision, threads), n in kinds.items()
+    ]
+    spans = runs.groupby("sweep_id").agg(first=("started", "min"), last=("ended", "max"))
+    wall = float((spans["last"] - spans["first"]).sum()) / 60000
+    head = "Made on " if len(kinds) == 1 else "**Mixed machines or numerics**: made on "
+    return [
+        f"{head}{'; '.join(made)}; wall time {wall:.0f} min over {len(spans)} sweep(s), "
+        f"{(runs['ended'] - runs['started']).sum() / 60000:.0f} min of job time."
+    ]
 
 
 def running(tracker: Tracker, table: str) -> int:

@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
+from ablate.tables.racing import RacePlan, decided, race, race_lines, recorded_plan, seed_values
 from ablate.tables.significance import BOOTSTRAP_FROM, COLLAPSE_RATIO, RESAMPLES, difference, disagreeing_seeds
 from ablate.tables.spec import COSTS, LOWER_IS_BETTER
 from ablate.tables.summary import best_of, fmt, per_seed, reference, signed
@@ -19,6 +20,15 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
     ref = reference(summary, table)
     if ref is None:
         return {}, []
+    plan = RacePlan.from_config(recorded_plan(runs) or table.get("seeds"))
+    raced = None
+    if plan is not None:  # the race's own decisions, replayed from the runs (ablate.tables.racing)
+        rows = [str(r) for r in summary["row"] if r in set(runs.get("row", []))]
+        named = table.get("reference")
+        candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
+        if rows:
+            raced = race(seed_values(runs, key), rows, candidates or rows[0], plan, key not in LOWER_IS_BETTER)
+            ref = raced.reference or ref
     ref_name = str(summary.loc[summary["row"] == ref, "name"].iloc[0])
     ref_values = per_seed(runs, ref, key)
     cis, deltas, tests = [], [], set()
@@ -32,25 +42,33 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
             deltas.append("—" if np.isnan(d.delta) else signed(d.delta))
             continue
         tests.add(d.test)
-        deltas.append(f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}]" + (" *" if d.significant else ""))
+        star = d.significant if raced is None else decided(raced, row, ref)
+        deltas.append(f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}]" + (" *" if star else ""))
     columns = {f"{label} 95% CI": cis, f"Δ {label} vs {ref_name} [95% CI]": deltas}
     lines = [
         f"95% CI: of the mean over seeds, Student's t for n < {BOOTSTRAP_FROM}, a percentile bootstrap over "
         f"seeds ({RESAMPLES} resamples) from n = {BOOTSTRAP_FROM}. Δ: difference from {ref_name} on {label} "
         f"({', '.join(sorted(tests)) or 'no test: too few seeds'}; paired over the seeds two rows share); "
-        "*: its 95% CI excludes 0."
+        + ("*: its 95% CI excludes 0." if raced is None else "*: decided by the race (below).")
     ]
+    if raced is not None:
+        lines += race_lines(raced, dict(zip(summary["row"], summary["name"])))
     ranked = summary.dropna(subset=[f"{key}_mean"]).sort_values(
         f"{key}_mean", ascending=key in LOWER_IS_BETTER, kind="stable"
     )
     if len(ranked) >= 2:
         (top, top_name), (second, second_name) = [tuple(r) for r in ranked[["row", "name"]].iloc[:2].to_numpy()]
+        if raced is not None and raced.top:
+            names = dict(zip(summary["row"], summary["name"]))
+            (top, second), (top_name, second_name) = raced.top, (names[raced.top[0]], names[raced.top[1]])
         d = difference(per_seed(runs, top, key), per_seed(runs, second, key))
+        ahead = d.significant if raced is None else decided(raced, top, second)
         verdict = (
             "n/a (too few seeds)"
             if np.isnan(d.ci.lo)
             else f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}], {d.test}, p = {d.p:.3f}: "
-            + ("ahead beyond seed noise" if d.significant else "not separable from seed noise")
+            + ("ahead beyond seed noise" if ahead else "not separable from seed noise")
+            + ("" if raced is None else " (the race's decision)")
         )
         lines.append(f"Top row {top_name} against the second, {second_name}, on {label}: {verdict}.")
     for row, name in zip(summary["row"], summary["name"]):

@@ -76,6 +76,17 @@ def mean_ci(values: Iterable[float] | pd.Series) -> Interval:
     return Interval(float(x.mean() - half), float(x.mean() + half), "t")
 
 
+def prediction_interval(values: Iterable[float] | pd.Series) -> tuple[float, float]:
+    """The 95 % prediction interval of one new value from the distribution ``values`` were drawn from:
+    ``mean ± t(0.975, n-1) · s · sqrt(1 + 1/n)`` (normal values, unknown variance); NaN bounds below two values."""
+    x = np.asarray(pd.Series(values, dtype=float).dropna(), dtype=float)
+    n = len(x)
+    if n < 2:
+        return np.nan, np.nan
+    half = stats.t.ppf(1 - (1 - LEVEL) / 2, n - 1) * x.std(ddof=1) * np.sqrt(1 + 1 / n)
+    return float(x.mean() - half), float(x.mean() + half)
+
+
 def difference(row: pd.Series, ref: pd.Series) -> Difference:
     """``row`` minus ``ref`` (values indexed by seed): mean difference, its 95 % CI and the test's p-value.
 

@@ -1,0 +1,151 @@
+"""Racing seeds (ablate.tables.racing, hydra_plugins.ablate_racing_sweeper): the real sweeper, through a launcher
+that returns fake metrics, stops where the table is decided and races on where it is not; the correction for
+repeated looks holds the false-positive rate of a null table, and without it the rate is above alpha."""
+
+import random
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.utils import JobReturn, JobStatus
+
+import hydra_plugins.ablate_racing_sweeper._impl as impl
+from ablate.tables.racing import RacePlan, race, race_lines, wilson
+from hydra_plugins.ablate_racing_sweeper.racing_sweeper import RacingSweeper
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+class FakeLauncher:
+    """Runs no job: records each (row, seed) it is given, as a store would hold its primary metric; ``shuffle``
+    hands the jobs back in another order, as a launcher whose jobs finish out of order."""
+
+    def __init__(self, metric, shuffle: bool = False):
+        self.metric, self.shuffle, self.store, self.batches = metric, shuffle, {}, []
+
+    def launch(self, job_overrides, initial_job_idx):
+        jobs = [dict(o.split("=", 1) for o in overrides) for overrides in job_overrides]
+        self.batches.append([(j["row"], int(j["seed"])) for j in jobs])
+        order = list(range(len(jobs)))
+        if self.shuffle:
+            random.Random(initial_job_idx).shuffle(order)
+        out = []
+        for i in order:
+            row, seed = jobs[i]["row"], int(jobs[i]["seed"])
+            self.store.setdefault(row, {})[seed] = self.metric(row, seed)
+            ret = JobReturn(overrides=job_overrides[i], status=JobStatus.COMPLETED)
+            ret.return_value = "FINISHED"
+            out.append(ret)
+        return out
+
+
+def sweeper_for(tmp_path, monkeypatch, metric, *overrides, shuffle=False):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        config = compose("config", overrides=["experiment=chinet_table2", *overrides], return_hydra_config=True)
+    config.hydra.runtime.cwd = str(tmp_path)
+    config.hydra.sweep.dir = "sweep"
+    sweeper = RacingSweeper(params=dict(config.hydra.sweeper.params))
+    launcher = FakeLauncher(metric, shuffle)
+    sweeper.sweeper.config, sweeper.sweeper.launcher = config, launcher
+    sweeper.sweeper.hydra_context = type("Context", (), {"config_loader": None})()
+    monkeypatch.setattr(
+        impl, "table_values", lambda tracker, table: {r: pd.Series(v) for r, v in launcher.store.items()}
+    )
+    monkeypatch.setattr(impl.RacingSweeperImpl, "_tracker", lambda self, sdir: None)
+    return sweeper, launcher
+
+
+def noise(row: str, seed: int, sd: float = 0.3) -> float:
+    return float(np.random.default_rng([sum(map(ord, row)), seed]).normal(0, sd))
+
+
+def test_a_row_clearly_better_stops_the_race_at_the_first_look(tmp_path, monkeypatch):
+    means = {"chinet": 97.0, "unet": 90.0, "fusenet": 94.0}
+    sweeper, launcher = sweeper_for(tmp_path, monkeypatch, lambda r, s: means[r] + noise(r, s))
+    sweeper.sweep([])
+    assert len(launcher.batches) == 1
+    assert sorted(launcher.batches[0]) == sorted((r, s) for r in means for s in range(3))
+    assert (tmp_path / "sweep" / ".planned").read_text() == "9"
+
+
+def test_two_identical_rows_race_to_the_last_look_and_nothing_is_declared(tmp_path, monkeypatch):
+    sweeper, launcher = sweeper_for(tmp_path, monkeypatch, lambda r, s: 95.0 + noise("same", s) + noise(r, s, 0.5))
+    sweeper.sweep(["row=chinet,unet"])
+    assert [sorted({s for _, s in b}) for b in launcher.batches] == [[0, 1, 2], [3, 4], [5, 6, 7]]
+    values = {r: pd.Series(v) for r, v in launcher.store.items()}
+    state = race(values, ["chinet", "unet"], "unet", RacePlan((3, 5, 8)))
+    assert state.looks_done == 3 and not any(c.decided for c in state.comparisons.values())
+    assert "Left undecided, after the last look: chinet vs unet." in race_lines(state, {})
+
+
+def test_only_the_undecided_rows_get_more_seeds(tmp_path, monkeypatch):
+    # chinet is far ahead of both; fusenet and the reference unet are close: chinet stops after the first look
+    means = {"chinet": 99.0, "unet": 90.0, "fusenet": 90.2}
+    sweeper, launcher = sweeper_for(tmp_path, monkeypatch, lambda r, s: means[r] + noise(r, s, 0.5))
+    sweeper.sweep([])
+    assert {r for r, _ in launcher.batches[1]} == {"unet", "fusenet"}
+    assert (tmp_path / "sweep" / ".planned").read_text() == str(sum(len(b) for b in launcher.batches))
+
+
+def test_the_outcome_does_not_depend_on_the_order_jobs_finish(tmp_path, monkeypatch):
+    means = {"chinet": 95.5, "unet": 95.0, "fusenet": 94.0}
+
+    def metric(r, s):
+        return means[r] + noise(r, s, 0.6)
+
+    ordered, a = sweeper_for(tmp_path / "a", monkeypatch, metric)
+    ordered.sweep([])
+    shuffled, b = sweeper_for(tmp_path / "b", monkeypatch, metric, shuffle=True)
+    shuffled.sweep([])
+    assert [sorted(x) for x in a.batches] == [sorted(x) for x in b.batches]
+
+
+def test_a_seed_on_the_command_line_runs_every_job_at_once(tmp_path, monkeypatch):
+    sweeper, launcher = sweeper_for(tmp_path, monkeypatch, lambda r, s: 90.0)
+    sweeper.sweep(["seed=0,1"])
+    assert len(launcher.batches) == 1 and len(launcher.batches[0]) == 6
+
+
+def null_rate(correction: str, tables: int = 1000) -> float:
+    """The share of ``tables`` null tables (two rows of one distribution, a seed effect shared by both) in which
+    the race declares a difference."""
+    plan, rng, declared = RacePlan((3, 5, 8), 0.05, correction), np.random.default_rng(2026), 0
+    for _ in range(tables):
+        shared = rng.normal(0, 1, 8)
+        values = {r: pd.Series(90 + shared + rng.normal(0, 1, 8)) for r in ("a", "b")}
+        declared += any(c.decided for c in race(values, ["a", "b"], "b", plan).comparisons.values())
+    return declared / tables
+
+
+@pytest.mark.parametrize("correction", ["bonferroni", "pocock", "obrien_fleming"])
+def test_a_corrected_race_holds_the_false_positive_rate_of_null_tables(correction):
+    assert null_rate(correction) <= 0.05
+
+
+def test_without_the_correction_null_tables_are_declared_more_often_than_alpha():
+    assert null_rate("none") > 0.05
+
+
+def test_the_levels_add_up_to_alpha_and_the_spending_keeps_its_shape():
+    for correction in ("bonferroni", "pocock", "obrien_fleming"):
+        assert sum(RacePlan((3, 5, 8), 0.05, correction).levels()) == pytest.approx(0.05)
+    obf = RacePlan((3, 5, 8), 0.05, "obrien_fleming").levels()
+    assert obf[0] < obf[1] < obf[2]  # O'Brien-Fleming keeps most of alpha for the last look
+    assert RacePlan((3, 5, 8), 0.05, "pocock").levels()[0] == pytest.approx(0.05 * np.log1p((np.e - 1) * 3 / 8))
+
+
+def test_a_bad_plan_is_one_error_naming_the_option():
+    with pytest.raises(ValueError, match=r"table\.seeds\.looks"):
+        RacePlan.from_config({"looks": [5, 3]})
+    with pytest.raises(ValueError, match=r"table\.seeds\.correction"):
+        RacePlan.from_config({"looks": [3], "correction": "holm"})
+    with pytest.raises(ValueError, match=r"table\.seeds: unknown option\(s\) look"):
+        RacePlan.from_config({"look": [3]})
+
+
+def test_p_a_beats_b_has_a_wilson_interval_that_needs_five_clean_wins_to_clear_one_half():
+    assert wilson(3, 3)[0] < 0.5 < wilson(5, 5)[0]
+    lo, hi = wilson(4, 8)
+    assert lo < 0.5 < hi and hi - 0.5 == pytest.approx(0.5 - lo)

@@ -1,0 +1,71 @@
+"""A real race through the parallel launcher and the store, and the reproduction check on its runs, as a user runs
+them (scale=smoke: one seed at the first look decides nothing, and two seeds of these tiny jobs decide nothing)."""
+
+import re
+
+import numpy as np
+import pytest
+
+from ablate.tables.significance import prediction_interval
+from tests.test_cli import TINY, ablate, runs
+
+
+@pytest.fixture(scope="module")
+def raced(tmp_path_factory):
+    cwd = tmp_path_factory.mktemp("raced")
+    out = ablate(cwd, "-m", "experiment=chinet_table2", "row=chinet,unet", "scale.race.looks=[1,2]", *TINY)
+    return cwd, out
+
+
+def test_an_undecided_race_adds_seeds_at_the_next_look_through_the_launcher(raced):
+    cwd, out = raced
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    _, jobs = runs(cwd, "chinet_table2")
+    assert sorted((r.data.tags["row"], r.data.tags["seed"]) for r in jobs) == [
+        ("chinet", "0"),
+        ("chinet", "1"),
+        ("unet", "0"),
+        ("unet", "1"),
+    ]
+    assert all(r.info.status == "FINISHED" for r in jobs)
+    client, (sweep,) = runs(cwd, "chinet_table2", kind="sweep")
+    assert sweep.data.tags["race_looks"] == "2"
+    assert sweep.data.tags["race"].startswith("left undecided after the last look")
+    table = (cwd / "results" / "chinet_table2.md").read_text()
+    assert "Racing seeds: looks at 1, 2 seeds per row, alpha = 0.05 per comparison, Bonferroni" in table
+    assert "Left undecided, after the last look: ChiNet vs U-Net." in table
+    made = r"Made on .+, precision 32-true, 1 thread\(s\) per job; wall time \d+ min over 1 sweep\(s\)"
+    assert re.search(made, table), table[-1500:]
+
+
+def test_the_reproduction_check_reruns_a_seed_and_names_what_differs(raced):
+    cwd, _ = raced
+    out = ablate(cwd, "--reproduce", "experiment=chinet_table2", "row=unet", "seed=1", *TINY, module="ablate.report")
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    # the same machine, threads and code: the very number again
+    assert re.search(r"unet, seed 1, det_rate: (\S+) rerun here; recorded \1 \(\+0\.00\)", out.stdout), out.stdout[
+        -800:
+    ]
+    assert "inside the row's 95 % prediction interval for a new seed" in out.stdout
+    assert "same CPU, precision and threads as the recorded runs" in out.stdout
+    # the recorded runs as if made on another machine with two threads
+    client, jobs = runs(cwd, "chinet_table2")
+    for run in jobs:
+        client.set_tag(run.info.run_id, "threads", "2")
+    out = ablate(cwd, "--reproduce", "experiment=chinet_table2", "row=unet", *TINY, module="ablate.report")
+    assert "differs from the recorded runs: threads: 2 -> 1" in out.stdout
+    assert "unet, seed 0" in out.stdout  # the first recorded seed by default
+
+
+def test_the_reproduction_check_without_runs_is_one_error(tmp_path):
+    out = ablate(tmp_path, "--reproduce", "experiment=chinet_table2", "row=unet", *TINY, module="ablate.report")
+    assert out.returncode == 1
+    assert out.stderr.strip().splitlines()[-1].startswith("error: no FINISHED runs of row 'unet' of chinet_table2")
+
+
+def test_the_prediction_interval_is_wider_than_the_mean_by_sqrt_1_plus_1_over_n():
+    values = [96.87, 97.11, 97.0]
+    lo, hi = prediction_interval(values)
+    # t(0.975, 2) = 4.303; s = 0.1201; sqrt(1 + 1/3) = 1.1547
+    assert (hi - lo) / 2 == pytest.approx(4.303 * np.std(values, ddof=1) * 1.1547, rel=1e-3)
+    assert np.isnan(prediction_interval([97.0])[0])
