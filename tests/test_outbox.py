@@ -12,6 +12,7 @@ from mlflow.exceptions import MlflowException
 
 from ablate.run.record import deliver_earlier, kept_for_later, record_end, unreachable
 from ablate.store import Outbox, RunLogger, ServerUnreachable, Tracker
+from ablate.store import run_logger as logger_module
 from ablate.store import tracker as tracker_module
 from ablate.store.outage import shown, symptom
 from ablate.store.tracker import retry
@@ -117,6 +118,7 @@ def test_the_logger_keeps_training_while_the_server_is_down_and_delivers_each_va
     tracker, tmp_path, monkeypatch, caplog
 ):
     monkeypatch.setattr(tracker_module, "backoff", lambda attempt, cap=5.0: 0.0)
+    monkeypatch.setattr(logger_module, "backoff", lambda attempt, cap=5.0: 0.0)
     run_id = new_run(tracker)
     down = Down(tracker, monkeypatch)
     logger = RunLogger(tracker, run_id, Outbox(tmp_path / "outbox.jsonl"))
@@ -191,7 +193,7 @@ def test_what_counts_as_a_server_that_does_not_answer():
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
     start = time.monotonic()
-    assert not tracker_module.answers(f"http://127.0.0.1:{port}")
+    assert not logger_module.answers(f"http://127.0.0.1:{port}")
     assert time.monotonic() - start < 3
 
 

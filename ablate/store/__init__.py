@@ -1,8 +1,8 @@
 """The store: where runs are recorded, and what identifies them. It imports nothing of the orchestration
 (:mod:`ablate.run`) or of the tables (:mod:`ablate.tables`).
 
-- :mod:`~ablate.store.tracker`: the MLflow :class:`Tracker` and the Lightning :class:`RunLogger`, the store's URI
-  and artifact root, :func:`retry` and :func:`file_lock`;
+- :mod:`~ablate.store.tracker`: the MLflow :class:`Tracker`, the store's URI and artifact root, :func:`retry` and
+  :func:`file_lock`; :mod:`~ablate.store.run_logger`: the Lightning :class:`RunLogger` of a job;
 - :mod:`~ablate.store.identity`: the config hash, params, the launch directory and the code's version;
 - :mod:`~ablate.store.sweepdir`: the store and parent run a running multirun recorded in its sweep directory;
 - :mod:`~ablate.store.outage` and :mod:`~ablate.store.outbox`: a tracking server that does not answer (how long a
@@ -21,6 +21,7 @@ from ablate.store.identity import (
 )
 from ablate.store.outage import DEFAULT_OUTAGE_S, ServerUnreachable
 from ablate.store.outbox import Outbox
+from ablate.store.run_logger import RunLogger
 from ablate.store.sweepdir import parent_run_id, record_failure, sweep_dir, sweep_store, swept_keys
 from ablate.store.tracker import (
     KIND_JOB,
@@ -28,7 +29,6 @@ from ablate.store.tracker import (
     SKIPPED_FRAMES,
     AccessDenied,
     DiskFull,
-    RunLogger,
     Tracker,
     file_lock,
     is_server,
