@@ -26,8 +26,9 @@ def test_one_value_has_no_interval_and_nans_are_dropped():
     assert mean_ci([1.0, float("nan"), 2.0, 3.0]).method == "t"
 
 
-def test_bootstrap_from_five_values_is_deterministic_and_within_the_range():
-    values = [10.0, 11.0, 12.0, 13.0, 30.0]
+def test_bootstrap_from_six_values_is_deterministic_and_within_the_range():
+    assert mean_ci([10.0, 11.0, 12.0, 13.0, 30.0]).method == "t"  # five values: Student's t still
+    values = [10.0, 11.0, 12.0, 13.0, 14.0, 30.0]
     a, b = mean_ci(values), mean_ci(values)
     assert a.method == "bootstrap" and (a.lo, a.hi) == (b.lo, b.hi)
     assert 10.0 < a.lo < np.mean(values) < a.hi < 30.0

@@ -1,12 +1,13 @@
 """Confidence intervals and significance over seeds, for the tables (:mod:`ablate.tables`).
 
-* :func:`mean_ci` — a 95 % confidence interval for a row's mean over its seeds: Student's t for n < 5 (the
-  bootstrap's percentiles are too coarse on 2-4 values), a percentile bootstrap over seeds from n = 5 on
+* :func:`mean_ci` — a 95 % confidence interval for a row's mean over its seeds: Student's t for n < 6 (the
+  bootstrap's percentiles are too coarse and too narrow on 2-5 values: rliable, Agarwal et al. 2021, keeps
+  t-based intervals there), a percentile bootstrap over seeds from n = 6 on
   (10 000 resamples, a fixed generator, so the same runs give the same bytes).
 * :func:`difference` — a row against a reference row. Where the two share seeds (same data order and
   initialisation per seed), the test is *paired*: the CI of the mean per-seed difference, and the paired t-test
   (``scipy.stats.ttest_rel``). Otherwise Welch's unequal-variance t interval and test (``ttest_ind``,
-  ``equal_var=False``); from n = 5 per side a percentile bootstrap of the difference of means instead of the
+  ``equal_var=False``); from n = 6 per side a percentile bootstrap of the difference of means instead of the
   t interval. A difference is *significant* when its 95 % CI excludes 0.
 * :func:`disagreeing_seeds` — seeds whose value falls far below the others of their row (a class never learnt,
   a run that diverged): such a row's mean hides a failure, so the report prints it under the table.
@@ -23,7 +24,7 @@ from scipy import stats
 
 LEVEL = 0.95
 #: From this many values on, intervals come from a percentile bootstrap; below it from Student's t.
-BOOTSTRAP_FROM = 5
+BOOTSTRAP_FROM = 6
 RESAMPLES = 10_000
 #: A seed disagrees with its row when its value is below this fraction of the median of the row's other seeds.
 COLLAPSE_RATIO = 0.5
