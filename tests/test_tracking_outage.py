@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 from mlflow.tracking import MlflowClient
 
-from tests.scaleout import REPO, TINY, ablate, need, output, runs
-from tests.test_tracking_server import SCRIPT, postgres_missing, running, store_server
+from tests.scaleout import REPO, TINY, ablate, output, runs
+from tests.test_tracking_server import SCRIPT, running, server  # noqa: F401 (a fixture: this module's own server)
 
 #: Seconds the server stays down in the sweep.
 DOWN_S = 20
@@ -29,15 +29,6 @@ DOWN_S = 20
 EPOCHS = 24
 #: The job whose budget the outage outlasts: a table and seed of its own.
 SHORT = ["experiment=chinet_table3", "row=simo", "seed=1", "trainer.max_epochs=8", "logger.outage_s=5", *TINY]
-
-
-@pytest.fixture(scope="module")
-def server():
-    need("psycopg")
-    if reason := postgres_missing():
-        pytest.skip(reason)
-    with store_server() as (stdout, store):
-        yield stdout.strip().split("=", 1)[1], store
 
 
 def launch(cwd: Path, *args: str, uri: str) -> subprocess.Popen:
@@ -136,7 +127,7 @@ class Outage:
 
 
 @pytest.fixture(scope="module")
-def outage(server, tmp_path_factory) -> Outage:
+def outage(server, tmp_path_factory) -> Outage:  # noqa: F811
     """A 2-job sweep and a job with a 5 s budget (launched once the sweep has started), all three training when the
     server is killed; the server is started again 20 s later (or once the short job has ended, if that is later)."""
     uri, store = server

@@ -38,16 +38,15 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
             "race_plan": r.data.tags.get("race_plan", ""),
             "started": r.info.start_time,
             "ended": r.info.end_time or r.info.start_time,
-            "start": r.info.start_time,
             **r.data.metrics,
         }
         for r in runs
     ]
     if not records:
         return pd.DataFrame()
-    df = pd.DataFrame.from_records(records).sort_values(["start", "config_hash"], kind="stable")
+    df = pd.DataFrame.from_records(records).sort_values(["started", "config_hash"], kind="stable")
     df = df[df["scale"] == df["scale"].iloc[-1]]
-    return df.drop_duplicates(["row", "seed"], keep="last").drop(columns="start").reset_index(drop=True)
+    return df.drop_duplicates(["row", "seed"], keep="last").reset_index(drop=True)
 
 
 def made_lines(runs: pd.DataFrame) -> list[str]:

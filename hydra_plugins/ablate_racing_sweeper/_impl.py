@@ -154,8 +154,7 @@ class RacingSweeperImpl:
         return Tracker.from_config(self.config)
 
     def _values(self, sdir: Path, table: DictConfig) -> dict:
-        values = table_values(self._tracker(sdir), table)
-        return values
+        return table_values(self._tracker(sdir), table)
 
     def _tag_parent(self, sdir: Path, tags: dict[str, str]) -> None:
         parent = sdir / PARENT_FILE
