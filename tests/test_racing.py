@@ -149,3 +149,11 @@ def test_p_a_beats_b_has_a_wilson_interval_that_needs_five_clean_wins_to_clear_o
     assert wilson(3, 3)[0] < 0.5 < wilson(5, 5)[0]
     lo, hi = wilson(4, 8)
     assert lo < 0.5 < hi and hi - 0.5 == pytest.approx(0.5 - lo)
+
+
+def test_a_bad_plan_stops_the_sweep_with_one_line_before_any_job(tmp_path, monkeypatch, capsys):
+    sweeper, launcher = sweeper_for(tmp_path, monkeypatch, lambda r, s: 90.0, "scale.race.looks=[3,2]")
+    with pytest.raises(SystemExit):
+        sweeper.sweep([])
+    assert capsys.readouterr().err.strip() == "error: table.seeds.looks: [3, 2] must increase strictly"
+    assert launcher.batches == []

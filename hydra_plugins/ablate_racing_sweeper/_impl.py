@@ -72,7 +72,11 @@ class RacingSweeperImpl:
         sdir.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(self.config, sdir / "multirun.yaml")
         seeds = self.config.table.get("seeds")
-        plan = RacePlan.from_config(OmegaConf.to_container(seeds, resolve=True) if seeds is not None else None)
+        try:
+            plan = RacePlan.from_config(OmegaConf.to_container(seeds, resolve=True) if seeds is not None else None)
+        except ValueError as err:  # a bad plan is one line naming the option, before any job runs
+            print(f"error: {err}", file=sys.stderr)
+            raise SystemExit(1) from None
         given = any(o.get_key_element().lstrip("+~") == "seed" for o in overrides)
         if plan is None or given:
             if plan is not None:
