@@ -5,11 +5,13 @@ summary (one line per paper table, :mod:`ablate.tables.index`) is rewritten in `
 ``README.md`` where they hold its markers, from the tables there, whether or not this store had their runs.
 
 ``python -m ablate.report --reproduce experiment=<table> row=<row> [seed=N]`` reruns one seed of a row here and says
-whether it holds (:mod:`ablate.run.reproduce`)."""
+whether it holds (:mod:`ablate.run.reproduce`). ``python -m ablate.report --parity experiment=<table> row=<row>`` writes
+that row's section of ``results/precision_parity.md`` from its fp32 and bf16 runs (:mod:`ablate.tables.parity`)."""
 
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 from hydra.errors import HydraException
 
@@ -19,6 +21,7 @@ from ablate.run.reproduce import reproduce
 from ablate.store import KIND_SWEEP, AccessDenied, Tracker, retry
 from ablate.tables import table_spec, write_table
 from ablate.tables.index import write_index
+from ablate.tables.parity import parity, write_parity
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -35,6 +38,8 @@ def _main(argv: list[str] | None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     if "--reproduce" in args:
         return _reproduce([a for a in args if a != "--reproduce"])
+    if "--parity" in args:
+        return _parity([a for a in args if a != "--parity"])
     named = [a.split("=", 1)[1] for a in args if a.startswith("experiment=")]
     rest = [a for a in args if not a.startswith("experiment=")]
     names = named or ["ablate"] + sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
@@ -76,6 +81,23 @@ def _reproduce(args: list[str]) -> int:
         return 1
     print("\n".join(outcome.lines()))
     return 0 if outcome.inside else 2
+
+
+def _parity(args: list[str]) -> int:
+    """Write one row's bf16-against-fp32 section from the store's runs; a row without both is one error line."""
+    rows = [a.split("=", 1)[1] for a in args if a.startswith("row=")]
+    if not any(a.startswith("experiment=") for a in args) or len(rows) != 1:
+        print("error: --parity needs experiment=<table> and one row=<row>", file=sys.stderr)
+        return 1
+    cfg = compose([a for a in args if not a.startswith("row=")])
+    try:
+        found = parity(Tracker.from_config(cfg), table_spec(cfg), rows[0])
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    print(write_parity(found, Path("results") / "precision_parity.md"))
+    print(found.verdict())
+    return 0
 
 
 if __name__ == "__main__":

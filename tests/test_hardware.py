@@ -42,10 +42,19 @@ def test_auto_is_bf16_channels_last_on_a_cpu_with_bf16_where_the_familys_parity_
 
 
 def test_auto_stays_fp32_for_a_family_whose_bf16_parity_is_not_measured():
-    cfg = job()  # conf/recipe/semantic_cpu.yaml: recipe.bf16 false
-    assert cfg.recipe.bf16 is False
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=["experiment=bifnet_table4", "row=bifnet_dst_cbf"])
+    assert cfg.recipe.bf16 is False  # conf/recipe/road_cpu.yaml: not measured
     why = resolve(cfg, XEON)
     assert cfg.trainer.precision == "32-true" and "parity is not measured" in why
+
+
+@pytest.mark.parametrize("machine, bf16, budget", [(XEON, "true", 60.0), (XEON, "false", 120.0), (EPYC, "true", 120.0)])
+def test_a_tables_race_gets_half_the_wall_time_where_its_jobs_train_in_bf16(monkeypatch, machine, bf16, budget):
+    monkeypatch.setattr("ablate.hardware.cpu", lambda: machine)
+    cfg = job(f"recipe.bf16={bf16}")
+    assert cfg.table.seeds.budget_min == budget
+    assert job(f"recipe.bf16={bf16}", "trainer.precision=bf16-mixed").table.seeds.budget_min == 60.0
 
 
 def test_the_gpu_trainers_use_bf16():

@@ -17,6 +17,15 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     A rerun after a config change (another recipe, another dataset) supersedes the earlier run of the same row and
     seed instead of counting as one more seed; runs at another scale (a smoke sweep beside the default-scale table)
     stay in the store and out of the table."""
+    df = job_runs(tracker, table)
+    if not len(df):
+        return df
+    df = df[df["scale"] == df["scale"].iloc[-1]]
+    return df.drop_duplicates(["row", "seed"], keep="last").reset_index(drop=True)
+
+
+def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
+    """Every FINISHED job run of ``table``, oldest first: one row per run, superseded ones too."""
     exp = retry(tracker.client.get_experiment_by_name, table)
     if exp is None:
         return pd.DataFrame()
@@ -44,9 +53,7 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     ]
     if not records:
         return pd.DataFrame()
-    df = pd.DataFrame.from_records(records).sort_values(["started", "config_hash"], kind="stable")
-    df = df[df["scale"] == df["scale"].iloc[-1]]
-    return df.drop_duplicates(["row", "seed"], keep="last").reset_index(drop=True)
+    return pd.DataFrame.from_records(records).sort_values(["started", "config_hash"], kind="stable")
 
 
 def made_lines(runs: pd.DataFrame) -> list[str]:
