@@ -51,6 +51,7 @@ class Parity:
     fp32: pd.DataFrame  # one row per seed: metrics, minutes, made_* tags, git_commit
     bf16: pd.DataFrame
     bf16_name: str
+    condition: str | None = None  # the table's primary test input, where it has several
 
     @property
     def seeds(self) -> list[str]:
@@ -104,6 +105,7 @@ def parity(tracker: Tracker, table: DictConfig, row: str) -> Parity:
         by_precision[FP32],
         by_precision[bf16[0]],
         bf16[0],
+        table.get("primary_condition"),
     )
 
 
@@ -121,7 +123,8 @@ def section(p: Parity) -> str:
         f"## {p.title}: row {p.name}",
         "",
         f"{len(seeds)} paired seed(s) ({', '.join(seeds)}); fp32 `32-true` NCHW against `{p.bf16_name}` with "
-        "channels_last; mean ± std over the seeds.",
+        "channels_last; mean ± std over the seeds"
+        + (f", metrics under the test input `{p.condition}`." if p.condition else "."),
         "",
         "| metric | fp32 | bf16 | Δ bf16 − fp32 [95% CI] | p |",
         "|:--|:--|:--|:--|:--|",
