@@ -48,6 +48,13 @@ def test_a_consistent_loss_is_called_a_cost(tmp_path):
     assert found.verdict().startswith("**bf16 costs Det. Rate % beyond seed noise**")
 
 
+def test_seeds_that_spread_twice_as_wide_are_named_though_the_mean_holds(tmp_path):
+    verdict = parity(store(tmp_path, (88.0, 91.0, 94.0)), TABLE, "chinet").verdict()
+    assert "Not separable from seed noise" in verdict
+    assert "**bf16's seeds spread 3.0x as wide** (Det. Rate % std 3.00 against 1.00)" in verdict
+    assert "spread" not in parity(store(tmp_path / "b", (90.5, 91.0, 92.5)), TABLE, "chinet").verdict()
+
+
 def test_a_rewrite_replaces_its_own_section_only(tmp_path):
     path = tmp_path / "parity.md"
     write_parity(parity(store(tmp_path / "a", (90.0, 91.0, 92.0), row="unet"), TABLE, "unet"), path)

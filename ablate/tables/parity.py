@@ -71,6 +71,20 @@ class Parity:
         std = float(self.fp32.loc[self.seeds, self.primary].std(ddof=1))
         if worse:
             return f"**bf16 costs {label} beyond seed noise** (Δ {signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}])."
+        return self._mean(d, label, std, better) + self._spread(label, std)
+
+    def _spread(self, label: str, std: float) -> str:
+        """A sentence where bf16's seeds spread at least twice as wide as fp32's: the mean may hold while each
+        comparison needs more seeds."""
+        other = float(self.bf16.loc[self.seeds, self.primary].std(ddof=1))
+        if not (std > 0 and other >= 2 * std):
+            return ""
+        return (
+            f" **bf16's seeds spread {other / std:.1f}x as wide** ({label} std {other:.2f} against {std:.2f}): "
+            "a comparison of its rows needs more seeds."
+        )
+
+    def _mean(self, d: Difference, label: str, std: float, better: bool) -> str:
         bound = -d.ci.lo if self.primary not in LOWER_IS_BETTER else d.ci.hi
         gain = " bf16 is ahead beyond seed noise." if better else " Not separable from seed noise"
         ruled = f"; a cost above {bound:.2f} is ruled out at 95 %." if not better and bound > 0 else "."

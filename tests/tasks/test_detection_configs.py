@@ -23,7 +23,7 @@ def test_paper_scale_is_dgfns_sgd_and_cpu_scale_a_documented_adam():
     assert paper.data.batch_size == 2 and paper.trainer.max_steps == 240000 and paper.task.scheduler is None
     assert paper.model.width == 1.0 and list(paper.model.input_size) == [300, 300]
     cpu = cfg("experiment=dgfn_table1", "row=dgfn")
-    assert cpu.task.optimizer._target_ == "torch.optim.Adam" and cpu.trainer.max_epochs == 2
+    assert cpu.task.optimizer._target_ == "torch.optim.Adam" and cpu.trainer.max_epochs == 6  # 678 updates
     assert cfg("experiment=dgfn_table1", "row=dgfn", "scale=smoke").trainer.max_epochs == 1
 
 
