@@ -27,6 +27,7 @@ import re
 import shutil
 import socket
 import sys
+import time
 import traceback
 import warnings
 from collections.abc import Iterator
@@ -48,7 +49,7 @@ from ablate.run.checkpoint import AtomicCheckpointIO, resume_point
 from ablate.run.experts import attach as attach_experts
 from ablate.run.experts import feature_cache
 from ablate.run.experts import prepare as prepare_experts
-from ablate.run.preempt import STOP, SaveOnStop, Stopped, exit_status, loky_worker
+from ablate.run.preempt import SETTLE_S, STOP, SaveOnStop, Stopped, exit_status, loky_worker
 from ablate.run.record import deliver_earlier, kept_for_later, record_end, unreachable
 from ablate.store import (
     KIND_JOB,
@@ -362,6 +363,9 @@ def main(cfg: DictConfig) -> str:
     except Stopped as stop:
         reason = stop.reason
         if loky_worker():  # a sweep's worker goes with its parent, which is stopping too
+            # when one loky worker exits, the executor kills the others at once: a sibling still recording its
+            # KILLED status would be cut off, so a worker that has recorded its own waits a moment first
+            time.sleep(SETTLE_S)
             logging.shutdown()
             os._exit(exit_status(stop.signame))
         print(f"stopped: {reason}", file=sys.stderr)

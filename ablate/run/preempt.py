@@ -33,6 +33,9 @@ log = logging.getLogger(__name__)
 SIGNALS = (signal.SIGTERM, signal.SIGINT)
 #: Seconds a sweep's parent waits for its workers to checkpoint and exit before it kills them.
 GRACE_S = 60.0
+#: Seconds a sweep's worker waits after recording its stop, before it exits: loky kills a pool's other workers as
+#: soon as one exits, and both got SIGTERM at once, so a slower sibling may still be recording its KILLED status.
+SETTLE_S = 3.0
 
 
 class Stopped(BaseException):
