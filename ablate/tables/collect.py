@@ -17,11 +17,13 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     A rerun after a config change (another recipe, another dataset) supersedes the earlier run of the same row and
     seed instead of counting as one more seed; runs at another scale (a smoke sweep beside the default-scale table)
     stay in the store and out of the table."""
-    df = job_runs(tracker, table)
-    if not len(df):
-        return df
-    df = df[df["scale"] == df["scale"].iloc[-1]]
-    return df.drop_duplicates(["row", "seed"], keep="last").reset_index(drop=True)
+    df = at_latest_scale(job_runs(tracker, table))
+    return df.drop_duplicates(["row", "seed"], keep="last").reset_index(drop=True) if len(df) else df
+
+
+def at_latest_scale(runs: pd.DataFrame) -> pd.DataFrame:
+    """The runs (oldest first) at the scale of the latest of them: a smoke sweep beside a table stays out of it."""
+    return runs[runs["scale"] == runs["scale"].iloc[-1]] if len(runs) else runs
 
 
 def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:

@@ -22,7 +22,7 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.store import Tracker
-from ablate.tables.collect import job_runs, under_condition
+from ablate.tables.collect import at_latest_scale, job_runs, under_condition
 from ablate.tables.significance import Difference, difference
 from ablate.tables.spec import LOWER_IS_BETTER
 from ablate.tables.summary import signed
@@ -97,9 +97,7 @@ class Parity:
 def parity(tracker: Tracker, table: DictConfig, row: str) -> Parity:
     """The fp32 and bf16 runs of ``row`` of ``table`` in ``tracker``'s store; ValueError where either is missing."""
     runs = under_condition(job_runs(tracker, str(table.name)), table)
-    mine = runs[runs["row"] == row] if len(runs) else runs
-    if len(mine):
-        mine = mine[mine["scale"] == mine["scale"].iloc[-1]]
+    mine = at_latest_scale(runs[runs["row"] == row] if len(runs) else runs)
     by_precision = {p: _per_seed(g) for p, g in mine.groupby("made_precision")} if len(mine) else {}
     bf16 = [p for p in by_precision if p != FP32]
     if FP32 not in by_precision or not bf16:
