@@ -153,6 +153,51 @@ def test_a_budget_leaves_rows_for_a_later_run(tmp_path, monkeypatch):
     assert "not run here: the check's time budget" in (tmp_path / "paper_scale.md").read_text()
 
 
+def test_gpu_measurements_stand_beside_the_estimates_with_their_ratio_and_divergence(tmp_path, monkeypatch):
+    monkeypatch.setattr(paper_check, "RESULTS", tmp_path)
+    monkeypatch.setattr(paper_rows, "experiments", lambda: ["chinet_table3"])
+    monkeypatch.setattr(paper_check, "run_isolated", lambda *a, **k: pytest.fail("over the budget"))
+    gpu = [
+        {
+            "row": "chinet_table2:chinet",
+            "precision": "bf16",
+            "device": "NVIDIA H200",
+            "torch": "2.11",
+            "batch": 5,
+            "distinct_frames": 5,
+            "step_s": 0.2,
+            "estimated_step_s": 0.05,
+            "peak_allocated_gib": 21.9,
+            "estimated_mem_gib": 17.8,
+            "loss_first": 1.3,
+            "loss_last": 0.3,
+            "overrides": [],
+        },
+        {
+            "row": "smoe_table1:smoe_rgb",
+            "precision": "fp32",
+            "device": "NVIDIA H200",
+            "batch": 8,
+            "step_s": None,
+            "loss_first": 46.0,
+            "loss_last": 1.3e7,
+            "overrides": [],
+            "deterministic": True,
+            "diverged": "step 3: loss 1.3e+07 from 46 (first large output: conv1)",
+        },
+    ]
+    (tmp_path / "paper_scale_gpu.json").write_text(json.dumps(gpu))
+    assert paper_check.main(["budget_min=-1"]) == 0
+    md = (tmp_path / "paper_scale.md").read_text()
+    assert "No GPU was available" not in md and "## Measured on a GPU" in md and "NVIDIA H200 (torch 2.11" in md
+    assert (
+        "| chinet_table2:chinet | bf16 | — | 5 | 5 | 0.200 | 0.050 | 4.0x | 21.9 | 17.8 | 1.3 -> 0.3 | trains |" in md
+    )
+    assert "| deterministic |" in md and "**diverged** at step 3: loss 1.3e+07 from 46 |" in md
+    assert "a measured step takes 4.0x to 4.0x the estimated one" in md
+    assert "- smoe_table1:smoe_rgb (fp32): step 3: loss 1.3e+07 from 46 (first large output: conv1)" in md
+
+
 @pytest.mark.parametrize("trainer", ["gpu", "ddp_gpu"])
 def test_gpu_trainers_train_in_bf16_mixed(trainer):
     assert compose([f"trainer={trainer}", "scale=paper"]).trainer.precision == "bf16-mixed"

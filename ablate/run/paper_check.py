@@ -222,7 +222,9 @@ def main(argv: list[str]) -> int:
     (recount if reuse else check)(entries, measured, budget, overrides, save)
     save(measured)
     path = RESULTS / "paper_scale.md"
-    path.write_text(report({"rows": everything, "measured": measured, "cpu": cpu_name()}) + "\n")
+    gpu_store = RESULTS / "paper_scale_gpu.json"  # bench/bench_paper_gpu.py --json
+    gpu = json.loads(gpu_store.read_text()) if gpu_store.is_file() else []
+    path.write_text(report({"rows": everything, "measured": measured, "cpu": cpu_name(), "gpu": gpu}) + "\n")
     print(path)
     if bad := failed(entries, measured):
         print(f"error: {len(bad)} row(s) failed: {', '.join(bad)}")

@@ -42,8 +42,10 @@ from ablate.run.paper_rows import needed_experts
 FRAMES = 2
 
 
-def sample_config(cfg: DictConfig, data_dir: str, size: tuple[int, int] | None = None) -> DictConfig:
-    """``cfg`` resolved, on :data:`FRAMES` generated frames under ``data_dir`` at the config's own resolution (or
+def sample_config(
+    cfg: DictConfig, data_dir: str, size: tuple[int, int] | None = None, frames: int = FRAMES
+) -> DictConfig:
+    """``cfg`` resolved, on ``frames`` generated frames under ``data_dir`` at the config's own resolution (or
     ``size``, height x width), batch 1, no loader workers; the data module's other options (augmentation, BEV grid,
     conditions) as configured."""
     small = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
@@ -51,7 +53,7 @@ def sample_config(cfg: DictConfig, data_dir: str, size: tuple[int, int] | None =
         synth = dict(small.data.get("synth") or {})
         height, width = size or (int(synth.get("height", 375)), int(synth.get("width", 1242)))
         small.data.root = None
-        small.data.synth = {**synth, "frames": FRAMES, "seed": 0, "height": height, "width": width}
+        small.data.synth = {**synth, "frames": frames, "seed": 0, "height": height, "width": width}
         small.data.data_dir = data_dir
         small.data.batch_size = 1
         small.data.num_workers = 0
@@ -157,17 +159,18 @@ def frozen_parts(model: torch.nn.Module) -> list[torch.nn.Module]:
     return parts
 
 
-def _build(cfg: DictConfig, small: DictConfig) -> dict[str, Any]:
-    """The data (a training and a test batch of one frame), model and task of job config ``cfg`` on the frames of
-    ``small``, with the experts of a two-stage row loaded (frozen where ``experts.freeze``) and the frozen experts'
-    feature cache a job would use on the CPU (:func:`ablate.run.experts.feature_cache`)."""
+def _build(cfg: DictConfig, small: DictConfig, batch_size: int = 1) -> dict[str, Any]:
+    """The data (a training batch of ``batch_size`` frames, the training split's first ones, repeated where it has
+    fewer, and a test batch of one frame), model and task of job config ``cfg`` on the frames of ``small``, with the experts of a two-stage row loaded (frozen where
+    ``experts.freeze``) and the frozen experts' feature cache a job would use on the CPU
+    (:func:`ablate.run.experts.feature_cache`)."""
     L.seed_everything(int(small.seed), workers=True, verbose=False)
     datamodule = instantiate(small.data)
     datamodule.setup("fit")
     train = datamodule.datasets["train"]
     test = datamodule.datasets["test"] if len(datamodule.datasets["test"]) else train
     start = time.perf_counter()
-    batch, test_batch = collate([train[0]]), collate([test[0]])
+    batch, test_batch = collate([train[i % len(train)] for i in range(batch_size)]), collate([test[0]])
     data_s = time.perf_counter() - start
     model = instantiate(small.model)
     task = instantiate(small.task, model=model)
@@ -177,7 +180,14 @@ def _build(cfg: DictConfig, small: DictConfig) -> dict[str, Any]:
     task.feature_cache = feature_cache(small, model)
     task.train()
     step_batch = task.train_corruptions.apply(batch, 0) if task.train_corruptions is not None else batch
-    return {"task": task, "model": model, "batch": step_batch, "test_batch": test_batch, "data_s": data_s}
+    return {
+        "task": task,
+        "model": model,
+        "batch": step_batch,
+        "test_batch": test_batch,
+        "data_s": data_s,
+        "distinct_frames": min(batch_size, len(train)),
+    }
 
 
 def _features(task: Any) -> int:

@@ -96,9 +96,7 @@ def report(record: dict[str, Any]) -> str:
         "steps, every seed) is counted once per table; tables that share experts (smoe_table1, smoe_table2) each "
         "count them, so the tables' hours do not add up to a total. Validation passes are not counted. An estimate, "
         "not a measurement.",
-        "- **No GPU was available to this check**: no row has been trained at `scale=paper trainer=gpu`, for a few "
-        "hundred steps or at all, so there is no measured throughput, GPU memory, utilisation or loss curve; the "
-        "GPU columns are estimates from the counts and measurements above, and stand as estimates.",
+        *gpu_bullet(record.get("gpu") or []),
         "",
         f"| table | seeds | GPU-h on an {GPU.name} | " + " | ".join(f"GPU-h on an {g.name}" for g in OTHER_GPUS) + " |",
         "|---|---:|---:|" + "---:|" * len(OTHER_GPUS),
@@ -116,7 +114,86 @@ def report(record: dict[str, Any]) -> str:
     for experiment in tables:
         entries = [e for e in rows if e["table"] == experiment]
         out += table_section(experiment, entries, measured)
+    out += gpu_section(record.get("gpu") or [])
     return "\n".join(out)
+
+
+def gpu_bullet(gpu: list[dict[str, Any]]) -> list[str]:
+    """The header's line on GPU measurements: where they are, or that there are none."""
+    if not gpu:
+        return [
+            "- **No GPU was available to this check**: no row has been trained at `scale=paper trainer=gpu`, for a "
+            "few hundred steps or at all, so there is no measured throughput, GPU memory, utilisation or loss curve; "
+            "the GPU columns are estimates from the counts and measurements above, and stand as estimates."
+        ]
+    return [
+        "- **Some rows were also trained on a GPU** for a few steps (`bench/bench_paper_gpu.py`, the last section): "
+        "their measured step time and memory stand beside the estimates there. The GPU columns of the tables below "
+        "stay estimates."
+    ]
+
+
+def _outcome(r: dict[str, Any]) -> str:
+    if "error" in r:
+        return f"**FAILED**: {r['error']}"
+    if "diverged" in r:
+        return "**diverged** at " + r["diverged"].split(" (", 1)[0]
+    return "trains" if r["loss_last"] < r["loss_first"] else "loss not falling"
+
+
+def gpu_section(gpu: list[dict[str, Any]]) -> list[str]:
+    """``results/paper_scale_gpu.json`` (``bench/bench_paper_gpu.py --json``) as a table: per row, precision and
+    options, the measured training step and peak memory beside the estimates, and whether the loss fell or diverged;
+    then the measured step over the estimated one, where both exist."""
+    if not gpu:
+        return []
+
+    def num(r: dict[str, Any], key: str, fmt: str) -> str:
+        return format(r[key], fmt) if r.get(key) is not None else "—"
+
+    devices = sorted(
+        {f"{r['device']} (torch {r.get('torch', '?')}, {r.get('date', '?')})" for r in gpu if "device" in r}
+    )
+    out = [
+        "## Measured on a GPU",
+        "",
+        f"`bench/bench_paper_gpu.py` on {', '.join(devices)}; figures in results/paper_scale_gpu.json. Each row: "
+        "its config at `scale=paper`, generated frames at 375 x 1242, the recipe's batch (**frames**: how many "
+        "distinct frames it held; 1: one frame repeated), a few warm-up steps, then timed training steps on that "
+        "batch (forward and loss under the precision named, backward, the recipe's optimiser and scheduler), "
+        "the peak memory after the warm-up. The experts of a fused row are freshly built, not trained, so its "
+        "losses say nothing of stage 2. A loss 1,000 times the first step's, or non-finite, stops the row as "
+        "diverged.",
+        "",
+        "| row | precision | options | batch | frames | step (s) | estimated step (s) | measured / estimated "
+        "| peak alloc. (GiB) | estimated mem. (GiB) | loss first -> last | outcome |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|",
+    ]
+    ratios = []
+    for r in gpu:
+        options = " ".join(r.get("overrides") or []) + (" deterministic" if r.get("deterministic") else "")
+        ratio = "—"
+        if r.get("step_s") and r.get("estimated_step_s"):
+            ratios.append(r["step_s"] / r["estimated_step_s"])
+            ratio = f"{ratios[-1]:.1f}x"
+        out.append(
+            f"| {r['row']} | {r.get('precision', '—')} | {options.strip() or '—'} | {r.get('batch', '—')} | "
+            f"{r.get('distinct_frames', '—')} | {num(r, 'step_s', '.3f')} | {num(r, 'estimated_step_s', '.3f')} | "
+            f"{ratio} | {num(r, 'peak_allocated_gib', '.1f')} | {num(r, 'estimated_mem_gib', '.1f')} | "
+            f"{num(r, 'loss_first', '.4g')} -> {num(r, 'loss_last', '.4g')} | {_outcome(r)} |"
+        )
+    out.append("")
+    if ratios:
+        out.append(
+            f"Where both exist, a measured step takes {min(ratios):.1f}x to {max(ratios):.1f}x the estimated one: "
+            f"the estimates' {UTILISATION:.0%} utilisation is not reached at these batches, so the GPU-hours above "
+            "are lower bounds for these rows (data loading, validation and logging not counted either)."
+        )
+        out.append("")
+    for r in gpu:
+        if "diverged" in r:
+            out.append(f"- {r['row']} ({r.get('precision')}): {r['diverged']}")
+    return out + ([""] if any("diverged" in r for r in gpu) else [])
 
 
 def table_section(experiment: str, entries: list[dict], measured: dict[str, Any]) -> list[str]:
