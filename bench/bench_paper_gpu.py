@@ -132,7 +132,8 @@ def bench_row(
 ) -> dict[str, Any]:
     """Training and test steps of ``spec`` (``experiment:row``) on ``device``: the module docstring's figures."""
     experiment, row = spec.split(":")
-    overrides = ([] if scale == "paper" else [f"scale={scale}"]) + list(overrides or [])
+    base = [] if scale == "paper" else [f"scale={scale}"]
+    overrides = base + list(overrides or [])
     cfg = measured_config(experiment, row, overrides=overrides)
     plan = recipe(cfg)
     batch_size = plan["batch"]
@@ -211,6 +212,9 @@ def bench_row(
     _sync(device)
     out["test_s"] = time.perf_counter() - start
     stored = _stored(cfg)
+    if stored is None and overrides != base:  # --set changed the config: the estimate of the row as configured
+        stored = _stored(measured_config(experiment, row, overrides=base))
+        out["estimate_of"] = "the row without --set"
     if stored is not None:
         est = gpu_hours(stored["macs"], batch_size, frozen=stored.get("macs_frozen", 0)) * 3600
         out["estimated_step_s"] = est
