@@ -31,7 +31,6 @@ same steps run in fp32 on the CPU, to try the script at small sizes (``--scale s
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import logging
 import math
@@ -50,7 +49,7 @@ import torch
 from lightning.fabric.utilities.apply_func import move_data_to_device
 
 from ablate.run.paper_estimates import GPU, gpu_hours, gpu_memory
-from ablate.run.paper_measure import _build, _loss, sample_config
+from ablate.run.paper_measure import _build, _loss, optimizer_and_scheduler, sample_config
 from ablate.run.paper_rows import measure_key, measured_config, recipe
 
 ROWS = "smoe_table2:smoe_fpn,smoe_table1:smoe_rgb,dgfn_table1:dgfn,chinet_table2:chinet,bifnet_table4:bifnet_dst_cbf"
@@ -75,7 +74,7 @@ def _stored(cfg: Any) -> dict[str, Any] | None:
 def _nonfinite(tree: Any, prefix: str = "") -> list[str]:
     """The names of the non-finite tensors in a model's outputs (dicts and lists walked)."""
     if torch.is_tensor(tree):
-        return [] if tree.is_floating_point() is False or bool(torch.isfinite(tree).all()) else [prefix or "output"]
+        return [] if not tree.is_floating_point() or bool(torch.isfinite(tree).all()) else [prefix or "output"]
     items = tree.items() if isinstance(tree, dict) else enumerate(tree) if isinstance(tree, (list, tuple)) else []
     return [name for k, v in items for name in _nonfinite(v, f"{prefix}.{k}" if prefix else str(k))]
 
@@ -149,12 +148,7 @@ def bench_row(
     test_batch = move_data_to_device(built["test_batch"], device)
     params = list(task.parameters())
     trainable = [p for p in params if p.requires_grad]
-    optimizer = task.optimizer_factory(params=trainable)
-    scheduler = None
-    if task.scheduler_factory is not None:  # as paper_measure.measure builds it
-        target = getattr(task.scheduler_factory, "func", task.scheduler_factory)
-        kwargs = {"total_steps": plan["steps"]} if "total_steps" in inspect.signature(target).parameters else {}
-        scheduler = task.scheduler_factory(optimizer=optimizer, **kwargs)
+    optimizer, scheduler = optimizer_and_scheduler(task, trainable, plan["steps"])
     bf16 = precision == "bf16" and device.type == "cuda"
     autocast = torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else nullcontext()
     if device.type == "cuda":

@@ -161,9 +161,9 @@ def frozen_parts(model: torch.nn.Module) -> list[torch.nn.Module]:
 
 def _build(cfg: DictConfig, small: DictConfig, batch_size: int = 1) -> dict[str, Any]:
     """The data (a training batch of ``batch_size`` frames, the training split's first ones, repeated where it has
-    fewer, and a test batch of one frame), model and task of job config ``cfg`` on the frames of ``small``, with the experts of a two-stage row loaded (frozen where
-    ``experts.freeze``) and the frozen experts' feature cache a job would use on the CPU
-    (:func:`ablate.run.experts.feature_cache`)."""
+    fewer, and a test batch of one frame), model and task of job config ``cfg`` on the frames of ``small``, with the
+    experts of a two-stage row loaded (frozen where ``experts.freeze``) and the frozen experts' feature cache a job
+    would use on the CPU (:func:`ablate.run.experts.feature_cache`)."""
     L.seed_everything(int(small.seed), workers=True, verbose=False)
     datamodule = instantiate(small.data)
     datamodule.setup("fit")
@@ -208,6 +208,17 @@ def count_macs(cfg: DictConfig, small: DictConfig) -> dict[str, Any]:
     return {"macs": forward.get_total_flops() // 2, "macs_frozen": frozen.macs, "feature_bytes": _features(task)}
 
 
+def optimizer_and_scheduler(task: Any, trainable: list[torch.Tensor], steps: int) -> tuple[Any, Any]:
+    """The task's optimiser over ``trainable`` and its scheduler (None without one) for a schedule of ``steps``
+    optimiser steps, built as the task's ``configure_optimizers`` builds them under a trainer."""
+    optimizer = task.optimizer_factory(params=trainable)
+    if task.scheduler_factory is None:
+        return optimizer, None
+    target = getattr(task.scheduler_factory, "func", task.scheduler_factory)
+    kwargs = {"total_steps": steps} if "total_steps" in inspect.signature(target).parameters else {}
+    return optimizer, task.scheduler_factory(optimizer=optimizer, **kwargs)
+
+
 def measure(cfg: DictConfig, small: DictConfig, steps: int = 1000) -> dict[str, Any]:
     """One training and one test step of job config ``cfg`` on the frames of ``small`` (:func:`sample_config`), in
     this process: the figures of the module's docstring (times in s, memory in bytes). ``steps``: the schedule's
@@ -216,12 +227,7 @@ def measure(cfg: DictConfig, small: DictConfig, steps: int = 1000) -> dict[str, 
     task, model, batch = built["task"], built["model"], built["batch"]
     params = list(task.parameters())
     trainable = [p for p in params if p.requires_grad]
-    optimizer = task.optimizer_factory(params=trainable)
-    scheduler = None
-    if task.scheduler_factory is not None:
-        target = getattr(task.scheduler_factory, "func", task.scheduler_factory)
-        kwargs = {"total_steps": steps} if "total_steps" in inspect.signature(target).parameters else {}
-        scheduler = task.scheduler_factory(optimizer=optimizer, **kwargs)
+    optimizer, scheduler = optimizer_and_scheduler(task, trainable, steps)
     start = time.perf_counter()
     with SavedTensors(params) as saved, FrozenMacs(model) as frozen, FlopCounterMode(display=False) as forward:
         loss = _loss(task.training_step(batch, 0))

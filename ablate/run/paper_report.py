@@ -190,10 +190,8 @@ def gpu_section(gpu: list[dict[str, Any]]) -> list[str]:
             "are lower bounds for these rows (data loading, validation and logging not counted either)."
         )
         out.append("")
-    for r in gpu:
-        if "diverged" in r:
-            out.append(f"- {r['row']} ({r.get('precision')}): {r['diverged']}")
-    return out + ([""] if any("diverged" in r for r in gpu) else [])
+    diverged = [f"- {r['row']} ({r.get('precision')}): {r['diverged']}" for r in gpu if "diverged" in r]
+    return out + diverged + ([""] if diverged else [])
 
 
 def table_section(experiment: str, entries: list[dict], measured: dict[str, Any]) -> list[str]:
