@@ -198,6 +198,16 @@ def test_gpu_measurements_stand_beside_the_estimates_with_their_ratio_and_diverg
     assert "- smoe_table1:smoe_rgb (fp32): step 3: loss 1.3e+07 from 46 (first large output: conv1)" in md
 
 
+@pytest.mark.parametrize("name", ["paper_scale.json", "paper_scale_gpu.json"])
+def test_a_truncated_figures_file_is_one_error_naming_it(name, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(paper_check, "RESULTS", tmp_path)
+    monkeypatch.setattr(paper_check, "run_isolated", lambda *a, **k: pytest.fail("nothing runs"))
+    (tmp_path / name).write_text('{"measured": {"a": ')
+    assert paper_check.main(["reuse=true"]) == 2
+    out = capsys.readouterr().out
+    assert out.startswith(f"error: {tmp_path / name} is not valid JSON") and "Traceback" not in out
+
+
 @pytest.mark.parametrize("trainer", ["gpu", "ddp_gpu"])
 def test_gpu_trainers_train_in_bf16_mixed(trainer):
     assert compose([f"trainer={trainer}", "scale=paper"]).trainer.precision == "bf16-mixed"

@@ -176,6 +176,16 @@ def _true(value: str | None) -> bool:
     return (value or "false").lower() in ("true", "1", "yes")
 
 
+def _read(path: Path, empty: Any) -> Any:
+    """The JSON in ``path`` (``empty`` where there is no file); ValueError naming the file where it is not JSON."""
+    if not path.is_file():
+        return empty
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not valid JSON ({exc}); fix or remove it") from None
+
+
 def main(argv: list[str]) -> int:
     """``python -m ablate.check_paper [experiment=a,b] [row=x,y] [budget_min=N] [force=true] [reuse=true]
     [key=value ...]``: measure the chosen rows (all by default) not measured yet (``force=true``: again), keep the
@@ -200,8 +210,12 @@ def main(argv: list[str]) -> int:
     if not entries:
         print("error: no row of the chosen tables is named " + ", ".join(rows))
         return 2
-    store = RESULTS / "paper_scale.json"
-    record = json.loads(store.read_text()) if store.is_file() else {}
+    store, gpu_store = RESULTS / "paper_scale.json", RESULTS / "paper_scale_gpu.json"  # gpu: bench_paper_gpu --json
+    try:
+        record, gpu = _read(store, {}), _read(gpu_store, [])
+    except ValueError as exc:
+        print(f"error: {exc}")
+        return 2
     keys = {k for e in everything for k in (e["key"], *e["experts"].values())}
     measured = {k: v for k, v in record.get("measured", {}).items() if k in keys}  # those of today's configs
     reuse = _true(options.get("reuse"))
@@ -222,8 +236,6 @@ def main(argv: list[str]) -> int:
     (recount if reuse else check)(entries, measured, budget, overrides, save)
     save(measured)
     path = RESULTS / "paper_scale.md"
-    gpu_store = RESULTS / "paper_scale_gpu.json"  # bench/bench_paper_gpu.py --json
-    gpu = json.loads(gpu_store.read_text()) if gpu_store.is_file() else []
     path.write_text(report({"rows": everything, "measured": measured, "cpu": cpu_name(), "gpu": gpu}) + "\n")
     print(path)
     if bad := failed(entries, measured):
