@@ -2,6 +2,7 @@
 ``python -m ablate.data prepare --root KITTI_DIR`` and
 ``python -m ablate.data masks --root KITTI_DIR --frame ID --out PNG`` (figure of ablate.data.masks.from_lidar);
 ``python -m ablate.data stats --root DIR --out results/NAME [--frames N]`` (ablate.data.stats)."""
+
 from __future__ import annotations
 
 import argparse

@@ -22,6 +22,7 @@ Augmentation is for the training split only; the draws come from torch's generat
 Lightning), so a frame's augmentation changes from epoch to epoch. The frozen experts' feature cache
 (``ablate.run.experts.FeatureCache``), which assumes each frame's input is a constant, is off when it is on.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -86,8 +87,13 @@ def flip_calibration(calib: kitti.Calibration, width: int) -> kitti.Calibration:
     Tr_cam_to_road M`` (R0_rect and Tr_velo_to_cam unchanged: the points are mirrored instead)."""
     f = np.array([[-1.0, 0.0, width - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     road = None if calib.Tr_cam_to_road is None else calib.Tr_cam_to_road @ MIRROR
-    return kitti.Calibration(P2=f @ calib.P2 @ MIRROR, R0_rect=calib.R0_rect, Tr_velo_to_cam=calib.Tr_velo_to_cam,
-                             Tr_cam_to_road=road, path=calib.path)
+    return kitti.Calibration(
+        P2=f @ calib.P2 @ MIRROR,
+        R0_rect=calib.R0_rect,
+        Tr_velo_to_cam=calib.Tr_velo_to_cam,
+        Tr_cam_to_road=road,
+        path=calib.path,
+    )
 
 
 def mirror_points(points: np.ndarray, calib: kitti.Calibration) -> np.ndarray:
@@ -131,8 +137,10 @@ def _warp_tensor(v: torch.Tensor, a: np.ndarray, interpolation: int) -> torch.Te
     flat = v.reshape(-1, h, w).numpy()
     dtype = flat.dtype
     work = flat if dtype in (np.uint8, np.uint16, np.float32, np.float64) else flat.astype(np.float32)  # cv2's
-    planes = [cv2.warpAffine(np.ascontiguousarray(p), a, (w, h), flags=interpolation,
-                             borderMode=cv2.BORDER_REPLICATE) for p in work]
+    planes = [
+        cv2.warpAffine(np.ascontiguousarray(p), a, (w, h), flags=interpolation, borderMode=cv2.BORDER_REPLICATE)
+        for p in work
+    ]
     return torch.from_numpy(np.stack(planes).astype(dtype).reshape(v.shape))
 
 

@@ -4,9 +4,10 @@ Every function takes a ``numpy.random.Generator`` seeded per sample, so a sample
 drops, wiper, glare spot or box. ``severity`` scales strength (1.0 = the defaults below, 0 = no change for
 the Complex-KITTI conditions).
 """
+
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -79,7 +80,12 @@ def glare(img: Image, rng: np.random.Generator, severity: float = 1.0) -> Image:
 
 
 CONDITIONS: dict[str, Callable[..., Image]] = {
-    "clear": clear, "night": night, "rain_day": rain_day, "rain_night": rain_night, "glare": glare}
+    "clear": clear,
+    "night": night,
+    "rain_day": rain_day,
+    "rain_night": rain_night,
+    "glare": glare,
+}
 
 
 def apply_condition(name: str, img: Image, rng: np.random.Generator, severity: float = 1.0) -> Image:
@@ -102,7 +108,7 @@ def occlusion(x: np.ndarray, rng: np.random.Generator, severity: float = 1.0) ->
     bw = max(1, int(w * min(rng.uniform(0.1, 0.4) * severity, 1.0)))
     y0, x0 = int(rng.integers(0, h - bh + 1)), int(rng.integers(0, w - bw + 1))
     out = x.copy()
-    out[:, y0:y0 + bh, x0:x0 + bw] = 0
+    out[:, y0 : y0 + bh, x0 : x0 + bw] = 0
     return out
 
 
@@ -125,17 +131,24 @@ def illumination(x: np.ndarray, rng: np.random.Generator, severity: float = 1.0)
 
 
 CORRUPTIONS: dict[str, Callable[..., np.ndarray]] = {
-    "blank": blank, "occlusion": occlusion, "noise": noise, "illumination": illumination}
+    "blank": blank,
+    "occlusion": occlusion,
+    "noise": noise,
+    "illumination": illumination,
+}
 CAMERA_ONLY = {"noise", "illumination"}
 CAMERA_MODALITIES = {"rgb", "intensity"}
 
 
-def apply_corruption(name: str, x: np.ndarray, rng: np.random.Generator, modality: str,
-                     severity: float = 1.0) -> np.ndarray:
+def apply_corruption(
+    name: str, x: np.ndarray, rng: np.random.Generator, modality: str, severity: float = 1.0
+) -> np.ndarray:
     """Apply a DGFN corruption to one (C,H,W) modality; noise and illumination are camera-only."""
     if name not in CORRUPTIONS:
         raise KeyError(f"unknown corruption {name!r}; valid: {', '.join(CORRUPTIONS)}")
     if name in CAMERA_ONLY and modality not in CAMERA_MODALITIES:
-        raise ValueError(f"corruption {name!r} applies to the camera only ({', '.join(sorted(CAMERA_MODALITIES))}),"
-                         f" not to {modality!r}")
+        raise ValueError(
+            f"corruption {name!r} applies to the camera only ({', '.join(sorted(CAMERA_MODALITIES))}),"
+            f" not to {modality!r}"
+        )
     return CORRUPTIONS[name](np.asarray(x, np.float32), rng, severity).astype(np.float32)

@@ -42,6 +42,7 @@ an entry is written only once its value has been computed (a read that raises wr
 size and modification time of the scan, calibration and labels it was derived from, so a file repaired or replaced
 later is read again, never served from the entry of the old one.
 """
+
 from __future__ import annotations
 
 import fcntl
@@ -70,8 +71,7 @@ log = logging.getLogger(__name__)
 
 def collate(samples: list[dict]) -> dict:
     """Stack tensors; keep the ``LIST_KEYS`` as lists."""
-    return {k: [s[k] for s in samples] if k in LIST_KEYS else torch.stack([s[k] for s in samples])
-            for k in samples[0]}
+    return {k: [s[k] for s in samples] if k in LIST_KEYS else torch.stack([s[k] for s in samples]) for k in samples[0]}
 
 
 def synth_dir(data_dir: str | Path, params: dict) -> Path:
@@ -84,8 +84,10 @@ def ensure_synth(data_dir: str | Path, params: dict | None) -> Path:
     """The generated dataset for ``params``, generated on first use."""
     params = {**DEFAULT_SYNTH, **(params or {})}
     if params["version"] != GENERATOR_VERSION:
-        raise DataError(f"data.synth.version={params['version']}: this ablate generates version {GENERATOR_VERSION} "
-                        "only (check out an older ablate for older generated data)")
+        raise DataError(
+            f"data.synth.version={params['version']}: this ablate generates version {GENERATOR_VERSION} "
+            "only (check out an older ablate for older generated data)"
+        )
     out = synth_dir(data_dir, params)
     if not (out / "synth.json").is_file():  # written last, so its presence means a complete dataset
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -94,8 +96,14 @@ def ensure_synth(data_dir: str | Path, params: dict | None) -> Path:
         with open(out.parent / f"{out.name}.lock", "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             if not (out / "synth.json").is_file():
-                generate(out, params["frames"], params["seed"], params["height"], params["width"],
-                         workers=min(2, os.cpu_count() or 1))
+                generate(
+                    out,
+                    params["frames"],
+                    params["seed"],
+                    params["height"],
+                    params["width"],
+                    workers=min(2, os.cpu_count() or 1),
+                )
     return out
 
 
@@ -121,13 +129,16 @@ def splits(split_dir: Path) -> dict[str, list[str]]:
 def check_on_bad_frame(value) -> str:
     """``value`` if ``data.on_bad_frame`` takes it, else a ValidationError naming the option and what it takes."""
     if value not in ON_BAD_FRAME:
-        raise ValidationError(f"data.on_bad_frame={value!r}: expected error (a bad frame stops the job with a "
-                              "DataError naming its file) or skip (a bad frame is left out and logged)")
+        raise ValidationError(
+            f"data.on_bad_frame={value!r}: expected error (a bad frame stops the job with a "
+            "DataError naming its file) or skip (a bad frame is left out and logged)"
+        )
     return value
 
 
-def index_frames(split_dir: Path, frames: list[str], on_bad_frame: str = "error", cap: int | None = None,
-                 where: str = "") -> tuple[list[str], dict[str, str]]:
+def index_frames(
+    split_dir: Path, frames: list[str], on_bad_frame: str = "error", cap: int | None = None, where: str = ""
+) -> tuple[list[str], dict[str, str]]:
     """The frames of ``frames`` that pass :func:`ablate.data.kitti.check_frame`, in order, at most ``cap`` of them,
     and the bad ones met on the way (frame -> reason). With ``on_bad_frame="error"`` the first bad frame is one
     DataError naming its file, the frame and ``where`` it is listed."""
@@ -140,8 +151,9 @@ def index_frames(split_dir: Path, frames: list[str], on_bad_frame: str = "error"
             kitti.check_frame(split_dir, frame)
         except DataError as err:
             if on_bad_frame == "error":
-                raise DataError(f"{err} (frame {frame}{where}; data.on_bad_frame=skip leaves such frames out)") \
-                    from None
+                raise DataError(
+                    f"{err} (frame {frame}{where}; data.on_bad_frame=skip leaves such frames out)"
+                ) from None
             log.warning("Skipping frame %s%s: %s", frame, where, err)
             bad[frame] = str(err)
             continue
@@ -157,13 +169,28 @@ class KittiDataModule(L.LightningDataModule):
     split, each frame with the reason (the module's docstring says what is checked).
     """
 
-    def __init__(self, root: str | None = None, synth: dict | None = None, data_dir: str = "data",
-                 modalities: list[str] = ("rgb", "dense_depth"), targets: list[str] = (),
-                 conditions: list[str] = ("clear",), severity: float = 1.0, corruption: dict | None = None,
-                 batch_size: int = 4, num_workers: int = 0, seed: int = 0, max_depth: float = 80.0,
-                 limit_frames: dict | None = None, bev: dict | None = None, cache: bool = True,
-                 image_size: list[int] | None = None, lidar_weather: list[str] | None = None,
-                 augment: dict | None = None, on_bad_frame: str = "error") -> None:
+    def __init__(
+        self,
+        root: str | None = None,
+        synth: dict | None = None,
+        data_dir: str = "data",
+        modalities: list[str] = ("rgb", "dense_depth"),
+        targets: list[str] = (),
+        conditions: list[str] = ("clear",),
+        severity: float = 1.0,
+        corruption: dict | None = None,
+        batch_size: int = 4,
+        num_workers: int = 0,
+        seed: int = 0,
+        max_depth: float = 80.0,
+        limit_frames: dict | None = None,
+        bev: dict | None = None,
+        cache: bool = True,
+        image_size: list[int] | None = None,
+        lidar_weather: list[str] | None = None,
+        augment: dict | None = None,
+        on_bad_frame: str = "error",
+    ) -> None:
         super().__init__()
         self.on_bad_frame = check_on_bad_frame(on_bad_frame)
         for m in modalities:
@@ -211,30 +238,55 @@ class KittiDataModule(L.LightningDataModule):
         for name, frames in splits(split_dir).items():
             listed = split_dir / "ImageSets" / f"{name}.txt"
             where = f", listed in {listed}" if listed.is_file() else f" of the {name} split"
-            kept, bad_frames[name] = index_frames(split_dir, frames, self.on_bad_frame, self.limit_frames.get(name),
-                                                  where)
+            kept, bad_frames[name] = index_frames(
+                split_dir, frames, self.on_bad_frame, self.limit_frames.get(name), where
+            )
             datasets[name] = KittiDataset(
-                split_dir, kept, self.modalities, self.targets,
-                self.conditions, self.severity, self.corruption, self.seed, self.max_depth,
-                Path(self.data_dir) / "cache" if self.cache else None, self.bev, self.image_size, self.lidar_weather,
-                self.augment if name == "train" else None)
+                split_dir,
+                kept,
+                self.modalities,
+                self.targets,
+                self.conditions,
+                self.severity,
+                self.corruption,
+                self.seed,
+                self.max_depth,
+                Path(self.data_dir) / "cache" if self.cache else None,
+                self.bev,
+                self.image_size,
+                self.lidar_weather,
+                self.augment if name == "train" else None,
+            )
         self.datasets, self.bad_frames = datasets, bad_frames
         if skipped := sum(len(bad) for bad in bad_frames.values()):
-            log.warning("data.on_bad_frame=skip: left out %d bad frame(s) of %s (%s)", skipped, split_dir,
-                        ", ".join(f"{name} {len(bad)}" for name, bad in bad_frames.items()))
+            log.warning(
+                "data.on_bad_frame=skip: left out %d bad frame(s) of %s (%s)",
+                skipped,
+                split_dir,
+                ", ".join(f"{name} {len(bad)}" for name, bad in bad_frames.items()),
+            )
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         self.setup()
         if not self.datasets[split].frames:
             d, n = self.datasets[split].split_dir, sum(len(ds.frames) for ds in self.datasets.values())
             cap = f", data.limit_frames.{split}={self.limit_frames[split]}" if split in self.limit_frames else ""
-            raise DataError(f"{d}: the {split} split has no frames ({n} in all{cap}); list them in "
-                            f"{d / 'ImageSets' / (split + '.txt')} or give more frames")
+            raise DataError(
+                f"{d}: the {split} split has no frames ({n} in all{cap}); list them in "
+                f"{d / 'ImageSets' / (split + '.txt')} or give more frames"
+            )
         gen = torch.Generator().manual_seed(self.seed)
         # pinned (page-locked) host memory where a CUDA device will read the batches: faster, asynchronous copies
-        return DataLoader(self.datasets[split], self.batch_size, shuffle=shuffle, num_workers=self.num_workers,
-                          collate_fn=collate, generator=gen, persistent_workers=self.num_workers > 0,
-                          pin_memory=torch.cuda.is_available())
+        return DataLoader(
+            self.datasets[split],
+            self.batch_size,
+            shuffle=shuffle,
+            num_workers=self.num_workers,
+            collate_fn=collate,
+            generator=gen,
+            persistent_workers=self.num_workers > 0,
+            pin_memory=torch.cuda.is_available(),
+        )
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train", True)
@@ -246,13 +298,24 @@ class KittiDataModule(L.LightningDataModule):
         return self._loader("test", False)
 
 
-def prepare(root: str | None, data_dir: str = "data", modalities: list[str] = ("sparse_depth", "dense_depth"),
-            max_depth: float = 80.0) -> int:
+def prepare(
+    root: str | None,
+    data_dir: str = "data",
+    modalities: list[str] = ("sparse_depth", "dense_depth"),
+    max_depth: float = 80.0,
+) -> int:
     """Precompute the cache of derived LiDAR modalities for every frame of ``root`` (tqdm progress bar)."""
     split_dir = resolve_split_dir(root) if root else ensure_synth(data_dir, None)
     derived = [m for m in modalities if m in LIDAR_DERIVED and m != "ddm_jet"]
-    ds = KittiDataset(split_dir, kitti.list_frames(split_dir), derived, [], ["clear"], max_depth=max_depth,
-                      cache_dir=Path(data_dir) / "cache")
+    ds = KittiDataset(
+        split_dir,
+        kitti.list_frames(split_dir),
+        derived,
+        [],
+        ["clear"],
+        max_depth=max_depth,
+        cache_dir=Path(data_dir) / "cache",
+    )
     for frame in tqdm(ds.frames, desc=f"caching {', '.join(derived)}", unit="frame"):
         shape = kitti.read_image(kitti.frame_paths(split_dir, frame)["image"]).shape[:2]
         for m in derived:

@@ -1,6 +1,7 @@
 """Torch dataset over a KITTI-layout folder: network-ready modalities, targets, conditions and an on-disk cache
 of the derived LiDAR modalities (keyed by folder, frame, parameters and the size and modification time of the
 files they come from, so the second epoch does no LiDAR work and a file replaced since is read again)."""
+
 from __future__ import annotations
 
 import hashlib
@@ -16,8 +17,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from ablate.data import DataError
-from ablate.data import kitti, lidar, masks
+from ablate.data import DataError, kitti, lidar, masks
 from ablate.data.augment import Augment, View, flip_box, flip_calibration, mirror_points, warp
 from ablate.data.conditions import apply_condition, apply_corruption
 from ablate.data.lidar_weather import LIDAR_WEATHER, apply_lidar_weather
@@ -26,8 +26,17 @@ MODALITIES = {"rgb": 3, "intensity": 1, "sparse_depth": 1, "dense_depth": 1, "dd
 #: Per-frame geometry for the space transforms (ablate.fusion.geometry), asked for like targets: calibration
 #: [4,3,4], dense LiDAR heights per pixel [1,H,W] and per BEV cell [1,Hb,Wb] (BiFNet DST), points in the BEV grid.
 GEOMETRY = ("calib", "height_image", "height_bev", "lidar_points")
-TARGETS = ("free_space", "road_objects", "semantic", "instances", "boxes2d", "road_bev", "road_valid",
-           "road_bev_valid", *GEOMETRY)
+TARGETS = (
+    "free_space",
+    "road_objects",
+    "semantic",
+    "instances",
+    "boxes2d",
+    "road_bev",
+    "road_valid",
+    "road_bev_valid",
+    *GEOMETRY,
+)
 CLASSES = ("Car", "Pedestrian", "Cyclist")  # label ids 0, 1, 2
 #: ``boxes2d`` label ids: the classes, then the KITTI types its evaluation ignores (ablate.metrics.kitti.LABEL_NAMES):
 #: Van (neighbour of Car), Person_sitting (of Pedestrian) and DontCare regions.
@@ -63,11 +72,23 @@ def _sources(*paths: Path) -> list:
 class KittiDataset(Dataset):
     """One split of a KITTI-layout folder. Returns the sample dict described in ``ablate.data.datamodule``."""
 
-    def __init__(self, split_dir: Path, frames: list[str], modalities: list[str], targets: list[str],
-                 conditions: list[str], severity: float = 1.0, corruption: dict | None = None, seed: int = 0,
-                 max_depth: float = 80.0, cache_dir: str | Path | None = None, bev: dict | None = None,
-                 image_size: tuple[int, int] | None = None, lidar_weather: list[str] | None = None,
-                 augment: dict | None = None) -> None:
+    def __init__(
+        self,
+        split_dir: Path,
+        frames: list[str],
+        modalities: list[str],
+        targets: list[str],
+        conditions: list[str],
+        severity: float = 1.0,
+        corruption: dict | None = None,
+        seed: int = 0,
+        max_depth: float = 80.0,
+        cache_dir: str | Path | None = None,
+        bev: dict | None = None,
+        image_size: tuple[int, int] | None = None,
+        lidar_weather: list[str] | None = None,
+        augment: dict | None = None,
+    ) -> None:
         for m in modalities:
             if m not in MODALITIES:
                 raise KeyError(f"unknown modality {m!r}; valid: {', '.join(MODALITIES)}")
@@ -95,17 +116,31 @@ class KittiDataset(Dataset):
 
     def _check_available(self) -> None:
         d = self.split_dir
-        has = {"velodyne": (d / "velodyne").is_dir(), "labels": (d / "label_2").is_dir(),
-               "instances": (d / "instance_2").is_dir() or (d / "velodyne").is_dir() and (d / "label_2").is_dir(),
-               "road": (d / "gt_image_2").is_dir()}  # instance masks: instance_2/, else derived from LiDAR + boxes
-        need = {"free_space": "road", "semantic": "road", "road_bev": "road", "road_objects": "instances",
-                "instances": "instances", "boxes2d": "labels", "road_valid": "road", "road_bev_valid": "road",
-                "calib": None, **{g: "velodyne" for g in GEOMETRY[1:]}}
+        has = {
+            "velodyne": (d / "velodyne").is_dir(),
+            "labels": (d / "label_2").is_dir(),
+            "instances": (d / "instance_2").is_dir() or (d / "velodyne").is_dir() and (d / "label_2").is_dir(),
+            "road": (d / "gt_image_2").is_dir(),
+        }  # instance masks: instance_2/, else derived from LiDAR + boxes
+        need = {
+            "free_space": "road",
+            "semantic": "road",
+            "road_bev": "road",
+            "road_objects": "instances",
+            "instances": "instances",
+            "boxes2d": "labels",
+            "road_valid": "road",
+            "road_bev_valid": "road",
+            "calib": None,
+            **{g: "velodyne" for g in GEOMETRY[1:]},
+        }
         for name in [m for m in self.modalities if m in LIDAR_DERIVED] + self.targets:
             src = "velodyne" if name in LIDAR_DERIVED else need[name]
             if src and not has[src]:
-                raise DataError(f"{d}: cannot provide {name!r}: this data has no {src} "
-                                f"({NO_MASKS if src == 'instances' else src + ' folder missing'})")
+                raise DataError(
+                    f"{d}: cannot provide {name!r}: this data has no {src} "
+                    f"({NO_MASKS if src == 'instances' else src + ' folder missing'})"
+                )
         if "semantic" in self.targets and not has["instances"]:
             raise DataError(f"{d}: cannot provide 'semantic': this data has {NO_MASKS}")
 
@@ -153,37 +188,58 @@ class KittiDataset(Dataset):
             return mirror_points(pts, kitti.Calibration.from_file(paths["calib"])) if flip else pts
 
         if name == "sparse_depth":
-            return self._cached(frame, name, {"shape": shape, **key},
-                                lambda: lidar.sparse_depth(points(), calib(), shape), sources)
+            return self._cached(
+                frame, name, {"shape": shape, **key}, lambda: lidar.sparse_depth(points(), calib(), shape), sources
+            )
         if name == "dense_depth":
-            return self._cached(frame, name, {"shape": shape, **key},
-                                lambda: lidar.dense_depth(self.lidar(frame, "sparse_depth", shape, flip)), sources)
+            return self._cached(
+                frame,
+                name,
+                {"shape": shape, **key},
+                lambda: lidar.dense_depth(self.lidar(frame, "sparse_depth", shape, flip)),
+                sources,
+            )
         if name == "dhi":
-            return self._cached(frame, name, {"shape": shape, **key},
-                                lambda: lidar.dhi_image(points(), calib(), shape), sources)
+            return self._cached(
+                frame, name, {"shape": shape, **key}, lambda: lidar.dhi_image(points(), calib(), shape), sources
+            )
         grid = {k: self.bev[k] for k in ("x_range", "y_range", "cell")}
         if name == "height_image":
             opts = {k: v for k, v in self.heights.items() if k == "window"}
-            return self._cached(frame, name, {"shape": shape, **opts, **key},
-                                lambda: lidar.perspective_height(points(), calib(), shape, **opts), sources)
+            return self._cached(
+                frame,
+                name,
+                {"shape": shape, **opts, **key},
+                lambda: lidar.perspective_height(points(), calib(), shape, **opts),
+                sources,
+            )
         if name == "height_bev":
             opts = {k: v for k, v in self.heights.items() if k == "azimuth_res"}
-            return self._cached(frame, name, {**grid, **opts, **key},
-                                lambda: lidar.bev_height(points(), **grid, **opts), sources)
+            return self._cached(
+                frame, name, {**grid, **opts, **key}, lambda: lidar.bev_height(points(), **grid, **opts), sources
+            )
         if name == "lidar_points":
             opts = {k: v for k, v in self.heights.items() if k == "max_points"}
-            return self._cached(frame, name, {**grid, **opts, **key},
-                                lambda: lidar.bev_points(points(), **grid, **opts), sources)
+            return self._cached(
+                frame, name, {**grid, **opts, **key}, lambda: lidar.bev_points(points(), **grid, **opts), sources
+            )
         return self._cached(frame, name, {**self.bev, **key}, lambda: lidar.bev_image(points(), **self.bev), sources)
 
     def lidar_instances(self, frame: str, labels: list, shape: tuple[int, int]) -> np.ndarray:
         """(H,W) uint16 instance map in instance_2's encoding from ``ablate.data.masks.from_lidar`` of the clean
         scan (never the LiDAR weather of the frame), cached."""
         paths = kitti.frame_paths(self.split_dir, frame)
-        return self._cached(frame, "instances", {"shape": shape, "margin": masks.MARGIN, "ground": masks.GROUND},
-                            lambda: masks.instance_map(masks.from_lidar(
-                                kitti.read_velodyne(paths["velodyne"]), kitti.Calibration.from_file(paths["calib"]),
-                                labels, shape)), _sources(paths["velodyne"], paths["calib"], paths["label"]))
+        return self._cached(
+            frame,
+            "instances",
+            {"shape": shape, "margin": masks.MARGIN, "ground": masks.GROUND},
+            lambda: masks.instance_map(
+                masks.from_lidar(
+                    kitti.read_velodyne(paths["velodyne"]), kitti.Calibration.from_file(paths["calib"]), labels, shape
+                )
+            ),
+            _sources(paths["velodyne"], paths["calib"], paths["label"]),
+        )
 
     def __getitem__(self, i: int) -> dict:
         frame = self.frames[i]
@@ -236,13 +292,18 @@ class KittiDataset(Dataset):
                 v = v.clone()
                 v[0, :2] -= torch.tensor([[left], [top]], dtype=v.dtype) * v[0, 2:3]
                 sample[k] = v
-            elif isinstance(v, torch.Tensor) and k not in ("bev", "road_bev", "road_bev_valid", "height_bev",
-                                                           "lidar_points"):
-                sample[k] = v[..., top:top + ch, left:left + cw]
+            elif isinstance(v, torch.Tensor) and k not in (
+                "bev",
+                "road_bev",
+                "road_bev_valid",
+                "height_bev",
+                "lidar_points",
+            ):
+                sample[k] = v[..., top : top + ch, left : left + cw]
             elif k in ("instances", "boxes2d"):
                 v = dict(v, boxes=v["boxes"] - shift)
                 if "masks" in v:
-                    v["masks"] = v["masks"][..., top:top + ch, left:left + cw]
+                    v["masks"] = v["masks"][..., top : top + ch, left : left + cw]
                 sample[k] = v
         return sample
 
@@ -254,16 +315,22 @@ class KittiDataset(Dataset):
         labels = kitti.read_labels(paths["label"]) if paths["label"].is_file() else []
         road_gt = kitti.read_road_gt(paths["road_gt"]) if "road_gt" in paths and paths["road_gt"].is_file() else None
         inst = cv2.imread(str(paths["instance"]), cv2.IMREAD_UNCHANGED) if paths["instance"].is_file() else None
-        if inst is None and not paths["instance"].parent.is_dir() and paths["label"].is_file() \
-                and any(t in self.targets for t in ("road_objects", "semantic", "instances")):
+        if (
+            inst is None
+            and not paths["instance"].parent.is_dir()
+            and paths["label"].is_file()
+            and any(t in self.targets for t in ("road_objects", "semantic", "instances"))
+        ):
             inst = self.lidar_instances(paths["image"].stem, labels, shape)
         if flip:  # the image-space labels of the flipped image (ablate.data.augment)
             labels = [replace(o, bbox=flip_box(o.bbox, w)) for o in labels]
             road_gt = tuple(np.ascontiguousarray(a[:, ::-1]) for a in road_gt) if road_gt is not None else None
             inst = np.ascontiguousarray(inst[:, ::-1]) if inst is not None else None
         road = road_gt[0] if road_gt is not None else None
-        if any(t in self.targets for t in ("free_space", "semantic", "road_bev", "road_valid", "road_bev_valid")) \
-                and road is None:
+        if (
+            any(t in self.targets for t in ("free_space", "semantic", "road_bev", "road_valid", "road_bev_valid"))
+            and road is None
+        ):
             raise DataError(f"{paths['image']}: road ground truth {paths.get('road_gt')} is missing")
         if any(t in self.targets for t in ("road_objects", "semantic", "instances")) and inst is None:
             raise DataError(f"{paths['image']}: instance masks {paths['instance']} are missing")
@@ -279,19 +346,22 @@ class KittiDataset(Dataset):
             out["instances"] = {
                 "masks": torch.from_numpy(np.stack([inst == k for k in ids]) if ids else np.zeros((0, h, w), bool)),
                 "labels": torch.tensor([CLASSES.index(labels[k - 1].type) for k in ids], dtype=torch.int64),
-                "boxes": torch.tensor([labels[k - 1].bbox for k in ids], dtype=torch.float32).reshape(-1, 4)}
+                "boxes": torch.tensor([labels[k - 1].bbox for k in ids], dtype=torch.float32).reshape(-1, 4),
+            }
         if "boxes2d" in self.targets:
             objs = [o for o in labels if o.type in BOX_LABELS]
             scale = h / 375.0  # KITTI's difficulty heights are for 375-row images
-            out["boxes2d"] = {"boxes": torch.tensor([o.bbox for o in objs], dtype=torch.float32).reshape(-1, 4),
-                              "labels": torch.tensor([BOX_LABELS.index(o.type) for o in objs], dtype=torch.int64),
-                              "difficulty": torch.tensor([o.difficulty_at(scale) for o in objs], dtype=torch.int64)}
+            out["boxes2d"] = {
+                "boxes": torch.tensor([o.bbox for o in objs], dtype=torch.float32).reshape(-1, 4),
+                "labels": torch.tensor([BOX_LABELS.index(o.type) for o in objs], dtype=torch.int64),
+                "difficulty": torch.tensor([o.difficulty_at(scale) for o in objs], dtype=torch.int64),
+            }
         if "instances" in self.targets or "boxes2d" in self.targets:
             ignore = np.zeros((h, w), bool)
             for o in labels:
                 if o.type == "DontCare":
                     x0, y0, x1, y1 = (int(round(v)) for v in o.bbox)
-                    ignore[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1] = True
+                    ignore[max(y0, 0) : y1 + 1, max(x0, 0) : x1 + 1] = True
             out["ignore"] = torch.from_numpy(ignore)
         out.update(self._road(paths, shape, road_gt, flip))
         return out
@@ -300,8 +370,11 @@ class KittiDataset(Dataset):
         """The road targets beyond ``free_space`` (the image road mask) and the frame's geometry (GEOMETRY)."""
         out: dict = {}
         grid = {k: self.bev[k] for k in ("x_range", "y_range", "cell")}
-        calib = kitti.Calibration.from_file(paths["calib"]) if any(
-            t in self.targets for t in ("road_bev", "road_bev_valid", "calib")) else None
+        calib = (
+            kitti.Calibration.from_file(paths["calib"])
+            if any(t in self.targets for t in ("road_bev", "road_bev_valid", "calib"))
+            else None
+        )
         calib = flip_calibration(calib, shape[1]) if flip and calib is not None else calib
         if "road_valid" in self.targets:
             out["road_valid"] = torch.from_numpy(road_gt[1][None].astype(np.float32))
@@ -335,8 +408,9 @@ def calibration(array) -> kitti.Calibration:
     return kitti.Calibration(P2=a[0], R0_rect=a[1, :, :3], Tr_velo_to_cam=a[2], Tr_cam_to_road=road)
 
 
-def road_bev(road: np.ndarray, calib: kitti.Calibration, x_range=(6.0, 46.0), y_range=(-10.0, 10.0),
-             cell: float = 0.5) -> np.ndarray:
+def road_bev(
+    road: np.ndarray, calib: kitti.Calibration, x_range=(6.0, 46.0), y_range=(-10.0, 10.0), cell: float = 0.5
+) -> np.ndarray:
     """Road mask in the BEV grid of :func:`ablate.data.lidar.bev_image`: each cell centre is dropped onto the road
     plane (Tr_cam_to_road) and looked up in the image road mask; cells outside the image are 0."""
     if calib.Tr_cam_to_road is None:

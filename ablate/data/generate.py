@@ -6,6 +6,7 @@ label_2/NNNNNN.txt (true 2D/3D boxes, truncation, occlusion; DontCare for object
 road in KITTI road colours). ImageSets/{train,val,test}.txt hold a seeded 60/20/20 split; synth.json the
 parameters.
 """
+
 from __future__ import annotations
 
 import json
@@ -16,13 +17,21 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from ablate.data.kitti import Calibration, Object3D, write_road_gt
 from ablate.data import GENERATOR_VERSION
 from ablate.data import lidar_physics as physics
+from ablate.data.kitti import Calibration, Object3D, write_road_gt
 from ablate.data.raycast import BORDER, BOX, CAMERA_HEIGHT, ROAD, cast
 from ablate.data.shade import glass_mask, shade
-from ablate.data.synth import BUILDING, CLASS_NAMES, LIDAR_ORIGIN, beam_directions, camera_matrix, camera_rays, \
-    lidar_angles, sample_scene
+from ablate.data.synth import (
+    BUILDING,
+    CLASS_NAMES,
+    LIDAR_ORIGIN,
+    beam_directions,
+    camera_matrix,
+    camera_rays,
+    lidar_angles,
+    sample_scene,
+)
 
 TR_VELO_TO_CAM = np.array([[0, -1, 0, 0], [0, 0, -1, LIDAR_ORIGIN[1]], [1, 0, 0, LIDAR_ORIGIN[2]]], np.float64)
 
@@ -50,8 +59,15 @@ def render_frame(seed: int, index: int, height: int = 128, width: int = 416, lid
     depth = np.where(np.isfinite(hit["t"]), hit["t"], 0).astype(np.float32).reshape(height, width)
     owner = np.where(hit["box"] >= 0, scene["owner"][np.maximum(hit["box"], 0)], -1)
     labels, instance = _labels(scene, hit, owner, calib, height, width)
-    return {"rgb": image, "depth": depth, "points": scan(scene, rng, height, width, lidar_fov), "labels": labels,
-            "calib": calib, "instance": instance, "road": (hit["kind"] == ROAD).reshape(height, width)}
+    return {
+        "rgb": image,
+        "depth": depth,
+        "points": scan(scene, rng, height, width, lidar_fov),
+        "labels": labels,
+        "calib": calib,
+        "instance": instance,
+        "road": (hit["kind"] == ROAD).reshape(height, width),
+    }
 
 
 def scan(scene: dict, rng: np.random.Generator, height: int, width: int, lidar_fov: float = 45.0) -> np.ndarray:
@@ -66,8 +82,11 @@ def scan(scene: dict, rng: np.random.Generator, height: int, width: int, lidar_f
         h = cast(scene, origin, dirs, max_t=150.0)
         isbox = h["kind"] == BOX
         b = np.maximum(h["box"], 0)
-        rho = np.select([h["kind"] == ROAD, h["kind"] == BORDER, isbox],
-                        [scene["road_refl"], scene["border_refl"], scene["box_refl"][b]], 0.0)
+        rho = np.select(
+            [h["kind"] == ROAD, h["kind"] == BORDER, isbox],
+            [scene["road_refl"], scene["border_refl"], scene["box_refl"][b]],
+            0.0,
+        )
         gloss = np.where(isbox, scene["box_gloss"][b], 0.0)  # ground: angle-independent (see lidar_physics)
         cos = np.abs(np.sum(h["normal"] * dirs, 1))
         rho = np.where(glass_mask(scene, h, isbox), 0.0, rho)
@@ -105,15 +124,28 @@ def _labels(scene, hit, owner, calib, height, width) -> tuple[list[Object3D], np
         if cy1 - cy0 < 25 * height / 375 or n_vis < 20:  # KITTI's smallest evaluated height, scaled
             labels.append(Object3D("DontCare", -1.0, -1, -10.0, box, (-1.0, -1.0, -1.0), (-1000.0,) * 3, -10.0))
             continue
-        labels.append(Object3D(obj.type, round(truncated, 2), 0 if occ < 0.1 else 1 if occ < 0.5 else 2, alpha, box,
-                               obj.dimensions, obj.location, ry))
+        labels.append(
+            Object3D(
+                obj.type,
+                round(truncated, 2),
+                0 if occ < 0.1 else 1 if occ < 0.5 else 2,
+                alpha,
+                box,
+                obj.dimensions,
+                obj.location,
+                ry,
+            )
+        )
         instance[visible] = len(labels)
     return labels, instance.reshape(height, width)
 
 
 def write_frame(out: Path, frame: dict, name: str) -> None:
-    cv2.imwrite(str(out / "image_2" / f"{name}.png"), cv2.cvtColor(frame["rgb"], cv2.COLOR_RGB2BGR),
-                [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    cv2.imwrite(
+        str(out / "image_2" / f"{name}.png"),
+        cv2.cvtColor(frame["rgb"], cv2.COLOR_RGB2BGR),
+        [cv2.IMWRITE_PNG_COMPRESSION, 3],
+    )
     frame["points"].tofile(out / "velodyne" / f"{name}.bin")
     frame["calib"].write(out / "calib" / f"{name}.txt")
     (out / "label_2" / f"{name}.txt").write_text("".join(o.to_line() + "\n" for o in frame["labels"]))
@@ -131,12 +163,20 @@ def split_frames(frames: list[str], seed: int, fractions=(0.6, 0.2, 0.2)) -> dic
     order = np.random.default_rng(seed).permutation(len(frames))
     n_train = int(round(fractions[0] * len(frames)))
     n_val = int(round(fractions[1] * len(frames)))
-    cuts = {"train": order[:n_train], "val": order[n_train:n_train + n_val], "test": order[n_train + n_val:]}
+    cuts = {"train": order[:n_train], "val": order[n_train : n_train + n_val], "test": order[n_train + n_val :]}
     return {k: sorted(frames[i] for i in v) for k, v in cuts.items()}
 
 
-def generate(out: str | Path, frames: int, seed: int = 0, height: int = 128, width: int = 416,
-             lidar_fov: float = 45.0, workers: int = 1, progress: bool = True) -> Path:
+def generate(
+    out: str | Path,
+    frames: int,
+    seed: int = 0,
+    height: int = 128,
+    width: int = 416,
+    lidar_fov: float = 45.0,
+    workers: int = 1,
+    progress: bool = True,
+) -> Path:
     """Write ``frames`` generated frames under ``out`` (KITTI object layout) with a 60/20/20 split."""
     out = Path(out)
     for sub in ("image_2", "velodyne", "calib", "label_2", "instance_2", "gt_image_2", "ImageSets"):
@@ -154,7 +194,13 @@ def generate(out: str | Path, frames: int, seed: int = 0, height: int = 128, wid
     bar.close()
     for name, ids in split_frames([f"{i:06d}" for i in range(frames)], seed).items():
         (out / "ImageSets" / f"{name}.txt").write_text("".join(f + "\n" for f in ids))
-    params = {"frames": frames, "seed": seed, "height": height, "width": width, "lidar_fov": lidar_fov,
-              "version": GENERATOR_VERSION}
+    params = {
+        "frames": frames,
+        "seed": seed,
+        "height": height,
+        "width": width,
+        "lidar_fov": lidar_fov,
+        "version": GENERATOR_VERSION,
+    }
     (out / "synth.json").write_text(json.dumps(params, indent=1) + "\n")
     return out

@@ -17,6 +17,7 @@ Road layout (KITTI road benchmark)::
 :func:`check_frame` is the cheap check of one frame's files that ``ablate.data.datamodule`` runs when it indexes its
 splits (what it checks, and what only fails when a file is read, is said there).
 """
+
 from __future__ import annotations
 
 import struct
@@ -115,8 +116,11 @@ class Calibration:
     def write(self, path: str | Path) -> None:
         """Write in KITTI's object calib format (P0-P3 equal to P2, Tr_imu_to_velo identity)."""
         rows = [f"P{i}: " + _fmt(self.P2) for i in range(4)]
-        rows += ["R0_rect: " + _fmt(self.R0_rect), "Tr_velo_to_cam: " + _fmt(self.Tr_velo_to_cam),
-                 "Tr_imu_to_velo: " + _fmt(np.eye(3, 4))]
+        rows += [
+            "R0_rect: " + _fmt(self.R0_rect),
+            "Tr_velo_to_cam: " + _fmt(self.Tr_velo_to_cam),
+            "Tr_imu_to_velo: " + _fmt(np.eye(3, 4)),
+        ]
         if self.Tr_cam_to_road is not None:
             rows.append("Tr_cam_to_road: " + _fmt(self.Tr_cam_to_road))
         Path(path).write_text("\n".join(rows) + "\n\n")
@@ -139,8 +143,9 @@ def read_velodyne(path: str | Path) -> np.ndarray:
 
 def _check_scan_size(path: Path, size: int) -> None:
     if size == 0 or size % 16:
-        raise DataError(f"{path}: truncated velodyne scan, {size} bytes is not a positive multiple of 16 "
-                        "(4 float32 per point)")
+        raise DataError(
+            f"{path}: truncated velodyne scan, {size} bytes is not a positive multiple of 16 (4 float32 per point)"
+        )
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -197,12 +202,23 @@ class Object3D:
         c, s = np.cos(self.rotation_y), np.sin(self.rotation_y)
         d = np.asarray(rect, np.float64)[:, :3] - np.asarray(self.location)
         x, z = c * d[:, 0] - s * d[:, 2], s * d[:, 0] + c * d[:, 2]  # along the box's length and width
-        return (np.abs(x) <= l / 2 + margin) & (np.abs(z) <= w / 2 + margin) & (d[:, 1] <= -ground) \
+        return (
+            (np.abs(x) <= l / 2 + margin)
+            & (np.abs(z) <= w / 2 + margin)
+            & (d[:, 1] <= -ground)
             & (d[:, 1] >= -h - margin)
+        )
 
     def to_line(self) -> str:
-        vals = [self.truncated, self.occluded, self.alpha, *self.bbox, *self.dimensions, *self.location,
-                self.rotation_y]
+        vals = [
+            self.truncated,
+            self.occluded,
+            self.alpha,
+            *self.bbox,
+            *self.dimensions,
+            *self.location,
+            self.rotation_y,
+        ]
         return self.type + " " + " ".join(f"{v:.2f}" if not isinstance(v, int) else str(v) for v in vals)
 
 
@@ -254,14 +270,20 @@ def find_split_dir(root: str | Path, benchmark: str) -> Path:
     for cand in (root, root / "training", root / benchmark / "training", root / f"data_{benchmark}" / "training"):
         if (cand / "image_2").is_dir() and (cand / "calib").is_dir():
             return cand
-    raise DataError(f"{root}: no KITTI {benchmark} layout found (expected image_2/ and calib/ under it, "
-                    f"under training/ or under {benchmark}/training/)")
+    raise DataError(
+        f"{root}: no KITTI {benchmark} layout found (expected image_2/ and calib/ under it, "
+        f"under training/ or under {benchmark}/training/)"
+    )
 
 
 def frame_paths(split_dir: Path, frame: str) -> dict[str, Path]:
     """File paths of one frame; the calib must exist (an image with no calib is an error)."""
-    paths = {"image": split_dir / "image_2" / f"{frame}.png", "calib": split_dir / "calib" / f"{frame}.txt",
-             "velodyne": split_dir / "velodyne" / f"{frame}.bin", "label": split_dir / "label_2" / f"{frame}.txt"}
+    paths = {
+        "image": split_dir / "image_2" / f"{frame}.png",
+        "calib": split_dir / "calib" / f"{frame}.txt",
+        "velodyne": split_dir / "velodyne" / f"{frame}.bin",
+        "label": split_dir / "label_2" / f"{frame}.txt",
+    }
     paths["instance"] = split_dir / "instance_2" / f"{frame}.png"
     if "_" in frame:  # KITTI road naming: um_000000 -> um_road_000000
         cat, idx = frame.split("_", 1)

@@ -1,5 +1,6 @@
 """LiDAR representations: sparse and dense depth maps (SMoE §3.2), jet colouring, DHI image (DGFN §III-B),
 BEV raster (BiFNet §V-A), and the dense heights per pixel and per BEV cell of BiFNet's DST (§IV-A1, §IV-A2)."""
+
 from __future__ import annotations
 
 import threading
@@ -78,8 +79,10 @@ def dense_depth(sparse: np.ndarray) -> np.ndarray:
     depth = flat[lin_seed]
     lut = np.concatenate([[0], depth]).astype(np.float32)
     out = np.empty(h * w, np.float32)
-    fill = threading.Thread(target=_nearest_fill, args=(seeds, lut, scratch("dense.dist", (h, w), np.float32),
-                                                         scratch("dense.labels", (h, w), np.int32), out))
+    fill = threading.Thread(
+        target=_nearest_fill,
+        args=(seeds, lut, scratch("dense.dist", (h, w), np.float32), scratch("dense.labels", (h, w), np.int32), out),
+    )
     fill.start()
     try:
         tri = None
@@ -113,8 +116,15 @@ def jet(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
     return cv2.cvtColor(cv2.applyColorMap(gray, cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)
 
 
-def dhi_image(points: np.ndarray, calib: Calibration, shape: tuple[int, int], max_x: float = 80.0,
-              max_z: float = 6.0, max_r: float = 0.7, lidar_height: float = LIDAR_HEIGHT) -> np.ndarray:
+def dhi_image(
+    points: np.ndarray,
+    calib: Calibration,
+    shape: tuple[int, int],
+    max_x: float = 80.0,
+    max_z: float = 6.0,
+    max_r: float = 0.7,
+    lidar_height: float = LIDAR_HEIGHT,
+) -> np.ndarray:
     """Depth-height-intensity image, DGFN §III-B eq. (2)-(4): ``val = 255 (1 - min[v / max_v, 1])`` for
     v = x (velodyne forward distance), z (height) and r (reflectance), at the nearest point of each pixel.
 
@@ -130,8 +140,9 @@ def dhi_image(points: np.ndarray, calib: Calibration, shape: tuple[int, int], ma
     return out.reshape(shape[0], shape[1], 3)
 
 
-def bev_grid(x_range: tuple[float, float] = (6.0, 46.0), y_range: tuple[float, float] = (-10.0, 10.0),
-             cell: float = 0.5) -> tuple[int, int]:
+def bev_grid(
+    x_range: tuple[float, float] = (6.0, 46.0), y_range: tuple[float, float] = (-10.0, 10.0), cell: float = 0.5
+) -> tuple[int, int]:
     """(Hb, Wb) of the BEV raster: rows run along x (far at row 0), columns along y (left at column 0)."""
     return int(round((x_range[1] - x_range[0]) / cell)), int(round((y_range[1] - y_range[0]) / cell))
 
@@ -145,9 +156,13 @@ def bev_cells(points: np.ndarray, x_range=(6.0, 46.0), y_range=(-10.0, 10.0), ce
     return row[keep] * wb + col[keep], keep
 
 
-def bev_image(points: np.ndarray, x_range: tuple[float, float] = (6.0, 46.0),
-              y_range: tuple[float, float] = (-10.0, 10.0), cell: float = 0.5,
-              lidar_height: float = LIDAR_HEIGHT) -> np.ndarray:
+def bev_image(
+    points: np.ndarray,
+    x_range: tuple[float, float] = (6.0, 46.0),
+    y_range: tuple[float, float] = (-10.0, 10.0),
+    cell: float = 0.5,
+    lidar_height: float = LIDAR_HEIGHT,
+) -> np.ndarray:
     """BEV raster, BiFNet §V-A: 0.5 m cells holding max, min and mean height, then max, min and mean intensity of
     the points in each cell; 0 where a cell is empty. Height is above the road (z_velo + lidar_height).
     Default ranges are the KITTI road benchmark's BEV (x 6-46 m ahead, y 10 m either side).
@@ -175,8 +190,9 @@ def bev_image(points: np.ndarray, x_range: tuple[float, float] = (6.0, 46.0),
 HEIGHT_WINDOW, AZIMUTH_RES, MIN_RANGE = 4, 0.2, 2.0
 
 
-def perspective_height(points: np.ndarray, calib: Calibration, shape: tuple[int, int],
-                       window: int = HEIGHT_WINDOW) -> np.ndarray:
+def perspective_height(
+    points: np.ndarray, calib: Calibration, shape: tuple[int, int], window: int = HEIGHT_WINDOW
+) -> np.ndarray:
     """Dense LiDAR height per image pixel, BiFNet §IV-A1 eq. (2): the projected points in a (2 window + 1)^2
     neighbourhood of the pixel, weighted by 1 / (1 + their distance in pixels) and normalised by the sum of the
     weights (eq. (2)'s normalisation parameter). Reading where the text lost its symbols: the weight decays with the
@@ -199,17 +215,27 @@ def perspective_height(points: np.ndarray, calib: Calibration, shape: tuple[int,
     den = cv2.filter2D(mask, cv2.CV_32F, kernel, borderType=cv2.BORDER_CONSTANT)
     out = np.empty(h * w, np.float32)
     seeds = (mask == 0).astype(np.uint8)  # 0 at the LiDAR pixels
-    _nearest_fill(seeds, np.concatenate([[0], sparse.ravel()[np.flatnonzero(mask.ravel())]]).astype(np.float32),
-                  np.empty((h, w), np.float32), np.empty((h, w), np.int32), out)
+    _nearest_fill(
+        seeds,
+        np.concatenate([[0], sparse.ravel()[np.flatnonzero(mask.ravel())]]).astype(np.float32),
+        np.empty((h, w), np.float32),
+        np.empty((h, w), np.int32),
+        out,
+    )
     out = out.reshape(h, w)
     near = den > 1e-6
     out[near] = num[near] / den[near]
     return out
 
 
-def bev_height(points: np.ndarray, x_range: tuple[float, float] = (6.0, 46.0),
-               y_range: tuple[float, float] = (-10.0, 10.0), cell: float = 0.5, azimuth_res: float = AZIMUTH_RES,
-               min_range: float = MIN_RANGE) -> np.ndarray:
+def bev_height(
+    points: np.ndarray,
+    x_range: tuple[float, float] = (6.0, 46.0),
+    y_range: tuple[float, float] = (-10.0, 10.0),
+    cell: float = 0.5,
+    azimuth_res: float = AZIMUTH_RES,
+    min_range: float = MIN_RANGE,
+) -> np.ndarray:
     """Dense LiDAR height per BEV cell, BiFNet §IV-A2 eq. (3)-(4), on the grid of :func:`bev_image`.
 
     The points are arranged as MV3D's front view (Chen et al. [6]): column = floor(atan2(y, x) / azimuth_res), the
@@ -230,8 +256,9 @@ def bev_height(points: np.ndarray, x_range: tuple[float, float] = (6.0, 46.0),
     col, dist, z = np.floor(np.arctan2(pts[keep, 1], pts[keep, 0]) / res).astype(np.int64), dist[keep], pts[keep, 2]
     order = np.lexsort((dist, col))
     col, dist, z = col[order], dist[order], z[order]
-    x, y = np.meshgrid(x_range[1] - (np.arange(hb) + 0.5) * cell, y_range[1] - (np.arange(wb) + 0.5) * cell,
-                       indexing="ij")
+    x, y = np.meshgrid(
+        x_range[1] - (np.arange(hb) + 0.5) * cell, y_range[1] - (np.arange(wb) + 0.5) * cell, indexing="ij"
+    )
     cdist, ccol = np.hypot(x, y).ravel(), np.floor(np.arctan2(y, x) / res).astype(np.int64).ravel()
     filled = np.unique(col)
     k = np.clip(np.searchsorted(filled, ccol), 1, max(len(filled) - 1, 1))
@@ -246,8 +273,13 @@ def bev_height(points: np.ndarray, x_range: tuple[float, float] = (6.0, 46.0),
     return (z[left] + np.clip(t, 0.0, 1.0) * (z[right] - z[left])).reshape(hb, wb).astype(np.float32)
 
 
-def bev_points(points: np.ndarray, x_range: tuple[float, float] = (6.0, 46.0),
-               y_range: tuple[float, float] = (-10.0, 10.0), cell: float = 0.5, max_points: int = 16384) -> np.ndarray:
+def bev_points(
+    points: np.ndarray,
+    x_range: tuple[float, float] = (6.0, 46.0),
+    y_range: tuple[float, float] = (-10.0, 10.0),
+    cell: float = 0.5,
+    max_points: int = 16384,
+) -> np.ndarray:
     """The points inside the BEV grid as (max_points, 3) float32 x, y, z (velodyne), NaN rows after the last, for
     sparse transforms through the points themselves (SHPL). More points than ``max_points``: an evenly strided
     subset."""
@@ -256,5 +288,5 @@ def bev_points(points: np.ndarray, x_range: tuple[float, float] = (6.0, 46.0),
     if len(inside) > max_points:
         inside = inside[np.linspace(0, len(inside) - 1, max_points).astype(np.int64)]
     out = np.full((max_points, 3), np.nan, np.float32)
-    out[:len(inside)] = inside
+    out[: len(inside)] = inside
     return out

@@ -24,6 +24,7 @@ the constant optics folded into the threshold)::
 - Dark paint reaches ``rho`` ~ 0.03 (carbon-black paints absorb the near infrared), so a dark car gets no return
   beyond 20 m (reflectance 0.02) to 36 m (0.06) even head-on, and from less far on its oblique faces.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -38,8 +39,13 @@ GLOSS_EXPONENT = 8.0
 SUB_RAYS = ((0.0, 0.0), (0.35, 0.0), (-0.35, 0.0), (0.0, 0.35), (0.0, -0.35))
 
 
-def received_power(reflectance: np.ndarray, cos_incidence: np.ndarray, distance: np.ndarray,
-                   gloss: np.ndarray | float = 1.0, alpha: float = ALPHA_CLEAR) -> np.ndarray:
+def received_power(
+    reflectance: np.ndarray,
+    cos_incidence: np.ndarray,
+    distance: np.ndarray,
+    gloss: np.ndarray | float = 1.0,
+    alpha: float = ALPHA_CLEAR,
+) -> np.ndarray:
     """Relative received power ``rho * cos^gloss(theta) * exp(-2 alpha R) / R^2`` (0 where R is not finite).
     ``gloss`` 1: Lambertian; ``GLOSS_EXPONENT``: glossy paint; 0: angle-independent (ground)."""
     distance = np.asarray(distance, np.float64)

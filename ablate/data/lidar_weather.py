@@ -16,17 +16,25 @@ Severity 1: rain, visibility 2 km (heavy rain), 5 % dropouts, 100 clutter points
 visibility 150 m, 2 % dropouts, 800 clutter points within 1-8 m. Severity scales the extinction, the
 dropouts and the clutter linearly (0: no change).
 """
+
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from ablate.data import lidar_physics as physics
 
 
-def _weather(points: np.ndarray, rng: np.random.Generator, severity: float, visibility: float, dropout: float,
-             clutter: int, clutter_range: tuple[float, float]) -> np.ndarray:
+def _weather(
+    points: np.ndarray,
+    rng: np.random.Generator,
+    severity: float,
+    visibility: float,
+    dropout: float,
+    clutter: int,
+    clutter_range: tuple[float, float],
+) -> np.ndarray:
     pts = np.asarray(points, np.float32)
     if severity <= 0 or not len(pts):
         return pts
@@ -40,8 +48,9 @@ def _weather(points: np.ndarray, rng: np.random.Generator, severity: float, visi
     a = rng.uniform(az.min(), az.max(), n)
     e = rng.uniform(el.min(), el.max(), n)
     d = rng.uniform(*clutter_range, n)
-    fake = np.stack([d * np.cos(e) * np.cos(a), d * np.cos(e) * np.sin(a), d * np.sin(e),
-                     rng.uniform(0.0, 0.1, n)], 1).astype(np.float32)
+    fake = np.stack(
+        [d * np.cos(e) * np.cos(a), d * np.cos(e) * np.sin(a), d * np.sin(e), rng.uniform(0.0, 0.1, n)], 1
+    ).astype(np.float32)
     return np.vstack([pts[keep], fake])
 
 

@@ -6,6 +6,7 @@ KITTI instance frames) proposes masks that people refine with polygons, over 8 i
 the spirit of the annotation from 3D boxes and point clouds of Chen et al. that SMoE §2 cites as [24]. The
 dataset (``ablate.data.dataset``) uses them for a KITTI folder with no instance_2/.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -41,8 +42,13 @@ def _hull(calib: Calibration, corners: np.ndarray, origin: tuple[int, int], shap
     return cv2.fillConvexPoly(np.zeros(shape, np.uint8), poly, 1).view(bool)
 
 
-def from_lidar(points: np.ndarray, calib: Calibration, objects: list[Object3D], shape: tuple[int, int],
-               dense: np.ndarray | None = None) -> np.ndarray:
+def from_lidar(
+    points: np.ndarray,
+    calib: Calibration,
+    objects: list[Object3D],
+    shape: tuple[int, int],
+    dense: np.ndarray | None = None,
+) -> np.ndarray:
     """(N,H,W) bool instance masks, one per object of ``objects`` (as ``ablate.data.kitti.read_labels`` returns
     them), in that order; stands in for SMoE §3.1's semi-automatic annotation (see the module docstring).
 
@@ -130,8 +136,9 @@ def figure(split_dir, frame: str, out) -> None:
     paths = kitti.frame_paths(Path(split_dir), frame)
     image = kitti.read_image(paths["image"])
     objects = kitti.read_labels(paths["label"])
-    masks = from_lidar(kitti.read_velodyne(paths["velodyne"]), kitti.Calibration.from_file(paths["calib"]),
-                       objects, image.shape[:2])
+    masks = from_lidar(
+        kitti.read_velodyne(paths["velodyne"]), kitti.Calibration.from_file(paths["calib"]), objects, image.shape[:2]
+    )
     colours = plt.get_cmap("tab10")(np.arange(len(objects)) % 10)[:, :3]
     shown = image / 255.0
     for mask, colour in zip(masks, colours):
@@ -151,12 +158,24 @@ def figure(split_dir, frame: str, out) -> None:
         for o, mask, colour in zip(objects, masks, colours):
             bx0, by0, bx1, by1 = o.bbox
             dontcare = o.type == "DontCare"
-            ax.add_patch(plt.Rectangle((bx0, by0), bx1 - bx0, by1 - by0, fill=False, lw=1,
-                                       ls="--" if dontcare else "-", ec="white" if dontcare else colour))
+            ax.add_patch(
+                plt.Rectangle(
+                    (bx0, by0),
+                    bx1 - bx0,
+                    by1 - by0,
+                    fill=False,
+                    lw=1,
+                    ls="--" if dontcare else "-",
+                    ec="white" if dontcare else colour,
+                )
+            )
             if ax is bottom and not dontcare:
                 ax.text(bx0, by0 - 1, f"{o.type} {int(mask.sum())} px", color=colour, fontsize=8)
-    top.set_title(f"KITTI object {frame}: instance masks from LiDAR + 3D boxes (ablate.data.masks.from_lidar), "
-                  "label_2 2D boxes (DontCare dashed); below, the objects enlarged", fontsize=9)
+    top.set_title(
+        f"KITTI object {frame}: instance masks from LiDAR + 3D boxes (ablate.data.masks.from_lidar), "
+        "label_2 2D boxes (DontCare dashed); below, the objects enlarged",
+        fontsize=9,
+    )
     fig.tight_layout(pad=0.2)
     fig.canvas.draw()
     Path(out).parent.mkdir(parents=True, exist_ok=True)

@@ -2,6 +2,7 @@
 
 Everything is in KITTI's rectified camera frame: x right, y down, z forward (metres); the road plane is
 ``y = CAMERA_HEIGHT``. A scene is a dict of numpy arrays (see :func:`ablate.data.synth.sample_scene`)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -115,8 +116,16 @@ def cast(scene: dict, origin: np.ndarray, dirs: np.ndarray, max_t: float = 1000.
     kind = np.where(use_box, BOX, kind)
     box = np.where(use_box, box, -1)
     point = origin + np.where(np.isfinite(t), t, 0)[:, None] * dirs
-    out = {"t": t, "kind": kind, "box": box, "point": point, "dx": np.where(use_box, 0, dx),
-           "axis": boxes["axis"], "local": boxes["local"], "any_hit": boxes["any_hit"]}
+    out = {
+        "t": t,
+        "kind": kind,
+        "box": box,
+        "point": point,
+        "dx": np.where(use_box, 0, dx),
+        "axis": boxes["axis"],
+        "local": boxes["local"],
+        "any_hit": boxes["any_hit"],
+    }
     normal = np.zeros((len(t), 3), np.float32)
     normal[(kind == ROAD) | (kind == BORDER), 1] = -1.0
     isbox = kind == BOX

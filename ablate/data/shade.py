@@ -7,6 +7,7 @@
   approximation, ``F = 0.04 + 0.96 (1 - cos theta)^5``; cabins keep a pillar frame and the roof in the body's paint.
 - Cars: tail lights (red) at the back, head lights (white) at the front, rims on the tyres' outer faces.
 """
+
 from __future__ import annotations
 
 import cv2
@@ -45,8 +46,14 @@ def glass_mask(scene: dict, hit: dict, isbox: np.ndarray) -> np.ndarray:
     along = np.where(ax == 2, lx, lz)
     half = np.where(ax == 2, hl, hw)
     frame = (half - np.abs(along) > 0.08) & (ly > 0.06) & (2 * hh - ly > 0.08) & ((ax != 2) | (np.abs(lx) > 0.05))
-    window = (np.mod(along + half, 3.0) > 0.8) & (np.mod(along + half, 3.0) < 2.2) & (np.mod(ly, 3.0) > 0.9) & \
-             (np.mod(ly, 3.0) < 2.2) & (ly > 3.0) & (2 * hh - ly > 0.5)
+    window = (
+        (np.mod(along + half, 3.0) > 0.8)
+        & (np.mod(along + half, 3.0) < 2.2)
+        & (np.mod(ly, 3.0) > 0.9)
+        & (np.mod(ly, 3.0) < 2.2)
+        & (ly > 3.0)
+        & (2 * hh - ly > 0.5)
+    )
     out[isbox] = side & (((part == CABIN) & frame) | ((part == FACADE) & window))
     return out
 
@@ -130,5 +137,3 @@ def shade(scene: dict, hit: dict, dirs: np.ndarray) -> np.ndarray:
     sky = kind == SKY
     rgb[sky] = sky_colour(dirs[sky])
     return np.clip(rgb * scene["exposure"], 0, 1)
-
-

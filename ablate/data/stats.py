@@ -18,7 +18,14 @@ object, does the LiDAR return from it, and does it stand out in the camera image
 - **Conditions**: every frame's image goes through each of :data:`ablate.data.conditions.CONDITIONS` with the rng the
   dataset gives that frame (``default_rng([seed, crc32(frame)])``), so the rows compare the same objects under the
   same drops, wipers and glare spots. The LiDAR side does not depend on the condition.
+- **Height of the objects the LiDAR misses** (:func:`missed_heights`): their 2D box height in pixels, rescaled from
+  the data's own rows to each of ``HEIGHT_ROWS`` rows (the image heights a scale could train at; 375 is KITTI's),
+  and the share at least ``MIN_PX`` tall. These are the objects only the camera can add (SMoE's "RGB only"), so
+  the camera expert must be able to find them at the scale's resolution. ``MIN_PX`` = 20 is the resolution
+  target of the issue on SMoE's data (about 2.5 cells of P3, stride 8, the finest level the instance head
+  predicts from); a reading of that target, not a figure from the paper.
 """
+
 from __future__ import annotations
 
 import zlib
@@ -40,6 +47,7 @@ CLASSES = ("Car", "Pedestrian")
 MIN_RETURNS, MARGIN, GROUND = 10, 0.2, 0.1  # returns; metres; metres
 JND, NOISE_K = 2.3, 3.0  # ΔE*ab; multiples of the per-pixel L* noise
 SHRINK, RING = 0.15, 0.25  # fractions of the 2D box
+HEIGHT_ROWS, MIN_PX = (128, 192, 256, 320, 375), 20.0  # image rows; pixels
 BINS, BIN_LABELS = (0.0, 15.0, 30.0, 45.0, np.inf), ("0-15 m", "15-30 m", "30-45 m", "45+ m")
 PATTERNS = ("both", "LiDAR only", "camera only", "neither")
 _IMMERKAER = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
@@ -58,8 +66,9 @@ def noise_sigma(channel: np.ndarray) -> float:
     return float(np.sqrt(np.pi / 2) * np.abs(lap).sum() / (6 * (w - 2) * (h - 2)))
 
 
-def contrast(lab: np.ndarray, bbox, mask: np.ndarray | None = None, shrink: float = SHRINK,
-             ring: float = RING) -> float:
+def contrast(
+    lab: np.ndarray, bbox, mask: np.ndarray | None = None, shrink: float = SHRINK, ring: float = RING
+) -> float:
     """ΔE*ab between the mean colour of an object in ``lab`` ((H,W,3) CIELab) and of a ring around its 2D box
     ``bbox`` (xyxy px). The object's pixels are ``mask`` ((H,W) bool) where given and not empty, else ``bbox`` with
     ``shrink`` of each side cut off; the ring is ``ring`` x the box's shorter side wide (at least 2 px). NaN when the
@@ -69,11 +78,11 @@ def contrast(lab: np.ndarray, bbox, mask: np.ndarray | None = None, shrink: floa
     bw, bh = x1 - x0, y1 - y0
     r = max(2.0, ring * min(bw, bh))
     top, left = max(0, int(np.floor(y0 - r))), max(0, int(np.floor(x0 - r)))
-    yy, xx = np.mgrid[top:min(h, int(np.ceil(y1 + r)) + 1), left:min(w, int(np.ceil(x1 + r)) + 1)]
-    crop = lab[top:top + yy.shape[0], left:left + yy.shape[1]]
+    yy, xx = np.mgrid[top : min(h, int(np.ceil(y1 + r)) + 1), left : min(w, int(np.ceil(x1 + r)) + 1)]
+    crop = lab[top : top + yy.shape[0], left : left + yy.shape[1]]
     within = lambda a, b, c, d: (xx >= a) & (xx <= c) & (yy >= b) & (yy <= d)  # noqa: E731
     around = within(x0 - r, y0 - r, x1 + r, y1 + r) & ~within(x0, y0, x1, y1)
-    obj = None if mask is None else mask[top:top + yy.shape[0], left:left + yy.shape[1]]
+    obj = None if mask is None else mask[top : top + yy.shape[0], left : left + yy.shape[1]]
     if obj is None or not obj.any():
         obj = within(x0 + shrink * bw, y0 + shrink * bh, x1 - shrink * bw, y1 - shrink * bh)
     if not obj.any() or not around.any():
@@ -81,9 +90,11 @@ def contrast(lab: np.ndarray, bbox, mask: np.ndarray | None = None, shrink: floa
     return float(np.linalg.norm(crop[obj].mean(0) - crop[around].mean(0)))
 
 
-def frame_objects(split_dir: Path, frame: str, conditions=tuple(CONDITIONS), seed: int = 0,
-                  severity: float = 1.0) -> list[dict]:
-    """One record per counted object of ``frame`` and condition: class, distance, height, returns, ΔE, threshold."""
+def frame_objects(
+    split_dir: Path, frame: str, conditions=tuple(CONDITIONS), seed: int = 0, severity: float = 1.0
+) -> list[dict]:
+    """One record per counted object of ``frame`` and condition: class, distance, height (px) and the image's rows,
+    returns, ΔE, threshold."""
     from ablate.data.difficulty import counted
 
     paths = kitti.frame_paths(split_dir, frame)
@@ -97,21 +108,40 @@ def frame_objects(split_dir: Path, frame: str, conditions=tuple(CONDITIONS), see
     points = kitti.Calibration.from_file(paths["calib"]).velo_to_rect(kitti.read_velodyne(paths["velodyne"]))
     inst = cv2.imread(str(paths["instance"]), cv2.IMREAD_UNCHANGED) if paths["instance"].is_file() else None
     objects = [labels[k] for k in keep]
-    base = [{"frame": frame, "object": k, "class": o.type, "distance": float(np.hypot(o.location[0], o.location[2])),
-             "height": o.bbox[3] - o.bbox[1], "returns": returns_in_box(points, o)} for k, o in zip(keep, objects)]
+    base = [
+        {
+            "frame": frame,
+            "object": k,
+            "class": o.type,
+            "distance": float(np.hypot(o.location[0], o.location[2])),
+            "height": o.bbox[3] - o.bbox[1],
+            "rows": image.shape[0],
+            "returns": returns_in_box(points, o),
+        }
+        for k, o in zip(keep, objects)
+    ]
     masks = [None if inst is None else inst == k + 1 for k in keep]
     rows = []
     for name in conditions:
         rng = np.random.default_rng([seed, zlib.crc32(frame.encode())])
         lab = cv2.cvtColor(apply_condition(name, image, rng, severity), cv2.COLOR_RGB2Lab)
         threshold = JND + NOISE_K * noise_sigma(lab[..., 0])
-        rows += [{**b, "condition": name, "delta_e": contrast(lab, o.bbox, m), "threshold": threshold}
-                 for o, b, m in zip(objects, base, masks)]
+        rows += [
+            {**b, "condition": name, "delta_e": contrast(lab, o.bbox, m), "threshold": threshold}
+            for o, b, m in zip(objects, base, masks)
+        ]
     return rows
 
 
-def compute(root: str | Path, frames: int | None = None, conditions=tuple(CONDITIONS), seed: int = 0,
-            severity: float = 1.0, min_returns: int = MIN_RETURNS, progress: bool = True) -> pd.DataFrame:
+def compute(
+    root: str | Path,
+    frames: int | None = None,
+    conditions=tuple(CONDITIONS),
+    seed: int = 0,
+    severity: float = 1.0,
+    min_returns: int = MIN_RETURNS,
+    progress: bool = True,
+) -> pd.DataFrame:
     """One row per counted object and condition of the first ``frames`` frames under ``root`` (all if None), with
     booleans ``lidar`` (LiDAR hit) and ``camera`` (camera visible) and the distance bin."""
     from ablate.data.datamodule import resolve_split_dir
@@ -121,11 +151,15 @@ def compute(root: str | Path, frames: int | None = None, conditions=tuple(CONDIT
         if not (split_dir / sub).is_dir():
             raise DataError(f"{split_dir}: no {sub}/ ({what}); the complementarity report needs labels and LiDAR")
     names = kitti.list_frames(split_dir)[:frames]
-    rows = [r for f in tqdm(names, desc=f"stats {root}", unit="frame", disable=not progress)
-            for r in frame_objects(split_dir, f, conditions, seed, severity)]
+    rows = [
+        r
+        for f in tqdm(names, desc=f"stats {root}", unit="frame", disable=not progress)
+        for r in frame_objects(split_dir, f, conditions, seed, severity)
+    ]
     if not rows:
-        raise DataError(f"{split_dir}: no {' or '.join(CLASSES)} at least 25 px tall (at 375 rows) in "
-                        f"{len(names)} frame(s)")
+        raise DataError(
+            f"{split_dir}: no {' or '.join(CLASSES)} at least 25 px tall (at 375 rows) in {len(names)} frame(s)"
+        )
     df = pd.DataFrame(rows)
     df["lidar"] = df["returns"] >= min_returns
     df["camera"] = df["delta_e"] >= df["threshold"]  # NaN (no ring in the image) is not visible
@@ -139,14 +173,48 @@ def summarize(df: pd.DataFrame, by: list[str]) -> pd.DataFrame:
     """Per group of ``by``: distinct objects, the share (%) of object-condition pairs LiDAR-hit, camera-visible and
     in each of :data:`PATTERNS`, and the median returns per object."""
     lidar, camera = df["lidar"].astype(bool), df["camera"].astype(bool)
-    flags = pd.DataFrame({"LiDAR hit": lidar, "camera visible": camera, "both": lidar & camera,
-                          "LiDAR only": lidar & ~camera, "camera only": ~lidar & camera, "neither": ~lidar & ~camera})
+    flags = pd.DataFrame(
+        {
+            "LiDAR hit": lidar,
+            "camera visible": camera,
+            "both": lidar & camera,
+            "LiDAR only": lidar & ~camera,
+            "camera only": ~lidar & camera,
+            "neither": ~lidar & ~camera,
+        }
+    )
     groups = [df[k] for k in by]
     out = (flags.astype(float) * 100).groupby(groups, observed=True).mean().add_suffix(" %")
-    out.insert(0, "objects", (df["frame"].astype(str) + "/" + df["object"].astype(str)).groupby(
-        groups, observed=True).nunique())
+    out.insert(
+        0,
+        "objects",
+        (df["frame"].astype(str) + "/" + df["object"].astype(str)).groupby(groups, observed=True).nunique(),
+    )
     out["median returns"] = df["returns"].groupby(groups, observed=True).median()
     return out.reset_index()
+
+
+def missed_heights(df: pd.DataFrame, rows=HEIGHT_ROWS, min_px: float = MIN_PX) -> pd.DataFrame:
+    """Per image height in ``rows``: the objects the LiDAR misses (``lidar`` false; each object once), the
+    quartiles of their 2D box height rescaled from the data's own rows (``height * r / rows``), and the share (%)
+    at least ``min_px`` tall."""
+    one = df.drop_duplicates(["frame", "object"])
+    missed = one[~one["lidar"].astype(bool)]
+    out = []
+    for r in rows:
+        px = (missed["height"] * r / missed["rows"]).to_numpy(float)
+        q = np.percentile(px, [25, 50, 75]) if len(px) else [np.nan] * 3
+        out.append(
+            {
+                "image rows": r,
+                "objects": len(px),
+                "25th pct (px)": q[0],
+                "median (px)": q[1],
+                "75th pct (px)": q[2],
+                f"≥ {min_px:g} px %": 100 * float(np.mean(px >= min_px)) if len(px) else np.nan,
+            }
+        )
+    return pd.DataFrame(out)
 
 
 def with_all(df: pd.DataFrame) -> pd.DataFrame:
@@ -159,30 +227,57 @@ def with_all(df: pd.DataFrame) -> pd.DataFrame:
 def to_markdown(df: pd.DataFrame, root: str, command: str, min_returns: int = MIN_RETURNS) -> str:
     one = df.drop_duplicates(["frame", "object"])
     conditions = ", ".join(df["condition"].cat.categories)
-    table = lambda by: summarize(with_all(df), by).rename(columns={"bin": "distance"}).to_markdown(  # noqa: E731
-        index=False, floatfmt=".1f")
-    lines = [f"# Camera/LiDAR complementarity of `{root}`", "",
-             f"{len(one)} objects ({', '.join(f'{n} {c}' for c, n in one['class'].value_counts(sort=False).items())})"
-             f" in {df['frame'].nunique()} frame(s) with one, counted as the AP counts them: Car and Pedestrian at "
-             "least 25 px tall at KITTI's 375-row scale. Computed from the data alone, with no model.", "",
-             f"- **LiDAR hit**: at least {min_returns} LiDAR returns inside the object's 3D box, the box enlarged by "
-             f"{MARGIN} m on its four sides and at its top and its bottom raised by {GROUND} m (the road under it "
-             "counts no return). *Median returns*: per object.",
-             f"- **Camera visible**: colour difference ΔE*ab (CIELab, CIE 1976) between the mean colour of the "
-             f"object (its instance mask where the data has one, else its 2D box less {SHRINK:.0%} of each side) and "
-             f"of a ring around its 2D box ({RING:.0%} of its shorter side wide, at least 2 px) at least "
-             f"{JND} + {NOISE_K:g} σ: {JND} is the just-noticeable difference of ΔE*ab, σ the image's per-pixel "
-             "noise in L* after the condition (Immerkær's estimator), so a difference the pixel noise could make "
-             f"does not count. Median threshold here: {df['threshold'].median():.1f}.",
-             f"- **Conditions** ({conditions}): the camera side is evaluated on every frame under each condition, with "
-             "the rng the dataset gives that frame, so the rows compare the same objects; the LiDAR side does not "
-             "change with the condition. *all*: every object once per condition; shares (%) are of "
-             "object-condition pairs.", "",
-             "## Per condition", "", table(["condition"]), "",
-             "## Per distance bin", "", "Distance: horizontal range of the box's bottom centre from the camera.", "",
-             table(["condition", "bin"]), "",
-             "## Per class", "", table(["condition", "class"]), "",
-             f"Regenerated by `{command}`; do not edit by hand.", ""]
+
+    def table(by: list[str]) -> str:
+        return summarize(with_all(df), by).rename(columns={"bin": "distance"}).to_markdown(index=False, floatfmt=".1f")
+
+    lines = [
+        f"# Camera/LiDAR complementarity of `{root}`",
+        "",
+        f"{len(one)} objects ({', '.join(f'{n} {c}' for c, n in one['class'].value_counts(sort=False).items())})"
+        f" in {df['frame'].nunique()} frame(s) with one, counted as the AP counts them: Car and Pedestrian at "
+        "least 25 px tall at KITTI's 375-row scale. Computed from the data alone, with no model.",
+        "",
+        f"- **LiDAR hit**: at least {min_returns} LiDAR returns inside the object's 3D box, the box enlarged by "
+        f"{MARGIN} m on its four sides and at its top and its bottom raised by {GROUND} m (the road under it "
+        "counts no return). *Median returns*: per object.",
+        f"- **Camera visible**: colour difference ΔE*ab (CIELab, CIE 1976) between the mean colour of the "
+        f"object (its instance mask where the data has one, else its 2D box less {SHRINK:.0%} of each side) and "
+        f"of a ring around its 2D box ({RING:.0%} of its shorter side wide, at least 2 px) at least "
+        f"{JND} + {NOISE_K:g} σ: {JND} is the just-noticeable difference of ΔE*ab, σ the image's per-pixel "
+        "noise in L* after the condition (Immerkær's estimator), so a difference the pixel noise could make "
+        f"does not count. Median threshold here: {df['threshold'].median():.1f}.",
+        f"- **Conditions** ({conditions}): the camera side is evaluated on every frame under each condition, with "
+        "the rng the dataset gives that frame, so the rows compare the same objects; the LiDAR side does not "
+        "change with the condition. *all*: every object once per condition; shares (%) are of "
+        "object-condition pairs.",
+        "",
+        "## Per condition",
+        "",
+        table(["condition"]),
+        "",
+        "## Per distance bin",
+        "",
+        "Distance: horizontal range of the box's bottom centre from the camera.",
+        "",
+        table(["condition", "bin"]),
+        "",
+        "## Per class",
+        "",
+        table(["condition", "class"]),
+        "",
+        "## Height of the objects the LiDAR misses",
+        "",
+        f"The objects with fewer than {min_returns} returns (each once), their 2D box height rescaled from the "
+        f"data's {'/'.join(str(r) for r in sorted(set(df['rows'])))} rows to each image height: the objects only "
+        f"the camera can add, and how tall the camera sees them at that resolution. {MIN_PX:g} px: the "
+        "resolution target for the instance task's camera expert (about 2.5 cells of P3, stride 8).",
+        "",
+        missed_heights(df).to_markdown(index=False, floatfmt=(".0f", ".0f", ".1f", ".1f", ".1f", ".1f")),
+        "",
+        f"Regenerated by `{command}`; do not edit by hand.",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -204,8 +299,14 @@ def plot(df: pd.DataFrame, min_returns: int = MIN_RETURNS):
     axes[1].plot(x, lidar["LiDAR hit %"], "k-o", lw=2.5, label="LiDAR hit")
     groups = list(bins.groupby("condition", observed=True))
     for k, (cond, g) in enumerate(groups):  # dodged sideways so that equal shares stay apart
-        axes[1].plot(x + 0.04 * (k + 1 - (len(groups) + 1) / 2) * 2, g["camera visible %"], "--o", ms=4,
-                     color=f"C{3 + k}", label=f"camera visible: {cond}")
+        axes[1].plot(
+            x + 0.04 * (k + 1 - (len(groups) + 1) / 2) * 2,
+            g["camera visible %"],
+            "--o",
+            ms=4,
+            color=f"C{3 + k}",
+            label=f"camera visible: {cond}",
+        )
     axes[1].set_xticks(x, [f"{b}\n{n} objects" for b, n in zip(lidar["bin"], lidar["objects"])])
     axes[1].set_ylim(-3, 103)
     axes[1].set_ylabel("% of objects")
@@ -225,8 +326,9 @@ def plot(df: pd.DataFrame, min_returns: int = MIN_RETURNS):
     return fig
 
 
-def report(root: str | Path, out: str | Path = "results/complementarity", frames: int | None = None,
-           progress: bool = True) -> tuple[Path, Path]:
+def report(
+    root: str | Path, out: str | Path = "results/complementarity", frames: int | None = None, progress: bool = True
+) -> tuple[Path, Path]:
     """Write ``out``.md and ``out``.png for the dataset under ``root``; return their paths."""
     df = compute(root, frames, progress=progress)
     out = Path(out)

@@ -16,6 +16,7 @@ each paint at 905 nm; a share of non-black cars has glossy metallic paint. Objec
 pedestrians on sidewalks and crossing; buildings or walls on either side (brick, plaster or concrete, with
 window rows) or open land (then the road is visible beyond 60 m).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -31,13 +32,24 @@ CLASS_NAMES = {CAR: "Car", PEDESTRIAN: "Pedestrian"}
 # Box parts: how the camera shades them and whether their faces are glass.
 FACADE, BODY, CABIN, WHEEL, HEAD, TORSO, LEGS = range(7)
 #: Car paints: (share, RGB, reflectance range at 905 nm).
-PAINTS = [(0.22, (0.88, 0.88, 0.86), (0.6, 0.8)), (0.18, (0.66, 0.67, 0.69), (0.4, 0.6)),
-          (0.15, (0.38, 0.38, 0.40), (0.2, 0.4)), (0.20, (0.045, 0.045, 0.05), (0.02, 0.06)),
-          (0.09, (0.62, 0.07, 0.06), (0.3, 0.5)), (0.08, (0.09, 0.17, 0.45), (0.1, 0.25)),
-          (0.08, None, (0.2, 0.5))]
+PAINTS = [
+    (0.22, (0.88, 0.88, 0.86), (0.6, 0.8)),
+    (0.18, (0.66, 0.67, 0.69), (0.4, 0.6)),
+    (0.15, (0.38, 0.38, 0.40), (0.2, 0.4)),
+    (0.20, (0.045, 0.045, 0.05), (0.02, 0.06)),
+    (0.09, (0.62, 0.07, 0.06), (0.3, 0.5)),
+    (0.08, (0.09, 0.17, 0.45), (0.1, 0.25)),
+    (0.08, None, (0.2, 0.5)),
+]
 GLOSSY_SHARE = 0.3  # of non-black cars: metallic / clear-coat paint (cos^8 angular response)
-FACADES = [(0.55, 0.30, 0.22), (0.78, 0.70, 0.55), (0.60, 0.60, 0.60), (0.86, 0.85, 0.80), (0.35, 0.35, 0.37),
-           (0.80, 0.68, 0.40)]
+FACADES = [
+    (0.55, 0.30, 0.22),
+    (0.78, 0.70, 0.55),
+    (0.60, 0.60, 0.60),
+    (0.86, 0.85, 0.80),
+    (0.35, 0.35, 0.37),
+    (0.80, 0.68, 0.40),
+]
 SKIN = [(0.87, 0.72, 0.60), (0.62, 0.46, 0.34), (0.38, 0.26, 0.19), (0.95, 0.80, 0.70)]
 TROUSERS = [(0.14, 0.19, 0.33), (0.07, 0.07, 0.08), (0.55, 0.50, 0.38), (0.40, 0.40, 0.42)]
 
@@ -71,14 +83,21 @@ def sample_scene(rng: np.random.Generator) -> dict:
     road_grey = rng.uniform(0.25, 0.45)
     mode = rng.choice(["kerb_distinct", "kerb_camouflaged", "flat_distinct"])
     elevation, azimuth = np.deg2rad(rng.uniform(25, 65)), rng.uniform(-np.pi, np.pi)
-    s = {"offset": rng.uniform(-1.5, 1.5), "curvature": rng.uniform(-1, 1) / 250.0,
-         "road_half_width": rng.uniform(3.0, 7.0), "sidewalk": rng.uniform(1.5, 3.5),
-         "curb": 0.0 if mode == "flat_distinct" else rng.uniform(0.12, 0.2), "mode": mode,
-         "road_rgb": road_grey * rng.uniform(0.92, 1.08, 3), "road_refl": rng.uniform(0.15, 0.35),
-         "exposure": rng.uniform(0.75, 1.2), "tex_seed": int(rng.integers(1 << 30)),
-         "lane_dash": rng.uniform(2.0, 4.0),
-         # unit vector towards the sun (y down, so its y is negative)
-         "sun": np.array([np.cos(elevation) * np.sin(azimuth), -np.sin(elevation), np.cos(elevation) * np.cos(azimuth)])}
+    s = {
+        "offset": rng.uniform(-1.5, 1.5),
+        "curvature": rng.uniform(-1, 1) / 250.0,
+        "road_half_width": rng.uniform(3.0, 7.0),
+        "sidewalk": rng.uniform(1.5, 3.5),
+        "curb": 0.0 if mode == "flat_distinct" else rng.uniform(0.12, 0.2),
+        "mode": mode,
+        "road_rgb": road_grey * rng.uniform(0.92, 1.08, 3),
+        "road_refl": rng.uniform(0.15, 0.35),
+        "exposure": rng.uniform(0.75, 1.2),
+        "tex_seed": int(rng.integers(1 << 30)),
+        "lane_dash": rng.uniform(2.0, 4.0),
+        # unit vector towards the sun (y down, so its y is negative)
+        "sun": np.array([np.cos(elevation) * np.sin(azimuth), -np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]),
+    }
     if mode == "kerb_camouflaged":
         s["border_rgb"], s["border_refl"] = s["road_rgb"] * rng.uniform(0.97, 1.03), s["road_refl"]
     else:
@@ -100,8 +119,14 @@ def sample_scene(rng: np.random.Generator) -> dict:
             xc = road_centre(s, zc) + lateral + sign * depth / 2
             yaw = np.pi / 2 + np.arctan(s["curvature"] * zc)
             colour = np.array(FACADES[rng.integers(len(FACADES))]) * rng.uniform(0.85, 1.15, 3)
-            boxes.add((xc, CAMERA_HEIGHT - s["curb"], zc, length / 2, height / 2, depth / 2, yaw), -1, BUILDING,
-                      FACADE, colour, rng.uniform(0.1, 0.6))
+            boxes.add(
+                (xc, CAMERA_HEIGHT - s["curb"], zc, length / 2, height / 2, depth / 2, yaw),
+                -1,
+                BUILDING,
+                FACADE,
+                colour,
+                rng.uniform(0.1, 0.6),
+            )
             z += length + rng.uniform(0, 8)
     placed: list[tuple[float, float, float]] = []
     objects: list[tuple] = []  # (class, x, bottom y, z, l, h, w, yaw) in the camera frame
@@ -149,8 +174,15 @@ def _car(boxes: _Boxes, owner: int, rng, xc, base, zc, dims, yaw, camo, paint: i
     boxes.add((xc, base - clearance, zc, l / 2, body_h / 2, w / 2, yaw), owner, CAR, BODY, colour, refl, gloss)
     cabin_h = h - clearance - body_h
     ox, oz = to_world(yaw, -0.06 * l, 0.0)  # the cabin sits a little behind the centre
-    boxes.add((xc + ox, base - clearance - body_h, zc + oz, 0.28 * l, cabin_h / 2, 0.44 * w, yaw), owner, CAR,
-              CABIN, colour, refl, gloss)
+    boxes.add(
+        (xc + ox, base - clearance - body_h, zc + oz, 0.28 * l, cabin_h / 2, 0.44 * w, yaw),
+        owner,
+        CAR,
+        CABIN,
+        colour,
+        refl,
+        gloss,
+    )
     for sx in (-1, 1):
         for sz in (-1, 1):
             ox, oz = to_world(yaw, sx * (l / 2 - 0.75), sz * (w / 2 - 0.08))
@@ -164,12 +196,24 @@ def _pedestrian(boxes: _Boxes, owner: int, rng, xc, base, zc, dims, yaw, camo) -
     trousers = np.array(TROUSERS[rng.integers(len(TROUSERS))]) if camo is None else shirt * 0.9
     cloth_refl = lambda c: rng.uniform(0.04, 0.1) if np.mean(c) < 0.15 else rng.uniform(0.2, 0.6)  # noqa: E731
     legs, torso = 0.47 * h, 0.38 * h
-    boxes.add((xc, base, zc, l / 2 * 0.8, legs / 2, w / 2 * 0.75, yaw), owner, PEDESTRIAN, LEGS, trousers,
-              cloth_refl(trousers))
+    boxes.add(
+        (xc, base, zc, l / 2 * 0.8, legs / 2, w / 2 * 0.75, yaw),
+        owner,
+        PEDESTRIAN,
+        LEGS,
+        trousers,
+        cloth_refl(trousers),
+    )
     boxes.add((xc, base - legs, zc, l / 2, torso / 2, w / 2, yaw), owner, PEDESTRIAN, TORSO, shirt, cloth_refl(shirt))
     head = h - legs - torso
-    boxes.add((xc, base - legs - torso, zc, 0.1, head / 2, 0.09, yaw), owner, PEDESTRIAN, HEAD,
-              np.array(SKIN[rng.integers(len(SKIN))]) * rng.uniform(0.9, 1.1), rng.uniform(0.3, 0.5))
+    boxes.add(
+        (xc, base - legs - torso, zc, 0.1, head / 2, 0.09, yaw),
+        owner,
+        PEDESTRIAN,
+        HEAD,
+        np.array(SKIN[rng.integers(len(SKIN))]) * rng.uniform(0.9, 1.1),
+        rng.uniform(0.3, 0.5),
+    )
 
 
 def camera_rays(P2: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -188,7 +232,9 @@ def lidar_angles(height: int, width: int, fov: float = 45.0) -> tuple[np.ndarray
     at the cpu scale's 128, 11 at 64). Far and small objects then get as few beams, per pixel of their size, as
     in KITTI."""
     step = 0.09 * KITTI_P2[3] / width
-    beams = BEAMS[np.round(np.linspace(0, len(BEAMS) - 1, max(2, round(len(BEAMS) * height / KITTI_P2[4])))).astype(int)]
+    beams = BEAMS[
+        np.round(np.linspace(0, len(BEAMS) - 1, max(2, round(len(BEAMS) * height / KITTI_P2[4])))).astype(int)
+    ]
     el, az = np.meshgrid(np.deg2rad(beams), np.deg2rad(np.arange(-fov, fov + 1e-9, step)), indexing="ij")
     return el.ravel(), az.ravel()
 

@@ -5,6 +5,7 @@ Work buffers are kept between calls (per thread): on small virtual machines, fau
 allocated arrays costs more than the arithmetic done on them. Triangles are rasterised in blocks of at most SPANS
 row spans and PIXELS pixels, so that the buffers stay small and in cache whatever the image; only the per-triangle
 table grows with the input (about 4 MB for the ~40k triangles of a full-resolution KITTI frame)."""
+
 from __future__ import annotations
 
 import math
@@ -166,13 +167,14 @@ def _spans(cum: np.ndarray, r0: np.ndarray, il, sl, ir, sr, a, b, c, w: int, q_o
     while s0 < ns:
         p0 = int(q0[s0])
         s1 = max(int(np.searchsorted(q0, p0 + PIXELS, side="right")) - 1, s0 + 1)
-        _pixels(q0[s0:s1 + 1] - p0, start[s0:s1], at[s0:s1], v0[s0:s1], p0, q_off + p0, out)
+        _pixels(q0[s0 : s1 + 1] - p0, start[s0:s1], at[s0:s1], v0[s0:s1], p0, q_off + p0, out)
         s0 = s1
     return npx
 
 
-def _pixels(q0: np.ndarray, start: np.ndarray, at: np.ndarray, v0: np.ndarray, p0: int, q_off: int,
-            out: np.ndarray) -> None:
+def _pixels(
+    q0: np.ndarray, start: np.ndarray, at: np.ndarray, v0: np.ndarray, p0: int, q_off: int, out: np.ndarray
+) -> None:
     """out[start + q] = at * (q_off + q) + v0, span by span, for the q0[-1] pixels of consecutive spans (q0: first
     position of each span, then the total)."""
     npx = int(q0[-1])
@@ -218,7 +220,19 @@ def raster_triangles(tri: np.ndarray, flat: np.ndarray, w: int, out: np.ndarray)
         while j0 < n:
             j1 = max(int(np.searchsorted(cum, cum[j0] + SPANS, side="right")) - 1, j0 + 1)
             part = slice(j0, j1)
-            drawn += _spans(cum[j0:j1 + 1], r0[part], il[part], sl[part], ir[part], sr[part], a[part], b[part],
-                            c[part], w, drawn, out)
+            drawn += _spans(
+                cum[j0 : j1 + 1],
+                r0[part],
+                il[part],
+                sl[part],
+                ir[part],
+                sr[part],
+                a[part],
+                b[part],
+                c[part],
+                w,
+                drawn,
+                out,
+            )
             j0 = j1
     return drawn

@@ -1,6 +1,7 @@
 """Training augmentation (ablate.data.augment): the mirrored world projects onto the flipped image through the
 flipped calibration, a zoom is a change of intrinsics that every camera-space tensor follows, the BEV follows the
 mirror, and validation / test frames are never touched."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,8 +23,9 @@ def data_dir(tmp_path_factory):
 
 
 def first(data_dir: str, augment: dict | None, split: str = "train", modalities=("rgb", "dense_depth", "bev")):
-    dm = KittiDataModule(synth=SMALL, data_dir=data_dir, modalities=list(modalities), targets=TARGETS,
-                         batch_size=1, augment=augment)
+    dm = KittiDataModule(
+        synth=SMALL, data_dir=data_dir, modalities=list(modalities), targets=TARGETS, batch_size=1, augment=augment
+    )
     dm.setup()
     return dm.datasets[split][0]
 
@@ -32,8 +34,9 @@ def test_the_mirrored_scan_lands_on_the_flipped_pixels_of_a_real_calibration(kit
     calib = Calibration.from_file(kitti_root / "object" / "training" / "calib" / "000000.txt")
     width = 1242
     rng = np.random.default_rng(0)
-    pts = np.column_stack([rng.uniform(5, 60, 200), rng.uniform(-15, 15, 200), rng.uniform(-2, 1, 200),
-                           rng.uniform(0, 1, 200)]).astype(np.float32)
+    pts = np.column_stack(
+        [rng.uniform(5, 60, 200), rng.uniform(-15, 15, 200), rng.uniform(-2, 1, 200), rng.uniform(0, 1, 200)]
+    ).astype(np.float32)
     mirrored, flipped = mirror_points(pts, calib), flip_calibration(calib, width)
     uv, depth = calib.velo_to_image(pts)
     uv_m, depth_m = flipped.velo_to_image(mirrored)
@@ -50,13 +53,17 @@ def test_the_mirrored_scan_lands_on_the_flipped_pixels_of_a_real_calibration(kit
 def test_the_road_frame_of_the_mirrored_world_gives_each_mirrored_point_its_height():
     road = np.hstack([np.eye(3), [[0.3], [-1.65], [0.1]]])
     road[:, :3] = np.array([[np.cos(0.1), 0, np.sin(0.1)], [0, 1, 0], [-np.sin(0.1), 0, np.cos(0.1)]])
-    calib = Calibration(P2=np.array([[100.0, 0, 40, 5], [0, 100, 30, 0], [0, 0, 1, 0.01]]), R0_rect=np.eye(3),
-                        Tr_velo_to_cam=np.array([[0.0, -1, 0, 0.1], [0, 0, -1, -0.07], [1, 0, 0, -0.27]]),
-                        Tr_cam_to_road=road)
+    calib = Calibration(
+        P2=np.array([[100.0, 0, 40, 5], [0, 100, 30, 0], [0, 0, 1, 0.01]]),
+        R0_rect=np.eye(3),
+        Tr_velo_to_cam=np.array([[0.0, -1, 0, 0.1], [0, 0, -1, -0.07], [1, 0, 0, -0.27]]),
+        Tr_cam_to_road=road,
+    )
     flipped = flip_calibration(calib, 80)
     rect = np.array([[2.0, 1.5, 10.0], [-3.0, 0.2, 25.0]])
-    np.testing.assert_allclose((flipped.Tr_cam_to_road @ np.c_[rect * [-1, 1, 1], np.ones(2)].T)[1],
-                               (road @ np.c_[rect, np.ones(2)].T)[1])
+    np.testing.assert_allclose(
+        (flipped.Tr_cam_to_road @ np.c_[rect * [-1, 1, 1], np.ones(2)].T)[1], (road @ np.c_[rect, np.ones(2)].T)[1]
+    )
     np.testing.assert_allclose(flipped.rect_to_image(rect * [-1, 1, 1])[:, 0], 79 - calib.rect_to_image(rect)[:, 0])
 
 
@@ -72,9 +79,14 @@ def test_a_zoom_maps_the_frame_inside_the_zoomed_image():
     assert Augment(flip=1.0, scale=(1.0, 1.0)).draw((64, 208), gen) == View(True, None)
 
 
-@pytest.mark.parametrize("options, match", [({"flip": 0.5, "rotate": 10}, "data.augment.rotate"),
-                                            ({"scale": [0.8, 1.0]}, "data.augment.scale"),
-                                            ({"flip": 2}, "data.augment.flip")])
+@pytest.mark.parametrize(
+    "options, match",
+    [
+        ({"flip": 0.5, "rotate": 10}, "data.augment.rotate"),
+        ({"scale": [0.8, 1.0]}, "data.augment.scale"),
+        ({"flip": 2}, "data.augment.flip"),
+    ],
+)
 def test_bad_augment_options_are_one_clear_error(options, match):
     with pytest.raises((KeyError, ValueError), match=match):
         Augment.from_config(options)
@@ -93,13 +105,15 @@ def test_a_flipped_frame_is_the_mirrored_scene_in_every_modality(data_dir):
     assert (flip["road_bev"] == plain["road_bev"].flip(-1)).float().mean().item() > 0.99
     assert torch.isclose(flip["bev"], plain["bev"].flip(-1), atol=0.05).float().mean().item() > 0.99
     w = SMALL["width"]
-    expected = plain["boxes2d"]["boxes"][:, [2, 1, 0, 3]] * torch.tensor([-1, 1, -1, 1]) + torch.tensor([w - 1, 0,
-                                                                                                         w - 1, 0])
+    expected = plain["boxes2d"]["boxes"][:, [2, 1, 0, 3]] * torch.tensor([-1, 1, -1, 1]) + torch.tensor(
+        [w - 1, 0, w - 1, 0]
+    )
     torch.testing.assert_close(flip["boxes2d"]["boxes"], expected)
     assert torch.equal(flip["boxes2d"]["difficulty"], plain["boxes2d"]["difficulty"])
     uv = calibration(plain["calib"]).velo_to_image(np.array([[20.0, 3.0, -1.0]]))[0]
-    uv_m = calibration(flip["calib"]).velo_to_image(mirror_points(np.array([[20.0, 3.0, -1.0, 0.5]]),
-                                                                  calibration(plain["calib"])))[0]
+    uv_m = calibration(flip["calib"]).velo_to_image(
+        mirror_points(np.array([[20.0, 3.0, -1.0, 0.5]]), calibration(plain["calib"]))
+    )[0]
     np.testing.assert_allclose(uv_m, [[w - 1 - uv[0, 0], uv[0, 1]]], atol=1e-6)
 
 
@@ -115,7 +129,7 @@ def test_a_zoom_is_a_change_of_intrinsics_that_images_labels_and_boxes_follow(da
         su, sv = (u + 20.0) / 1.25, (v + 6.0) / 1.25
         assert zoomed["free_space"][0, v, u] == plain["free_space"][0, round(sv), round(su)]
         i0, j0 = int(sv), int(su)
-        patch = plain["rgb"][:, i0:i0 + 2, j0:j0 + 2]
+        patch = plain["rgb"][:, i0 : i0 + 2, j0 : j0 + 2]
         assert (patch.amin((1, 2)) - 1e-5 <= zoomed["rgb"][:, v, u]).all()
         assert (zoomed["rgb"][:, v, u] <= patch.amax((1, 2)) + 1e-5).all()
     for key in ("bev", "road_bev", "road_bev_valid"):  # the scan and the BEV do not move
@@ -131,8 +145,9 @@ def test_only_the_training_split_is_augmented_and_every_epoch_draws_anew(data_di
     aug = {"flip": 0.5, "scale": [1.0, 1.3]}
     for split in ("val", "test"):
         assert torch.equal(first(data_dir, aug, split)["rgb"], first(data_dir, None, split)["rgb"])
-    dm = KittiDataModule(synth=SMALL, data_dir=data_dir, modalities=["rgb"], targets=["calib"], batch_size=1,
-                         augment=aug)
+    dm = KittiDataModule(
+        synth=SMALL, data_dir=data_dir, modalities=["rgb"], targets=["calib"], batch_size=1, augment=aug
+    )
     dm.setup()
     torch.manual_seed(0)
     views = {tuple(dm.datasets["train"][0]["calib"][0].flatten().tolist()) for _ in range(6)}
@@ -158,26 +173,54 @@ def test_an_augmented_batch_trains_the_bidirectional_network(data_dir, space):
     from ablate.fusion import build
     from ablate.tasks.road_bev import RoadLoss, RoadNet
 
-    dm = KittiDataModule(synth=SMALL, data_dir=data_dir, modalities=["rgb", "bev"], batch_size=2,
-                         targets=["free_space", "road_valid", "road_bev", "road_bev_valid", "calib", "height_image",
-                                  "height_bev", "lidar_points"],
-                         bev={"x_range": [6.0, 46.0], "y_range": [-10.0, 10.0], "cell": 0.5, "max_points": 2048},
-                         augment={"flip": 0.5, "scale": [1.0, 1.2]})
+    dm = KittiDataModule(
+        synth=SMALL,
+        data_dir=data_dir,
+        modalities=["rgb", "bev"],
+        batch_size=2,
+        targets=[
+            "free_space",
+            "road_valid",
+            "road_bev",
+            "road_bev_valid",
+            "calib",
+            "height_image",
+            "height_bev",
+            "lidar_points",
+        ],
+        bev={"x_range": [6.0, 46.0], "y_range": [-10.0, 10.0], "cell": 0.5, "max_points": 2048},
+        augment={"flip": 0.5, "scale": [1.0, 1.2]},
+    )
     torch.manual_seed(1)
     b = next(iter(dm.train_dataloader()))
-    model = RoadNet("backbone", {"rgb": 3, "bev": 6}, functools.partial(build, name="cbf"), space=space,
-                    backbone={"depth": 18, "width": 0.125}, fpn_channels=8)
+    model = RoadNet(
+        "backbone",
+        {"rgb": 3, "bev": 6},
+        functools.partial(build, name="cbf"),
+        space=space,
+        backbone={"depth": 18, "width": 0.125},
+        fpn_channels=8,
+    )
     loss = RoadLoss()(model(b), b)["loss"]
     loss.backward()
     assert torch.isfinite(loss) and model.branches["rgb"].encoder.conv1.weight.grad.abs().sum() > 0
 
 
 def test_a_zoom_of_a_frame_without_objects_keeps_its_empty_targets():
-    empty = {"rgb": torch.rand(3, 8, 10), "ignore": torch.zeros(8, 10, dtype=torch.bool),
-             "instances": {"masks": torch.zeros(0, 8, 10, dtype=torch.bool),
-                           "labels": torch.zeros(0, dtype=torch.int64), "boxes": torch.zeros(0, 4)},
-             "boxes2d": {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0, dtype=torch.int64),
-                         "difficulty": torch.zeros(0, dtype=torch.int64)}}
+    empty = {
+        "rgb": torch.rand(3, 8, 10),
+        "ignore": torch.zeros(8, 10, dtype=torch.bool),
+        "instances": {
+            "masks": torch.zeros(0, 8, 10, dtype=torch.bool),
+            "labels": torch.zeros(0, dtype=torch.int64),
+            "boxes": torch.zeros(0, 4),
+        },
+        "boxes2d": {
+            "boxes": torch.zeros(0, 4),
+            "labels": torch.zeros(0, dtype=torch.int64),
+            "difficulty": torch.zeros(0, dtype=torch.int64),
+        },
+    }
     out = warp(empty, np.array([[1.1, 0.0, -0.5], [0.0, 1.1, -0.3], [0.0, 0.0, 1.0]]), (8, 10))
     assert out["instances"]["masks"].shape == (0, 8, 10) and out["instances"]["boxes"].shape == (0, 4)
     assert out["boxes2d"]["difficulty"].shape == (0,) and out["rgb"].shape == (3, 8, 10)

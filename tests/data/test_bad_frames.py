@@ -1,5 +1,6 @@
 """Bad frames in real data, each kind under ``data.on_bad_frame=error`` (one DataError naming the file and the
 frame, at setup) and ``skip`` (left out of its split, logged, counted), on a copy of real KITTI frames."""
+
 from __future__ import annotations
 
 import logging
@@ -45,7 +46,7 @@ def replace(path: Path, data: bytes | str) -> None:
 
 def truncated_scan(d: Path) -> tuple[Path, str]:
     path = d / "velodyne" / f"{BAD}.bin"
-    replace(path, path.read_bytes()[:1000 * 16 + 7])
+    replace(path, path.read_bytes()[: 1000 * 16 + 7])
     return path, "truncated velodyne scan, 16007 bytes is not a positive multiple of 16"
 
 
@@ -72,7 +73,7 @@ def image_not_an_image(d: Path) -> tuple[Path, str]:
 def image_cut_short(d: Path) -> tuple[Path, str]:
     path = d / "image_2" / f"{BAD}.png"
     raw = path.read_bytes()
-    replace(path, raw[:len(raw) // 2])
+    replace(path, raw[: len(raw) // 2])
     return path, "image is a PNG cut short"
 
 
@@ -83,8 +84,14 @@ def listed_but_missing(d: Path) -> tuple[Path, str]:
     return d / "image_2" / "000009.png", "the frame's image is missing; so is its calibration"
 
 
-KINDS = [truncated_scan, calib_without_p2, label_with_14_fields, image_not_an_image, image_cut_short,
-         listed_but_missing]
+KINDS = [
+    truncated_scan,
+    calib_without_p2,
+    label_with_14_fields,
+    image_not_an_image,
+    image_cut_short,
+    listed_but_missing,
+]
 
 
 @pytest.fixture
@@ -93,8 +100,14 @@ def data(kitti_root, tmp_path):
 
 
 def module(data: Path, tmp_path: Path, **kw) -> KittiDataModule:
-    return KittiDataModule(root=str(data.parent), data_dir=str(tmp_path / "work"), modalities=["rgb", "sparse_depth"],
-                           targets=["boxes2d"], batch_size=2, **kw)
+    return KittiDataModule(
+        root=str(data.parent),
+        data_dir=str(tmp_path / "work"),
+        modalities=["rgb", "sparse_depth"],
+        targets=["boxes2d"],
+        batch_size=2,
+        **kw,
+    )
 
 
 @pytest.mark.parametrize("kind", KINDS, ids=lambda k: k.__name__)
@@ -172,7 +185,7 @@ def test_what_the_check_cannot_see_fails_when_read_as_one_data_error(data, tmp_p
     """A PNG corrupt between an intact header and end passes the check, and is a DataError naming it when read."""
     path = data / "image_2" / f"{BAD}.png"
     raw = bytearray(path.read_bytes())
-    raw[len(raw) // 2:len(raw) // 2 + 2000] = bytes(b ^ 0x55 for b in raw[len(raw) // 2:len(raw) // 2 + 2000])
+    raw[len(raw) // 2 : len(raw) // 2 + 2000] = bytes(b ^ 0x55 for b in raw[len(raw) // 2 : len(raw) // 2 + 2000])
     replace(path, bytes(raw))
     dm = module(data, tmp_path, on_bad_frame="skip")
     assert dm.skipped_frames == 0
@@ -185,7 +198,7 @@ def test_a_cache_entry_is_never_served_for_a_file_replaced_since(data, tmp_path)
     """A scan cut at a point's boundary passes every check; once repaired, the frame is read again."""
     path = data / "velodyne" / "000000.bin"
     full = path.read_bytes()
-    replace(path, full[:len(full) // 32 * 16])
+    replace(path, full[: len(full) // 32 * 16])
     ds = KittiDataset(data, ["000000"], ["sparse_depth"], [], ["clear"], cache_dir=tmp_path / "cache")
     half = ds[0]["sparse_depth"]
     path.write_bytes(full)

@@ -1,4 +1,5 @@
 """boxes2d carries KITTI's ignored types (Van, Person_sitting, DontCare) after the classes, as KittiAP reads them."""
+
 from collections import Counter
 
 import torch
@@ -13,8 +14,9 @@ def test_box_labels_are_the_metrics_label_names():
 
 
 def test_real_kitti_boxes_keep_dontcare_and_drop_other_types(kitti_root, tmp_path):
-    dm = KittiDataModule(root=str(kitti_root / "object"), data_dir=str(tmp_path), modalities=["rgb"],
-                         targets=["boxes2d"], batch_size=8)
+    dm = KittiDataModule(
+        root=str(kitti_root / "object"), data_dir=str(tmp_path), modalities=["rgb"], targets=["boxes2d"], batch_size=8
+    )
     dm.setup()
     boxes = [ds[i]["boxes2d"] for ds in dm.datasets.values() for i in range(len(ds))]
     counts = Counter(BOX_LABELS[k] for b in boxes for k in b["labels"].tolist())

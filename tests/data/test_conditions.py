@@ -1,4 +1,5 @@
 """Complex-KITTI conditions and DGFN corruptions: deterministic per seed, and they change the input."""
+
 import numpy as np
 import pytest
 

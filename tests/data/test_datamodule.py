@@ -1,4 +1,5 @@
 """KittiDataModule: batch shapes and value ranges, cache hits, conditions spread, missing targets."""
+
 import pytest
 import torch
 
@@ -11,9 +12,14 @@ SMALL = {"frames": 10, "seed": 1, "height": 64, "width": 208}
 
 @pytest.fixture(scope="module")
 def dm(tmp_path_factory):
-    dm = KittiDataModule(synth=SMALL, data_dir=str(tmp_path_factory.mktemp("data")), modalities=ALL_MODALITIES,
-                         targets=ALL_TARGETS, conditions=["clear", "night", "rain_day", "rain_night", "glare"],
-                         batch_size=3)
+    dm = KittiDataModule(
+        synth=SMALL,
+        data_dir=str(tmp_path_factory.mktemp("data")),
+        modalities=ALL_MODALITIES,
+        targets=ALL_TARGETS,
+        conditions=["clear", "night", "rain_day", "rain_night", "glare"],
+        batch_size=3,
+    )
     dm.prepare_data()
     dm.setup()
     return dm
@@ -22,8 +28,15 @@ def dm(tmp_path_factory):
 def test_batch_shapes_and_ranges(dm):
     b = next(iter(dm.train_dataloader()))
     h, w = 64, 208
-    assert dm.channels == {"rgb": 3, "intensity": 1, "sparse_depth": 1, "dense_depth": 1, "ddm_jet": 3, "dhi": 3,
-                           "bev": 6}
+    assert dm.channels == {
+        "rgb": 3,
+        "intensity": 1,
+        "sparse_depth": 1,
+        "dense_depth": 1,
+        "ddm_jet": 3,
+        "dhi": 3,
+        "bev": 6,
+    }
     for m, c in dm.channels.items():
         size = (80, 40) if m == "bev" else (h, w)
         assert b[m].shape == (3, c, *size) and b[m].dtype == torch.float32, m
@@ -67,16 +80,33 @@ def test_corruption_applied_to_named_modality(tmp_path, dm):
 
 
 def test_real_kitti_object(kitti_root, tmp_path):
-    dm = KittiDataModule(root=str(kitti_root / "object"), data_dir=str(tmp_path), modalities=["rgb", "dhi"],
-                         targets=["boxes2d"], batch_size=2, limit_frames={"train": 2})
+    dm = KittiDataModule(
+        root=str(kitti_root / "object"),
+        data_dir=str(tmp_path),
+        modalities=["rgb", "dhi"],
+        targets=["boxes2d"],
+        batch_size=2,
+        limit_frames={"train": 2},
+    )
     b = next(iter(dm.train_dataloader()))
     assert b["rgb"].shape == (2, 3, 370, 1224) and b["dhi"].shape == (2, 3, 370, 1224)
     # Instance masks come from the LiDAR and the 3D boxes there (tests/data/test_masks.py).
     # LiDAR weather: its own per-frame condition, its own cache entries; fog thins the scan.
-    fog = KittiDataModule(root=str(kitti_root / "object"), data_dir=str(tmp_path), modalities=["sparse_depth"],
-                          batch_size=2, limit_frames={"train": 2}, lidar_weather=["fog"])
-    clear = KittiDataModule(root=str(kitti_root / "object"), data_dir=str(tmp_path), modalities=["sparse_depth"],
-                            batch_size=2, limit_frames={"train": 2})
+    fog = KittiDataModule(
+        root=str(kitti_root / "object"),
+        data_dir=str(tmp_path),
+        modalities=["sparse_depth"],
+        batch_size=2,
+        limit_frames={"train": 2},
+        lidar_weather=["fog"],
+    )
+    clear = KittiDataModule(
+        root=str(kitti_root / "object"),
+        data_dir=str(tmp_path),
+        modalities=["sparse_depth"],
+        batch_size=2,
+        limit_frames={"train": 2},
+    )
     f, c = (next(iter(d.train_dataloader())) for d in (fog, clear))
     assert f["lidar_condition"] == ["fog", "fog"] and "lidar_condition" not in c
     assert (f["sparse_depth"] > 0).sum() < 0.9 * (c["sparse_depth"] > 0).sum()
@@ -100,8 +130,11 @@ def test_an_empty_split_is_one_clear_error_naming_it(dm):
 
     small = KittiDataModule(synth=SMALL, data_dir=dm.data_dir, modalities=["rgb"], limit_frames={"val": 0})
     assert len(small.train_dataloader()) > 0
-    with pytest.raises(DataError, match=r"the val split has no frames \(8 in all, data.limit_frames.val=0\); "
-                                        r"list them in .*ImageSets/val.txt"):
+    with pytest.raises(
+        DataError,
+        match=r"the val split has no frames \(8 in all, data.limit_frames.val=0\); "
+        r"list them in .*ImageSets/val.txt",
+    ):
         small.val_dataloader()
 
 
@@ -122,8 +155,10 @@ def test_jobs_starting_together_generate_the_dataset_once(tmp_path, monkeypatch)
 
     monkeypatch.setattr(datamodule, "generate", slow_generate)
     found = []
-    jobs = [threading.Thread(target=lambda: found.append(datamodule.ensure_synth(tmp_path, {"frames": 2})))
-            for _ in range(2)]
+    jobs = [
+        threading.Thread(target=lambda: found.append(datamodule.ensure_synth(tmp_path, {"frames": 2})))
+        for _ in range(2)
+    ]
     for job in jobs:
         job.start()
     for job in jobs:

@@ -1,5 +1,6 @@
 """Triangle rasteriser of the dense depth map (SMoE §3.2) against SciPy's linear interpolation, the
 independence of results computed with reused work buffers, and the memory those buffers hold."""
+
 import threading
 
 import numpy as np
@@ -87,8 +88,13 @@ def test_buffers_after_full_resolution_frames(kitti_root):
     for frame in ("000000", "000001", "000006"):
         shape = read_image(obj / "image_2" / f"{frame}.png").shape[:2]
         assert shape[1] >= 1224 and shape[0] >= 370
-        frames.append(sparse_depth(read_velodyne(obj / "velodyne" / f"{frame}.bin"),
-                                   Calibration.from_file(obj / "calib" / f"{frame}.txt"), shape))
+        frames.append(
+            sparse_depth(
+                read_velodyne(obj / "velodyne" / f"{frame}.bin"),
+                Calibration.from_file(obj / "calib" / f"{frame}.txt"),
+                shape,
+            )
+        )
     held = []
 
     def worker():

@@ -1,10 +1,19 @@
 """Readers and LiDAR representations on the real KITTI sample frames, and every bad-input case."""
+
 import numpy as np
 import pytest
 
 from ablate.data import DataError
-from ablate.data.kitti import Calibration, find_split_dir, frame_paths, list_frames, read_image, read_labels, \
-    read_road_gt, read_velodyne
+from ablate.data.kitti import (
+    Calibration,
+    find_split_dir,
+    frame_paths,
+    list_frames,
+    read_image,
+    read_labels,
+    read_road_gt,
+    read_velodyne,
+)
 from ablate.data.lidar import bev_image, dense_depth, dhi_image, jet, sparse_depth
 
 
@@ -14,8 +23,11 @@ def obj(kitti_root):
 
 
 def load(obj, frame):
-    return (Calibration.from_file(obj / "calib" / f"{frame}.txt"), read_velodyne(obj / "velodyne" / f"{frame}.bin"),
-            read_image(obj / "image_2" / f"{frame}.png"))
+    return (
+        Calibration.from_file(obj / "calib" / f"{frame}.txt"),
+        read_velodyne(obj / "velodyne" / f"{frame}.bin"),
+        read_image(obj / "image_2" / f"{frame}.png"),
+    )
 
 
 @pytest.mark.parametrize("frame", ["000000", "000006"])
@@ -112,7 +124,7 @@ def test_road_layout(kitti_root):
 def test_truncated_velodyne(tmp_path, obj):
     raw = (obj / "velodyne" / "000000.bin").read_bytes()
     bad = tmp_path / "000000.bin"
-    bad.write_bytes(raw[:1000 * 16 + 7])
+    bad.write_bytes(raw[: 1000 * 16 + 7])
     with pytest.raises(DataError, match=r"000000\.bin.*multiple of 16"):
         read_velodyne(bad)
     bad.write_bytes(b"")

@@ -1,4 +1,5 @@
 """The generated LiDAR's detection model (received power, threshold, mixed pixels, materials) and LiDAR weather."""
+
 import numpy as np
 import pytest
 
@@ -32,8 +33,15 @@ def test_mixed_pixel_is_the_power_weighted_range():
 def _scene_with_car(z: float, paint: int, yaw: float = -np.pi / 2) -> dict:
     boxes = _Boxes()
     _car(boxes, 0, np.random.default_rng(0), 0.0, CAMERA_HEIGHT, z, (4.2, 1.5, 1.8), yaw, None, paint=paint)
-    s = {"offset": 0.0, "curvature": 0.0, "road_half_width": 5.0, "sidewalk": 2.0, "curb": 0.0, "road_refl": 0.25,
-         "border_refl": 0.25}
+    s = {
+        "offset": 0.0,
+        "curvature": 0.0,
+        "road_half_width": 5.0,
+        "sidewalk": 2.0,
+        "curb": 0.0,
+        "road_refl": 0.25,
+        "border_refl": 0.25,
+    }
     boxes.into(s)
     return s
 

@@ -1,5 +1,6 @@
 """Instance masks from LiDAR + 3D boxes (ablate.data.masks) on the real KITTI sample frames, the dataset's use of
 them when a folder has no instance_2/, and the instance task trained on them at scale=smoke."""
+
 import os
 import subprocess
 import sys
@@ -79,8 +80,7 @@ def test_masks_follow_the_order_of_objects(frames):
 
 
 def test_dataset_derives_instances_from_lidar_and_caches_them(obj, frames, tmp_path):
-    ds = KittiDataset(obj, ["000006", "000007"], ["rgb"], ["instances", "road_objects"], ["clear"],
-                      cache_dir=tmp_path)
+    ds = KittiDataset(obj, ["000006", "000007"], ["rgb"], ["instances", "road_objects"], ["clear"], cache_dir=tmp_path)
     sample = ds[0]
     _, _, objects, _, masks = frames["000006"]
     inst = sample["instances"]
@@ -103,10 +103,28 @@ def test_instance_task_trains_on_real_kitti_at_smoke_scale(kitti_root, tmp_path)
     env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
     env.pop("MLFLOW_TRACKING_URI", None)
     out = subprocess.run(
-        [sys.executable, "-m", "ablate", "data=kitti", f"data.root={kitti_root / 'object'}", "scale=smoke",
-         "experts=null", "data.batch_size=2", "data.limit_frames={train:2,val:1,test:1}", "trainer.max_epochs=1",
-         "trainer.enable_progress_bar=false", "task.figure_frames=1", "comp_time.warmup=0", "comp_time.repeats=1"],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
+        [
+            sys.executable,
+            "-m",
+            "ablate",
+            "data=kitti",
+            f"data.root={kitti_root / 'object'}",
+            "scale=smoke",
+            "experts=null",
+            "data.batch_size=2",
+            "data.limit_frames={train:2,val:1,test:1}",
+            "trainer.max_epochs=1",
+            "trainer.enable_progress_bar=false",
+            "task.figure_frames=1",
+            "comp_time.warmup=0",
+            "comp_time.repeats=1",
+        ],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     (run,) = client.search_runs([client.get_experiment_by_name("ablate").experiment_id], "tags.kind = 'job'")

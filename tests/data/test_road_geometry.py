@@ -1,5 +1,6 @@
 """BiFNet DST's dense heights (ablate.data.lidar) on hand-made scans, and the road targets and per-frame geometry
 of the data module (ablate.data.dataset)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -13,8 +14,11 @@ from ablate.data.kitti import Calibration
 
 F, CX, CY = 100.0, 50.0, 50.0
 #: velodyne (x forward, y left, z up) -> camera (x right, y down, z forward); identity rectification
-CALIB = Calibration(P2=np.array([[F, 0, CX, 0], [0, F, CY, 0], [0, 0, 1, 0]]), R0_rect=np.eye(3),
-                    Tr_velo_to_cam=np.array([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]]))
+CALIB = Calibration(
+    P2=np.array([[F, 0, CX, 0], [0, F, CY, 0], [0, 0, 1, 0]]),
+    R0_rect=np.eye(3),
+    Tr_velo_to_cam=np.array([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]]),
+)
 GEOMETRY = ["calib", "height_image", "height_bev", "lidar_points"]
 SMALL = {"frames": 5, "seed": 3, "height": 64, "width": 208}
 
@@ -46,8 +50,9 @@ def test_bev_height_interpolates_along_the_column_in_horizontal_distance():
     assert h[row(15.2), 19] == pytest.approx(-1.0 + 2.0 * (d - 10.0) / 10.0, abs=1e-5)
     assert h[row(8.0), 19] == pytest.approx(-1.0) and h[row(30.0), 19] == pytest.approx(1.0)  # beyond: clamped
     # two columns: each cell takes the nearest non-empty one
-    pts = np.array([[15.0, 15.0 * np.tan(np.radians(20)), 2.0, 0.5], [15.0, -15.0 * np.tan(np.radians(20)), -2.0, 0.5]],
-                   np.float32)
+    pts = np.array(
+        [[15.0, 15.0 * np.tan(np.radians(20)), 2.0, 0.5], [15.0, -15.0 * np.tan(np.radians(20)), -2.0, 0.5]], np.float32
+    )
     h = lidar.bev_height(pts)
     assert (h[:, :19] == 2.0).all() and (h[:, 21:] == -2.0).all()  # left (y > 0) and right
     with pytest.raises(DataError, match="azimuth_res must be > 0"):
@@ -79,9 +84,14 @@ def data_dir(tmp_path_factory):
 
 
 def test_the_data_module_gives_road_targets_and_geometry(data_dir):
-    dm = KittiDataModule(synth=SMALL, data_dir=data_dir, modalities=["rgb", "bev"], batch_size=2,
-                         targets=["free_space", "road_valid", "road_bev", "road_bev_valid", *GEOMETRY],
-                         bev={"x_range": [6.0, 46.0], "y_range": [-10.0, 10.0], "cell": 0.5, "max_points": 4096})
+    dm = KittiDataModule(
+        synth=SMALL,
+        data_dir=data_dir,
+        modalities=["rgb", "bev"],
+        batch_size=2,
+        targets=["free_space", "road_valid", "road_bev", "road_bev_valid", *GEOMETRY],
+        bev={"x_range": [6.0, 46.0], "y_range": [-10.0, 10.0], "cell": 0.5, "max_points": 4096},
+    )
     b = next(iter(dm.train_dataloader()))
     h, w = SMALL["height"], SMALL["width"]
     assert b["road_valid"].shape == (2, 1, h, w) and b["road_valid"].all()  # the generated ground truth has no void
@@ -101,7 +111,7 @@ def test_a_crop_moves_the_principal_point_with_the_image(data_dir):
     full = next(iter(KittiDataModule(**kw).test_dataloader()))
     crop = next(iter(KittiDataModule(**kw, image_size=[60, 200]).test_dataloader()))
     top, left = 4, 4
-    assert torch.equal(crop["height_image"], full["height_image"][..., top:, left:left + 200])
+    assert torch.equal(crop["height_image"], full["height_image"][..., top:, left : left + 200])
     xyz = np.array([[12.0, 1.5, -1.7], [30.0, -4.0, 0.5]])
     uv_full, _ = calibration(full["calib"][0]).velo_to_image(xyz)
     uv_crop, _ = calibration(crop["calib"][0]).velo_to_image(xyz)
@@ -109,7 +119,8 @@ def test_a_crop_moves_the_principal_point_with_the_image(data_dir):
 
 
 def test_geometry_needs_a_velodyne_folder(kitti_root, tmp_path):
-    dm = KittiDataModule(root=str(kitti_root / "road"), data_dir=str(tmp_path), modalities=["rgb"],
-                         targets=["free_space", "height_bev"])
+    dm = KittiDataModule(
+        root=str(kitti_root / "road"), data_dir=str(tmp_path), modalities=["rgb"], targets=["free_space", "height_bev"]
+    )
     with pytest.raises(DataError, match="cannot provide 'height_bev': this data has no velodyne"):
         dm.setup()

@@ -1,4 +1,5 @@
 """Complementarity report: returns in a box, colour contrast, the summary's arithmetic, the CLI end to end."""
+
 import cv2
 import numpy as np
 import pandas as pd
@@ -6,7 +7,17 @@ import pytest
 
 from ablate.data.__main__ import main
 from ablate.data.kitti import Calibration, Object3D
-from ablate.data.stats import GROUND, MARGIN, compute, contrast, noise_sigma, returns_in_box, summarize, with_all
+from ablate.data.stats import (
+    GROUND,
+    MARGIN,
+    compute,
+    contrast,
+    missed_heights,
+    noise_sigma,
+    returns_in_box,
+    summarize,
+    with_all,
+)
 
 CAR = Object3D("Car", 0.0, 0, 0.0, (0, 0, 0, 0), (1.5, 1.6, 4.0), (2.0, 1.7, 20.0), 0.3)
 
@@ -28,8 +39,14 @@ def test_returns_in_box_counts_the_enlarged_box_above_the_road():
     inside = _uniform(rng, 37, (-l / 2, GROUND + 0.01, -w / 2), (l / 2, h, w / 2))
     margin = np.array([[l / 2 + MARGIN / 2, 0.8, 0.0], [0.0, h + MARGIN / 2, 0.0], [0.0, 0.8, -w / 2 - MARGIN / 2]])
     road = _uniform(rng, 11, (-l / 2, 0.0, -w / 2), (l / 2, GROUND - 0.01, w / 2))
-    outside = np.array([[l / 2 + MARGIN + 0.05, 0.8, 0.0], [0.0, h + MARGIN + 0.05, 0.0], [0.0, -0.05, 0.0],
-                        [0.0, 0.8, w / 2 + MARGIN + 0.05]])
+    outside = np.array(
+        [
+            [l / 2 + MARGIN + 0.05, 0.8, 0.0],
+            [0.0, h + MARGIN + 0.05, 0.0],
+            [0.0, -0.05, 0.0],
+            [0.0, 0.8, w / 2 + MARGIN + 0.05],
+        ]
+    )
     points = _to_rect(CAR, np.vstack([inside, margin, road, outside]))
     assert returns_in_box(points, CAR) == 37 + 3
     assert returns_in_box(points, CAR, margin=0.0, ground=0.0) == 37 + 11
@@ -68,11 +85,17 @@ def test_noise_sigma_estimates_the_pixel_noise():
 
 def test_summary_shares_and_medians():
     # 4 objects x 2 conditions: LiDAR hits objects 0 and 1; the camera sees 0 and 2 in clear, only 2 at night.
-    df = pd.DataFrame({"frame": ["a", "a", "b", "b"] * 2, "object": [0, 1, 0, 1] * 2,
-                       "class": ["Car", "Car", "Car", "Pedestrian"] * 2, "returns": [50, 12, 3, 0] * 2,
-                       "lidar": [True, True, False, False] * 2,
-                       "camera": [True, False, True, False, False, False, True, False],
-                       "condition": pd.Categorical(["clear"] * 4 + ["night"] * 4, ["clear", "night"])})
+    df = pd.DataFrame(
+        {
+            "frame": ["a", "a", "b", "b"] * 2,
+            "object": [0, 1, 0, 1] * 2,
+            "class": ["Car", "Car", "Car", "Pedestrian"] * 2,
+            "returns": [50, 12, 3, 0] * 2,
+            "lidar": [True, True, False, False] * 2,
+            "camera": [True, False, True, False, False, False, True, False],
+            "condition": pd.Categorical(["clear"] * 4 + ["night"] * 4, ["clear", "night"]),
+        }
+    )
     s = summarize(df, ["condition"]).set_index("condition")
     assert list(s["objects"]) == [4, 4]
     assert list(s["LiDAR hit %"]) == [50, 50] and list(s["camera visible %"]) == [50, 25]
@@ -87,12 +110,35 @@ def test_summary_shares_and_medians():
     assert per_class.loc["Pedestrian", "objects"] == 1 and per_class.loc["Pedestrian", "neither %"] == 100
 
 
+def test_missed_heights_rescale_the_objects_the_lidar_misses():
+    # 128-row data, 2 conditions: the LiDAR misses the 8 and 12 px objects (each counted once), hits the 30 px one
+    df = pd.DataFrame(
+        {
+            "frame": ["a", "a", "b"] * 2,
+            "object": [0, 1, 0] * 2,
+            "height": [8.0, 12.0, 30.0] * 2,
+            "rows": [128] * 6,
+            "lidar": [False, False, True] * 2,
+        }
+    )
+    out = missed_heights(df, rows=(128, 256, 375), min_px=20).set_index("image rows")
+    assert list(out["objects"]) == [2, 2, 2]
+    assert out["median (px)"].tolist() == pytest.approx([10.0, 20.0, 10.0 * 375 / 128])
+    assert out["25th pct (px)"].tolist() == pytest.approx([9.0, 18.0, 9.0 * 375 / 128])
+    assert out["≥ 20 px %"].tolist() == [0.0, 50.0, 100.0]  # 24 px at 256 rows counts, 16 does not
+    none_missed = missed_heights(df.assign(lidar=True), rows=(128,)).iloc[0]
+    assert none_missed["objects"] == 0 and np.isnan(none_missed["median (px)"])
+
+
 def _tiny_kitti(root, height=150, width=400):
     """One frame: a Car 20 px tall (counted: 25 px x 150/375 = 10) with 30 returns on a red patch, a Car 8 px tall
     (too small), a Cyclist and a DontCare; a grey image."""
     f, cx, cy = 300.0, width / 2, height / 2
-    calib = Calibration(np.array([[f, 0, cx, 0], [0, f, cy, 0], [0, 0, 1, 0]]), np.eye(3),
-                        np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]], float))
+    calib = Calibration(
+        np.array([[f, 0, cx, 0], [0, f, cy, 0], [0, 0, 1, 0]]),
+        np.eye(3),
+        np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]], float),
+    )
     car = Object3D("Car", 0.0, 0, 0.0, (0, 0, 0, 0), (1.5, 1.6, 4.0), (1.0, 1.5, 22.0), 0.0)
     uv = calib.rect_to_image(car.corners())
     bbox = (uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max())
@@ -102,7 +148,7 @@ def _tiny_kitti(root, height=150, width=400):
     dontcare = Object3D("DontCare", -1.0, -1, -10.0, (350, 60, 380, 100), (-1.0,) * 3, (-1000.0,) * 3, -10.0)
     img = np.full((height, width, 3), 128, np.uint8)
     x0, y0, x1, y1 = (int(round(v)) for v in bbox)
-    img[y0:y1 + 1, x0:x1 + 1] = (40, 40, 200)  # BGR: red
+    img[y0 : y1 + 1, x0 : x1 + 1] = (40, 40, 200)  # BGR: red
     rect = _to_rect(car, np.random.default_rng(2).uniform((-1.9, 0.2, -0.7), (1.9, 1.4, 0.7), (30, 3)))
     velo = np.stack([rect[:, 2], -rect[:, 0], -rect[:, 1], np.zeros(len(rect))], 1).astype(np.float32)
     for sub in ("image_2", "calib", "label_2", "velodyne"):
@@ -136,10 +182,13 @@ def test_cli_on_generated_data_uses_its_masks(synth, tmp_path):
     main(["stats", "--root", str(synth), "--out", str(tmp_path / "out" / "synth")])
     text = (tmp_path / "out" / "synth.md").read_text()
     assert (tmp_path / "out" / "synth.png").stat().st_size > 0
-    for heading in ("## Per condition", "## Per distance bin", "## Per class"):
+    for heading in ("## Per condition", "## Per distance bin", "## Per class", "## Height of the objects the LiDAR"):
         assert heading in text
-    rows = [line.split("|")[1].strip() for line in text.split("## Per distance bin")[0].splitlines()
-            if line.startswith("| ")][1:]
+    rows = [
+        line.split("|")[1].strip()
+        for line in text.split("## Per distance bin")[0].splitlines()
+        if line.startswith("| ")
+    ][1:]
     assert rows == ["clear", "night", "rain_day", "rain_night", "glare", "all"]
     df = compute(synth, progress=False)
     assert df["frame"].nunique() <= 6 and len(df) % 5 == 0

@@ -1,4 +1,5 @@
 """Generated dataset: camera/LiDAR consistency, labels, determinism, file layout, CLI."""
+
 import hashlib
 
 import numpy as np
@@ -30,7 +31,6 @@ def test_lidar_agrees_with_rendered_depth(frames):
 
 def test_labels_match_instances_and_boxes(frames):
     for f in frames:
-        labelled = [o for o in f["labels"] if o.type != "DontCare"]
         ids = np.unique(f["instance"])
         assert list(ids[ids > 0]) == [k + 1 for k, o in enumerate(f["labels"]) if o.type != "DontCare"]
         for k, o in enumerate(f["labels"]):
@@ -53,12 +53,57 @@ def _digest(folder):
 
 
 def test_cli_same_seed_same_bytes(tmp_path):
-    main(["synth", "--out", str(tmp_path / "a"), "--frames", "5", "--seed", "7", "--height", "64", "--width", "208",
-          "--workers", "1"])
-    main(["synth", "--out", str(tmp_path / "b"), "--frames", "5", "--seed", "7", "--height", "64", "--width", "208",
-          "--workers", "2"])
-    main(["synth", "--out", str(tmp_path / "c"), "--frames", "5", "--seed", "8", "--height", "64", "--width", "208",
-          "--workers", "1"])
+    main(
+        [
+            "synth",
+            "--out",
+            str(tmp_path / "a"),
+            "--frames",
+            "5",
+            "--seed",
+            "7",
+            "--height",
+            "64",
+            "--width",
+            "208",
+            "--workers",
+            "1",
+        ]
+    )
+    main(
+        [
+            "synth",
+            "--out",
+            str(tmp_path / "b"),
+            "--frames",
+            "5",
+            "--seed",
+            "7",
+            "--height",
+            "64",
+            "--width",
+            "208",
+            "--workers",
+            "2",
+        ]
+    )
+    main(
+        [
+            "synth",
+            "--out",
+            str(tmp_path / "c"),
+            "--frames",
+            "5",
+            "--seed",
+            "8",
+            "--height",
+            "64",
+            "--width",
+            "208",
+            "--workers",
+            "1",
+        ]
+    )
     assert _digest(tmp_path / "a") == _digest(tmp_path / "b") != _digest(tmp_path / "c")
     root = tmp_path / "a"
     assert list_frames(root) == [f"{i:06d}" for i in range(5)]
