@@ -3,6 +3,7 @@ fp32, channels_last, bf16 autocast, bf16 + channels_last, and torch.compile (ind
 
     PYTHONPATH=. python bench/bench_precision.py [--families chinet,dgfn] [--threads 1,2] [--steps 3]
         [--variants fp32,channels_last,bf16,bf16+channels_last,compile] [--bf16 once|full|skip]
+        [--set data.synth.height=256 data.synth.width=832 ...]
 
 The families: the SMoE expert (RGB, YOLACT head) and the fused FPN model of stage 2 (SMoE on its two experts, no
 feature cache); DGFN (GFU, SSD); ChiNet; BiFNet with DST and CBF. Each is built from its table's config at
@@ -55,9 +56,10 @@ VARIANTS = ("fp32", "channels_last", "bf16", "bf16+channels_last", "compile")
 FRAMES = 20  # generated frames: the training split's 60 % gives one batch of 8
 
 
-def build(family: str):
-    """(task, a training batch, the config) of ``family`` at the cpu scale, its frames generated under ``data/``."""
-    overrides = [*FAMILIES[family], "scale=cpu", f"data.synth.frames={FRAMES}", "data.num_workers=0"]
+def build(family: str, extra: tuple[str, ...] = ()):
+    """(task, a training batch, the config) of ``family`` at the cpu scale with the Hydra overrides ``extra`` on
+    top (another resolution, say), its frames generated under ``data/``."""
+    overrides = [*FAMILIES[family], "scale=cpu", *extra, f"data.synth.frames={FRAMES}", "data.num_workers=0"]
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("config", overrides=overrides)
     if family == "smoe_expert":
@@ -79,7 +81,8 @@ def build(family: str):
 
 def job_steps(cfg) -> int:
     """Training steps of the family's job at the cpu scale: epochs x batches of the training split (60 % of the
-    scale's frames, or its ``data.limit_frames.train``)."""
+    scale's frames, or its ``data.limit_frames.train``); the SMoE expert's config carries the recipe's
+    ``experts.max_epochs`` (stage 1, ``expert_config``)."""
     frames = OmegaConf.load(CONF / "scale" / "cpu.yaml").data.synth.frames
     train = OmegaConf.select(cfg, "data.limit_frames.train", default=None) or round(0.6 * frames)
     return int(cfg.trainer.max_epochs) * math.ceil(train / int(cfg.data.batch_size))
@@ -137,10 +140,16 @@ class Variant:
 
 
 def bench(
-    family: str, threads: int, steps: int, bf16_mode: str, has_bf16: bool, wanted: tuple[str, ...] = VARIANTS
+    family: str,
+    threads: int,
+    steps: int,
+    bf16_mode: str,
+    has_bf16: bool,
+    wanted: tuple[str, ...] = VARIANTS,
+    extra: tuple[str, ...] = (),
 ) -> None:
     torch.set_num_threads(threads)
-    task, batch, cfg = build(family)
+    task, batch, cfg = build(family, extra)
     sample = first(batch, 1)
     n = len(batch.get("frame", [])) or next(v.shape[0] for v in batch.values() if torch.is_tensor(v))
     task.eval()
@@ -183,9 +192,14 @@ def bench(
         )
     for name, error in failed.items():
         print(f"  {name:<20} failed: {error}")
+    steps_per_job = job_steps(cfg)
+    print(
+        f"  a cpu-scale job's {steps_per_job} training steps at these medians: "
+        + ", ".join(f"{v.name} {steps_per_job * statistics.median(train[v.name]) / 60:.1f} min" for v in variants)
+        + " (training only: no validation, test or data generation)"
+    )
     if "compile" in train:
         compile_s = first_train["compile"] - statistics.median(train["compile"])
-        steps_per_job = job_steps(cfg)
         net = steps_per_job * (base_t - statistics.median(train["compile"])) - compile_s
         print(
             f"  compile time: {compile_s:.1f} s (training), "
@@ -214,6 +228,13 @@ def main() -> None:
     )
     parser.add_argument("--steps", type=int, default=3, help="timed steps per variant, after one warm-up step")
     parser.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="Hydra overrides on top of each family's config, e.g. data.synth.height=256 data.synth.width=832",
+    )
+    parser.add_argument(
         "--bf16",
         choices=("once", "full", "skip"),
         default="once",
@@ -232,7 +253,15 @@ def main() -> None:
         try:
             for family in args.families.split(","):
                 for threads in (int(t) for t in args.threads.split(",")):
-                    bench(family, threads, args.steps, args.bf16, machine.has_bf16, tuple(args.variants.split(",")))
+                    bench(
+                        family,
+                        threads,
+                        args.steps,
+                        args.bf16,
+                        machine.has_bf16,
+                        tuple(args.variants.split(",")),
+                        tuple(args.set),
+                    )
         finally:
             os.chdir(here)
 
