@@ -52,58 +52,16 @@ def _digest(folder):
     return h.hexdigest()
 
 
+def _synth_cli(out, seed: int, workers: int) -> None:
+    """`python -m ablate.data synth`: 5 frames at 64 x 208."""
+    size = ["--frames", "5", "--height", "64", "--width", "208"]
+    main(["synth", "--out", str(out), "--seed", str(seed), "--workers", str(workers), *size])
+
+
 def test_cli_same_seed_same_bytes(tmp_path):
-    main(
-        [
-            "synth",
-            "--out",
-            str(tmp_path / "a"),
-            "--frames",
-            "5",
-            "--seed",
-            "7",
-            "--height",
-            "64",
-            "--width",
-            "208",
-            "--workers",
-            "1",
-        ]
-    )
-    main(
-        [
-            "synth",
-            "--out",
-            str(tmp_path / "b"),
-            "--frames",
-            "5",
-            "--seed",
-            "7",
-            "--height",
-            "64",
-            "--width",
-            "208",
-            "--workers",
-            "2",
-        ]
-    )
-    main(
-        [
-            "synth",
-            "--out",
-            str(tmp_path / "c"),
-            "--frames",
-            "5",
-            "--seed",
-            "8",
-            "--height",
-            "64",
-            "--width",
-            "208",
-            "--workers",
-            "1",
-        ]
-    )
+    _synth_cli(tmp_path / "a", seed=7, workers=1)
+    _synth_cli(tmp_path / "b", seed=7, workers=2)
+    _synth_cli(tmp_path / "c", seed=8, workers=1)
     assert _digest(tmp_path / "a") == _digest(tmp_path / "b") != _digest(tmp_path / "c")
     root = tmp_path / "a"
     assert list_frames(root) == [f"{i:06d}" for i in range(5)]
