@@ -49,7 +49,7 @@ import torch
 from lightning.fabric.utilities.apply_func import move_data_to_device
 
 from ablate.run.paper_estimates import GPU, gpu_hours, gpu_memory
-from ablate.run.paper_measure import _build, _loss, optimizer_and_scheduler, sample_config
+from ablate.run.paper_measure import _build, _loss, sample_config
 from ablate.run.paper_rows import measure_key, measured_config, recipe
 
 ROWS = "smoe_table2:smoe_fpn,smoe_table1:smoe_rgb,dgfn_table1:dgfn,chinet_table2:chinet,bifnet_table4:bifnet_dst_cbf"
@@ -148,7 +148,7 @@ def bench_row(
     test_batch = move_data_to_device(built["test_batch"], device)
     params = list(task.parameters())
     trainable = [p for p in params if p.requires_grad]
-    optimizer, scheduler = optimizer_and_scheduler(task, trainable, plan["steps"])
+    optimizer, scheduler = task.optimizers_for(trainable, plan["steps"])
     bf16 = precision == "bf16" and device.type == "cuda"
     autocast = torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else nullcontext()
     if device.type == "cuda":

@@ -112,7 +112,7 @@ class Variant:
             self.task.to(memory_format=torch.channels_last)
         self.bf16 = name.startswith("bf16")
         self.batch = channels_last(batch) if self.cl else batch
-        self.optimizer = self.task.optimizer_factory(params=[p for p in self.task.parameters() if p.requires_grad])
+        self.optimizer = self.task.optimizer_factory(params=self.task.trainable())
         self.compile_s = {}
         if name == "compile":
             self.task.model.compile()

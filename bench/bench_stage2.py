@@ -67,7 +67,7 @@ def main() -> None:
         model.load_expert(m, instantiate(expert_config(cfg, m).model), freeze=cfg.experts.freeze)
     cache = feature_cache(cfg, model)
     assert isinstance(cache, FeatureCache), "the cpu-scale default job should cache its experts' features"
-    optimizer = task.optimizer_factory(params=[p for p in task.parameters() if p.requires_grad])
+    optimizer = task.optimizer_factory(params=task.trainable())
     size, batch = (cfg.data.synth.height, cfg.data.synth.width), cfg.data.batch_size
     gen = torch.Generator().manual_seed(0)
     batches = [

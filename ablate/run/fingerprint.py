@@ -26,7 +26,6 @@ evaluator tag (:data:`ablate.metrics.EVALUATORS`) names such changes outright.
 
 from __future__ import annotations
 
-import inspect
 import tempfile
 import time
 import warnings
@@ -119,7 +118,7 @@ def _compute(cfg: DictConfig) -> dict[str, list[float]]:
     with torch.no_grad():
         out["model"] = summary(task(batch))
     task.train()
-    optimizer = task.optimizer_factory(params=[p for p in task.parameters() if p.requires_grad])
+    optimizer = task.optimizer_factory(params=task.trainable())  # the base rate: no schedule for two steps
     for step in range(2):
         step_batch = task.train_corruptions.apply(batch, step) if task.train_corruptions is not None else batch
         optimizer.zero_grad()
@@ -141,12 +140,9 @@ def _compute(cfg: DictConfig) -> dict[str, list[float]]:
 def schedule(task: Any) -> list[float]:
     """The learning rate of the task's first parameter group at ``SCHEDULE_STEPS`` of its schedule over
     ``SCHEDULE_TOTAL`` steps (the base rate alone without a schedule)."""
-    optimizer = task.optimizer_factory(params=[torch.nn.Parameter(torch.zeros(1))])
-    if task.scheduler_factory is None:
+    optimizer, scheduler = task.optimizers_for([torch.nn.Parameter(torch.zeros(1))], SCHEDULE_TOTAL)
+    if scheduler is None:
         return [float(optimizer.param_groups[0]["lr"])]
-    target = getattr(task.scheduler_factory, "func", task.scheduler_factory)
-    kwargs = {"total_steps": SCHEDULE_TOTAL} if "total_steps" in inspect.signature(target).parameters else {}
-    scheduler = task.scheduler_factory(optimizer=optimizer, **kwargs)
     rates = []
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", ".*lr_scheduler.step.*")

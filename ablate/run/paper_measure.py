@@ -22,7 +22,6 @@ conf/trainer/ddp_*.yaml). :func:`count_macs` counts the MACs alone (no backward,
 
 from __future__ import annotations
 
-import inspect
 import time
 from collections.abc import Iterable
 from typing import Any
@@ -208,17 +207,6 @@ def count_macs(cfg: DictConfig, small: DictConfig) -> dict[str, Any]:
     return {"macs": forward.get_total_flops() // 2, "macs_frozen": frozen.macs, "feature_bytes": _features(task)}
 
 
-def optimizer_and_scheduler(task: Any, trainable: list[torch.Tensor], steps: int) -> tuple[Any, Any]:
-    """The task's optimiser over ``trainable`` and its scheduler (None without one) for a schedule of ``steps``
-    optimiser steps, built as the task's ``configure_optimizers`` builds them under a trainer."""
-    optimizer = task.optimizer_factory(params=trainable)
-    if task.scheduler_factory is None:
-        return optimizer, None
-    target = getattr(task.scheduler_factory, "func", task.scheduler_factory)
-    kwargs = {"total_steps": steps} if "total_steps" in inspect.signature(target).parameters else {}
-    return optimizer, task.scheduler_factory(optimizer=optimizer, **kwargs)
-
-
 def measure(cfg: DictConfig, small: DictConfig, steps: int = 1000) -> dict[str, Any]:
     """One training and one test step of job config ``cfg`` on the frames of ``small`` (:func:`sample_config`), in
     this process: the figures of the module's docstring (times in s, memory in bytes). ``steps``: the schedule's
@@ -227,7 +215,7 @@ def measure(cfg: DictConfig, small: DictConfig, steps: int = 1000) -> dict[str, 
     task, model, batch = built["task"], built["model"], built["batch"]
     params = list(task.parameters())
     trainable = [p for p in params if p.requires_grad]
-    optimizer, scheduler = optimizer_and_scheduler(task, trainable, steps)
+    optimizer, scheduler = task.optimizers_for(trainable, steps)
     start = time.perf_counter()
     with SavedTensors(params) as saved, FrozenMacs(model) as frozen, FlopCounterMode(display=False) as forward:
         loss = _loss(task.training_step(batch, 0))

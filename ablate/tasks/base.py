@@ -126,16 +126,25 @@ class FusionTask(L.LightningModule):
             )
         return loss
 
-    def configure_optimizers(self) -> Any:
-        params = [p for p in self.parameters() if p.requires_grad]
+    def optimizers_for(self, params: list[torch.Tensor], total_steps: int) -> tuple[torch.optim.Optimizer, Any]:
+        """The configured optimiser over ``params`` and its scheduler (None without one) for a schedule of
+        ``total_steps`` optimiser steps: the one place both are built, under a trainer or outside one (the
+        fingerprint's schedule, the paper-scale measurement, the benchmarks)."""
         optimizer = self.optimizer_factory(params=params)
         if self.scheduler_factory is None:
-            return optimizer
-        kwargs = {}
+            return optimizer, None
         target = getattr(self.scheduler_factory, "func", self.scheduler_factory)
-        if "total_steps" in inspect.signature(target).parameters:
-            kwargs["total_steps"] = self.trainer.estimated_stepping_batches
-        scheduler = self.scheduler_factory(optimizer=optimizer, **kwargs)
+        kwargs = {"total_steps": total_steps} if "total_steps" in inspect.signature(target).parameters else {}
+        return optimizer, self.scheduler_factory(optimizer=optimizer, **kwargs)
+
+    def trainable(self) -> list[torch.Tensor]:
+        """The parameters the optimiser updates (frozen experts' are left out)."""
+        return [p for p in self.parameters() if p.requires_grad]
+
+    def configure_optimizers(self) -> Any:
+        optimizer, scheduler = self.optimizers_for(self.trainable(), self.trainer.estimated_stepping_batches)
+        if scheduler is None:
+            return optimizer
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
     # Validation and test share one path: ``_eval_step(batch, stage)`` updates the stage's metrics,
