@@ -10,8 +10,8 @@ emulated and 9-33x slower, and channels_last alone gains 7-13 % on some families
 The trainer options read here (conf/trainer/default.yaml), beside Lightning's own:
 
 * ``precision``: Lightning's (``32-true``, ``bf16-mixed``, ...), or ``auto``: ``bf16-mixed`` where the CPU has bf16
-  in hardware *and* the task family's bf16 parity with fp32 has been measured (``recipe.bf16: true``), else
-  ``32-true``. On a GPU (``trainer=gpu``, ``ddp_gpu``) it is ``bf16-mixed``, set in their configs.
+  in hardware *and* the task family's recipe takes it (``recipe.bf16: true``: its bf16 parity with fp32 measured,
+  and a job gaining enough for the halved race budget), else ``32-true``. On a GPU (``trainer=gpu``, ``ddp_gpu``) it is ``bf16-mixed``, set in their configs.
 * ``channels_last``: the model's memory format; ``auto`` follows the precision (channels_last with bf16).
 * ``compile``: ``torch.compile`` the model in place, so that checkpoints keep their keys: ``true`` (inductor) or a
   backend's name.
@@ -157,7 +157,8 @@ def resolve(cfg: DictConfig, machine: Cpu | None = None, quiet: bool = False) ->
     elif machine.has_bf16:
         precision = "32-true"
         why = (
-            "precision 32-true: the CPU has bf16, but this task's bf16 parity is not measured (recipe.bf16 is not true)"
+            "precision 32-true: the CPU has bf16, but this task family's recipe keeps fp32 (recipe.bf16 is not true: "
+            "its bf16 parity is not measured, or bf16 does not pay for it; its recipe file says which)"
         )
     else:
         precision = "32-true"

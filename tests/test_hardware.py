@@ -41,12 +41,12 @@ def test_auto_is_bf16_channels_last_on_a_cpu_with_bf16_where_the_familys_parity_
     assert "amx_bf16" in why
 
 
-def test_auto_stays_fp32_for_a_family_whose_bf16_parity_is_not_measured():
+def test_auto_stays_fp32_for_a_family_whose_recipe_keeps_it():
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("config", overrides=["experiment=bifnet_table4", "row=bifnet_dst_cbf"])
     assert cfg.recipe.bf16 is False  # conf/recipe/road_cpu.yaml: not measured
     why = resolve(cfg, XEON)
-    assert cfg.trainer.precision == "32-true" and "parity is not measured" in why
+    assert cfg.trainer.precision == "32-true" and "recipe keeps fp32" in why
 
 
 @pytest.mark.parametrize("machine, bf16, budget", [(XEON, "true", 60.0), (XEON, "false", 120.0), (EPYC, "true", 120.0)])
