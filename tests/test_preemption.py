@@ -125,21 +125,31 @@ def test_sigterm_to_a_joblib_sweep_takes_its_workers_with_it(tmp_path):
     assert parent.info.status == "KILLED" and parent.data.tags["killed_by"] == "SIGTERM"
 
 
+def report_while_paused(cwd: Path, proc: subprocess.Popen) -> str:
+    """The table ``python -m ablate.report`` writes while the sweep ``proc`` is stopped (SIGSTOP) in the middle of a
+    job: the job's run stays RUNNING for the whole report, however slow the machine."""
+    proc.send_signal(signal.SIGSTOP)
+    try:
+        report = ablate(cwd, "experiment=chinet_table2", module="ablate.report")
+    finally:
+        proc.send_signal(signal.SIGCONT)
+    assert report.returncode == 0, report.stderr[-3000:]
+    return (cwd / "results" / "chinet_table2.md").read_text()
+
+
 def test_a_report_while_a_sweep_writes_leaves_running_runs_out_and_counts_them(tmp_path):
-    # one job at a time (hydra/launcher=basic): the report runs beside it
+    # one job at a time (hydra/launcher=basic), the report beside it: while the first job trains, then the second
     sweep = ["-m", "row=unet,fusenet", "experiment=chinet_table2", "hydra/launcher=basic", *TINY]
     proc = start(tmp_path, *sweep, "trainer.max_epochs=15")
-    reports = []
-    while proc.poll() is None:
-        report = ablate(tmp_path, "experiment=chinet_table2", module="ablate.report")
-        md = tmp_path / "results" / "chinet_table2.md"
-        reports.append((report, md.read_text() if md.exists() else ""))
+    wait_for(tmp_path, "checkpoints/chinet_table2/*/last.ckpt", 1, proc)  # U-Net is training
+    first = report_while_paused(tmp_path, proc)
+    wait_for(tmp_path, "checkpoints/chinet_table2/*/last.ckpt", 2, proc)  # U-Net is done, FuseNet is training
+    second = report_while_paused(tmp_path, proc)
     out, err = proc.communicate()
     assert proc.returncode == 0, out[-3000:] + err[-3000:]
-    for report, _ in reports:
-        assert report.returncode == 0 or "no runs for experiment" in report.stderr, report.stderr[-3000:]
-    texts = [text for report, text in reports if report.returncode == 0]
-    assert any("1 run(s) still RUNNING are left out" in t for t in texts), texts
+    assert "No finished runs yet." in first and "1 run(s) still RUNNING are left out" in first, first
+    assert "1 run(s) still RUNNING are left out" in second, second
+    assert "| U-Net" in second and "| FuseNet" not in second, second
     assert ablate(tmp_path, "experiment=chinet_table2", module="ablate.report").returncode == 0
     final = (tmp_path / "results" / "chinet_table2.md").read_text()
     assert "still RUNNING" not in final and "| U-Net" in final and "| FuseNet" in final
