@@ -11,7 +11,8 @@ The trainer options read here (conf/trainer/default.yaml), beside Lightning's ow
 
 * ``precision``: Lightning's (``32-true``, ``bf16-mixed``, ...), or ``auto``: ``bf16-mixed`` where the CPU has bf16
   in hardware *and* the task family's recipe takes it (``recipe.bf16: true``: its bf16 parity with fp32 measured,
-  and a job gaining enough for the halved race budget), else ``32-true``. On a GPU (``trainer=gpu``, ``ddp_gpu``) it is ``bf16-mixed``, set in their configs.
+  and a job gaining enough for the halved race budget), else ``32-true``. On a GPU (``trainer=gpu``, ``ddp_gpu``)
+  it is ``bf16-mixed``, set in their configs.
 * ``channels_last``: the model's memory format; ``auto`` follows the precision (channels_last with bf16).
 * ``compile``: ``torch.compile`` the model in place, so that checkpoints keep their keys: ``true`` (inductor) or a
   backend's name.

@@ -146,8 +146,7 @@ def bench_row(
     task.to(device)
     batch = move_data_to_device(built["batch"], device)
     test_batch = move_data_to_device(built["test_batch"], device)
-    params = list(task.parameters())
-    trainable = [p for p in params if p.requires_grad]
+    trainable = task.trainable()
     optimizer, scheduler = task.optimizers_for(trainable, plan["steps"])
     bf16 = precision == "bf16" and device.type == "cuda"
     autocast = torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else nullcontext()
