@@ -41,13 +41,13 @@ class FakeLauncher:
         return out
 
 
-def sweeper_for(tmp_path, monkeypatch, metric, *overrides, shuffle=False):
+def sweeper_for(tmp_path, monkeypatch, metric, *overrides, shuffle=False, launcher=None):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         config = compose("config", overrides=["experiment=chinet_table2", *overrides], return_hydra_config=True)
     config.hydra.runtime.cwd = str(tmp_path)
     config.hydra.sweep.dir = "sweep"
     sweeper = RacingSweeper(params=dict(config.hydra.sweeper.params))
-    launcher = FakeLauncher(metric, shuffle)
+    launcher = launcher or FakeLauncher(metric, shuffle)
     sweeper.sweeper.config, sweeper.sweeper.launcher = config, launcher
     sweeper.sweeper.hydra_context = type("Context", (), {"config_loader": None})()
     monkeypatch.setattr(
@@ -106,6 +106,46 @@ def test_a_seed_on_the_command_line_runs_every_job_at_once(tmp_path, monkeypatch
     sweeper, launcher = sweeper_for(tmp_path, monkeypatch, lambda r, s: 90.0)
     sweeper.sweep(["seed=0,1"])
     assert len(launcher.batches) == 1 and len(launcher.batches[0]) == 6
+
+
+class TimedLauncher(FakeLauncher):
+    """A launcher on a fake clock: a job the store already holds (``held``) returns SKIPPED and costs no time; every
+    other job trains for ``minutes``, two at a time."""
+
+    def __init__(self, metric, clock: list[float], held: set, minutes: float):
+        super().__init__(metric)
+        self.clock, self.held, self.minutes = clock, held, minutes
+
+    def launch(self, job_overrides, initial_job_idx):
+        out = super().launch(job_overrides, initial_job_idx)
+        jobs = self.batches[-1]
+        for ret, job in zip(out, jobs):
+            ret.return_value = "SKIPPED" if job in self.held else "FINISHED"
+        self.clock[0] += self.minutes * 60 * sum(job not in self.held for job in jobs) / 2
+        return out
+
+
+def test_the_budget_counts_only_the_jobs_that_trained(tmp_path, monkeypatch):
+    # look 1: six of the nine jobs are held (a resumed race), three train for 4 min each, two at a time: 6 min
+    # spent, 2 min per trained job; look 2's six jobs need about 12 min more, past a budget of 15
+    clock = [0.0]
+    monkeypatch.setattr(impl.time, "monotonic", lambda: clock[0])
+    held = {(r, s) for r in ("chinet", "unet") for s in range(3)}
+    launcher = TimedLauncher(lambda r, s: 95.0 + noise(r, s), clock, held, 4.0)
+    sweeper, _ = sweeper_for(tmp_path, monkeypatch, None, "scale.race.budget_min=15", launcher=launcher)
+    sweeper.sweep([])
+    assert len(launcher.batches) == 1
+    assert impl.look_estimate(6 * 60, 3, 6) == 12 * 60 and impl.look_estimate(60, 0, 6) == 0.0
+
+
+def test_a_look_whose_jobs_were_all_held_does_not_stop_the_race(tmp_path, monkeypatch):
+    clock = [0.0]
+    monkeypatch.setattr(impl.time, "monotonic", lambda: clock[0])
+    held = {(r, s) for r in ("chinet", "unet", "fusenet") for s in range(3)}
+    launcher = TimedLauncher(lambda r, s: 95.0 + noise(r, s), clock, held, 4.0)
+    sweeper, _ = sweeper_for(tmp_path, monkeypatch, None, "scale.race.budget_min=15", launcher=launcher)
+    sweeper.sweep([])
+    assert len(launcher.batches) == 2  # look 2 trained 6 jobs in 12 min: look 3's 9 would need 18 more
 
 
 def null_rate(correction: str, tables: int = 1000) -> float:

@@ -36,6 +36,9 @@ from ablate.tables.spec import LOWER_IS_BETTER
 
 log = logging.getLogger(__name__)
 
+#: What a job returns (``ablate.run.job.main``) when the store already held its run and nothing trained.
+SKIPPED = "SKIPPED"
+
 
 def row_key(combo: list[str], swept: set[str]) -> str:
     """The ``row`` tag the job of ``combo`` records (:func:`ablate.run.job.row_name`): its ``row`` choice, else
@@ -46,6 +49,14 @@ def row_key(combo: list[str], swept: set[str]) -> str:
             return value
     own = sorted(item.lstrip("+~") for item in combo if item.split("=", 1)[0].lstrip("+~") in swept)
     return " ".join(own) or "default"
+
+
+def look_estimate(elapsed: float, trained: int, jobs: int) -> float:
+    """Seconds the next look's ``jobs`` should take: the wall time so far per job that trained. A job the store
+    already held (skipped, or copied from another table: ``ablate.run.job``) costs seconds, so it does not count;
+    until one job has trained there is nothing to go by (0). Jobs of the next look that the store holds make this an
+    overestimate, which stops a race early rather than past its budget."""
+    return elapsed * jobs / trained if trained else 0.0
 
 
 class RacingSweeperImpl:
@@ -107,16 +118,17 @@ class RacingSweeperImpl:
         have = dict.fromkeys(rows, 0)
         state = RaceState(plan, racing=rows)
         returns: list[list[JobReturn]] = []
-        started, launched, stopped = time.monotonic(), 0, ""
+        started, launched, trained, stopped = time.monotonic(), 0, 0, ""
         while not state.over:
             look = state.looks_done + 1
             n = plan.looks[state.looks_done]
             batch = [jobs[r] + [f"seed={s}"] for r in state.racing for s in range(have[r], n)]
             elapsed = time.monotonic() - started
-            if plan.budget_min and launched and elapsed + elapsed * len(batch) / launched > plan.budget_min * 60:
+            needed = look_estimate(elapsed, trained, len(batch))
+            if plan.budget_min and elapsed + needed > plan.budget_min * 60:
                 stopped = (
                     f"the wall-time budget of {plan.budget_min:g} min stopped the race before look {look} "
-                    f"({elapsed / 60:.1f} min spent, about {elapsed * len(batch) / launched / 60:.1f} more needed)"
+                    f"({elapsed / 60:.1f} min spent, about {needed / 60:.1f} more needed)"
                 )
                 break
             log.info(
@@ -130,6 +142,7 @@ class RacingSweeperImpl:
             progress.replan(sdir, launched + len(batch))
             returns.append(self._launch(batch, launched))
             launched += len(batch)
+            trained += sum(r.return_value != SKIPPED for r in returns[-1])
             for r in state.racing:
                 have[r] = n
             try:
