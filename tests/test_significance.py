@@ -117,3 +117,12 @@ def test_table_marks_significant_rows_names_the_reference_and_flags_commits():
     assert "**Seeds disagree**: Max, IoU, seed 2 gives 0.50" in text
     assert "aaaaaaaaaaaa (9 runs)" in text and "bbbbbbbbbbbb-dirty (3 runs)" in text
     assert "**Mixed commits**" in text
+
+
+def test_the_footer_names_a_t_and_a_bootstrap_ci_once_where_rows_have_different_seed_counts():
+    from ablate.tables.columns import tests_used
+
+    # a row of 3 seeds gets a t CI of its difference, one of 8 a bootstrap CI: both are paired t-tests
+    assert tests_used({"paired t", "paired t, bootstrap CI"}) == "paired t, bootstrap CI from n = 6"
+    assert tests_used({"paired t"}) == "paired t" and tests_used({"paired t, bootstrap CI"}) == "paired t, bootstrap CI"
+    assert tests_used({"Welch t", "paired t"}) == "Welch t, paired t" and tests_used(set()) == "no test: too few seeds"

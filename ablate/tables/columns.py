@@ -13,6 +13,15 @@ from ablate.tables.spec import COSTS, LOWER_IS_BETTER
 from ablate.tables.summary import best_of, fmt, per_seed, reference, signed
 
 
+def tests_used(tests: set[str]) -> str:
+    """The footer's name for the tests behind the Δ column (:attr:`ablate.tables.significance.Difference.test`):
+    where rows of different n used a t and a bootstrap CI, once, with the n the bootstrap starts at."""
+    kinds = sorted({t.split(", ")[0] for t in tests})
+    boot = [t.endswith("bootstrap CI") for t in tests]
+    ci = (", bootstrap CI" if all(boot) else f", bootstrap CI from n = {BOOTSTRAP_FROM}") if any(boot) else ""
+    return ", ".join(kinds) + ci if kinds else "no test: too few seeds"
+
+
 def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> tuple[dict, list[str]]:
     """The primary metric's CI column and difference-from-reference column, and the footer lines that explain
     them: the test used, whether the top row is ahead of the second beyond seed noise, and disagreeing seeds."""
@@ -48,7 +57,7 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
     lines = [
         f"95% CI: of the mean over seeds, Student's t for n < {BOOTSTRAP_FROM}, a percentile bootstrap over "
         f"seeds ({RESAMPLES} resamples) from n = {BOOTSTRAP_FROM}. Δ: difference from {ref_name} on {label} "
-        f"({', '.join(sorted(tests)) or 'no test: too few seeds'}; paired over the seeds two rows share); "
+        f"({tests_used(tests)}; paired over the seeds two rows share); "
         + ("*: its 95% CI excludes 0." if raced is None else "*: decided by the race (below).")
     ]
     if raced is not None:
