@@ -3,11 +3,13 @@
 import hydra
 from omegaconf import DictConfig
 
-from ablate.run.job import main as run_job
+import ablate.run  # noqa: F401 (its warning filter, before Hydra composes)
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> str:
+    from ablate.run.job import main as run_job  # torch and Lightning: imported once a job runs, not for a bad option
+
     return run_job(cfg)
 
 

@@ -14,14 +14,22 @@ import sys
 from pathlib import Path
 
 from hydra.errors import HydraException
+from omegaconf import DictConfig
 
 from ablate.config import CONF, compose
-from ablate.run.fingerprint import compute as fingerprint
 from ablate.run.reproduce import reproduce
 from ablate.store import KIND_SWEEP, AccessDenied, Tracker, retry
 from ablate.tables import table_spec, write_table
 from ablate.tables.index import write_index
 from ablate.tables.parity import parity, write_parity
+
+
+def fingerprint(cfg: DictConfig) -> dict[str, list[float]]:
+    """Today's fingerprint of a row's job config (:func:`ablate.run.fingerprint.compute`), imported on first use: it
+    builds models with torch and Lightning, which a table whose runs match today's code never needs."""
+    from ablate.run.fingerprint import compute
+
+    return compute(cfg)
 
 
 def main(argv: list[str] | None = None) -> int:

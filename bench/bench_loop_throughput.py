@@ -21,7 +21,7 @@ import lightning as L
 import torch
 
 from ablate.nn.chinet import build
-from ablate.store.tracker import RunLogger, Tracker
+from ablate.store import RunLogger, Tracker
 from ablate.tasks.semantic import SemanticTask
 
 warnings.filterwarnings("ignore")

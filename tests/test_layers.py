@@ -122,3 +122,10 @@ def test_the_checker_sees_an_upward_edge(tmp_path):
 @pytest.mark.parametrize("package", ["ablate.store", "ablate.tables", "ablate.run"])
 def test_each_room_imports_alone(package):
     subprocess.run([sys.executable, "-c", f"import {package}"], check=True, timeout=120)
+
+
+@pytest.mark.parametrize("module", ["ablate.__main__", "ablate.report", "ablate.store", "ablate.tables"])
+def test_a_process_that_trains_nothing_does_not_import_lightning(module):
+    # Lightning (and torch through it) takes seconds to import: a report, a bad option or the sweeper need none of it
+    code = f"import sys, {module}; sys.exit('lightning' in sys.modules or 'torch' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0

@@ -140,7 +140,7 @@ def report_while_paused(cwd: Path, proc: subprocess.Popen) -> str:
 def test_a_report_while_a_sweep_writes_leaves_running_runs_out_and_counts_them(tmp_path):
     # one job at a time (hydra/launcher=basic), the report beside it: while the first job trains, then the second
     sweep = ["-m", "row=unet,fusenet", "experiment=chinet_table2", "hydra/launcher=basic", *TINY]
-    proc = start(tmp_path, *sweep, "trainer.max_epochs=15")
+    proc = start(tmp_path, *sweep, "trainer.max_epochs=5")  # stopped while it trains: its length does not matter
     wait_for(tmp_path, "checkpoints/chinet_table2/*/last.ckpt", 1, proc)  # U-Net is training
     first = report_while_paused(tmp_path, proc)
     wait_for(tmp_path, "checkpoints/chinet_table2/*/last.ckpt", 2, proc)  # U-Net is done, FuseNet is training
@@ -150,6 +150,5 @@ def test_a_report_while_a_sweep_writes_leaves_running_runs_out_and_counts_them(t
     assert "No finished runs yet." in first and "1 run(s) still RUNNING are left out" in first, first
     assert "1 run(s) still RUNNING are left out" in second, second
     assert "| U-Net" in second and "| FuseNet" not in second, second
-    assert ablate(tmp_path, "experiment=chinet_table2", module="ablate.report").returncode == 0
-    final = (tmp_path / "results" / "chinet_table2.md").read_text()
+    final = (tmp_path / "results" / "chinet_table2.md").read_text()  # the sweep's own table, written at its end
     assert "still RUNNING" not in final and "| U-Net" in final and "| FuseNet" in final

@@ -9,7 +9,6 @@ import warnings
 # exactly their keys. Hydra 1.3 still validates a file against a ConfigStore entry of the same name and warns that
 # this "automatic schema matching" is deprecated
 # (https://hydra.cc/docs/1.2/upgrades/1.0_to_1.1/automatic_schema_matching); the files compose the same with or
-# without it, so the warning tells a user nothing. This package is imported with the task function
-# (``python -m ablate`` imports :mod:`ablate.run.job`), before Hydra composes, in the launching process and in every
-# submitit job.
+# without it, so the warning tells a user nothing. ``python -m ablate`` imports this package before Hydra composes,
+# in the launching process and in every submitit job.
 warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/(ray|submitit_local)' is validated against ConfigStore")

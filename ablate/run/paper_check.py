@@ -204,17 +204,18 @@ def main(argv: list[str]) -> int:
     if unknown := set(chosen) - set(experiments()):
         print(f"error: no experiment {', '.join(sorted(unknown))}; have {', '.join(experiments())}")
         return 2
-    rows = [x for x in (options.get("row") or "").split(",") if x]
-    everything = describe(plan(), overrides)
-    entries = [e for e in everything if (not chosen or e["table"] in chosen) and (not rows or e["row"] in rows)]
-    if not entries:
-        print("error: no row of the chosen tables is named " + ", ".join(rows))
-        return 2
+    # the figures files first: a bad one is one line before every table's configs are composed (seconds)
     store, gpu_store = RESULTS / "paper_scale.json", RESULTS / "paper_scale_gpu.json"  # gpu: bench_paper_gpu --json
     try:
         record, gpu = _read(store, {}), _read(gpu_store, [])
     except ValueError as exc:
         print(f"error: {exc}")
+        return 2
+    rows = [x for x in (options.get("row") or "").split(",") if x]
+    everything = describe(plan(), overrides)
+    entries = [e for e in everything if (not chosen or e["table"] in chosen) and (not rows or e["row"] in rows)]
+    if not entries:
+        print("error: no row of the chosen tables is named " + ", ".join(rows))
         return 2
     keys = {k for e in everything for k in (e["key"], *e["experts"].values())}
     measured = {k: v for k, v in record.get("measured", {}).items() if k in keys}  # those of today's configs

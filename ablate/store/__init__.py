@@ -9,6 +9,8 @@
   job waits for it, :class:`ServerUnreachable`), and the outbox that keeps a job's metrics meanwhile.
 """
 
+from typing import TYPE_CHECKING
+
 from ablate.store.identity import (
     UNHASHED,
     code_version,
@@ -21,7 +23,6 @@ from ablate.store.identity import (
 )
 from ablate.store.outage import DEFAULT_OUTAGE_S, ServerUnreachable
 from ablate.store.outbox import Outbox
-from ablate.store.run_logger import RunLogger
 from ablate.store.sweepdir import parent_run_id, record_failure, sweep_dir, sweep_store, swept_keys
 from ablate.store.tracker import (
     KIND_JOB,
@@ -36,6 +37,20 @@ from ablate.store.tracker import (
     runs_link,
     tracking_uri,
 )
+
+if TYPE_CHECKING:
+    from ablate.store.run_logger import RunLogger
+
+
+def __getattr__(name: str) -> object:
+    """:class:`RunLogger` on first use: it subclasses Lightning's logger, and importing Lightning takes seconds that
+    a process reading or writing the store without training (a report, a sweep's launcher) need not spend."""
+    if name == "RunLogger":
+        from ablate.store.run_logger import RunLogger
+
+        return RunLogger
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "DEFAULT_OUTAGE_S",
