@@ -123,6 +123,8 @@ def test_the_footer_names_a_t_and_a_bootstrap_ci_once_where_rows_have_different_
     from ablate.tables.columns import tests_used
 
     # a row of 3 seeds gets a t CI of its difference, one of 8 a bootstrap CI: both are paired t-tests
-    assert tests_used({"paired t", "paired t, bootstrap CI"}) == "paired t, bootstrap CI from n = 6"
-    assert tests_used({"paired t"}) == "paired t" and tests_used({"paired t, bootstrap CI"}) == "paired t, bootstrap CI"
-    assert tests_used({"Welch t", "paired t"}) == "Welch t, paired t" and tests_used(set()) == "no test: too few seeds"
+    assert tests_used({("paired t", False), ("paired t", True)}) == "paired t, bootstrap CI from n = 6"
+    assert tests_used({("paired t", False)}) == "paired t"
+    assert tests_used({("paired t", True)}) == "paired t, bootstrap CI"
+    assert tests_used({("Welch t", False), ("paired t", False)}) == "Welch t, paired t"
+    assert tests_used(set()) == "no test: too few seeds"

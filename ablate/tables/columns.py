@@ -13,11 +13,12 @@ from ablate.tables.spec import COSTS, LOWER_IS_BETTER
 from ablate.tables.summary import best_of, fmt, per_seed, reference, signed
 
 
-def tests_used(tests: set[str]) -> str:
-    """The footer's name for the tests behind the Δ column (:attr:`ablate.tables.significance.Difference.test`):
-    where rows of different n used a t and a bootstrap CI, once, with the n the bootstrap starts at."""
-    kinds = sorted({t.split(", ")[0] for t in tests})
-    boot = [t.endswith("bootstrap CI") for t in tests]
+def tests_used(tests: set[tuple[str, bool]]) -> str:
+    """The footer's name for the tests behind the Δ column, from each difference's (test, bootstrap CI or not)
+    (:class:`ablate.tables.significance.Difference`): where rows of different n used a t and a bootstrap CI, once,
+    with the n the bootstrap starts at."""
+    kinds = sorted({kind for kind, _ in tests})
+    boot = [b for _, b in tests]
     ci = (", bootstrap CI" if all(boot) else f", bootstrap CI from n = {BOOTSTRAP_FROM}") if any(boot) else ""
     return ", ".join(kinds) + ci if kinds else "no test: too few seeds"
 
@@ -50,7 +51,7 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
         if np.isnan(d.ci.lo):
             deltas.append("—" if np.isnan(d.delta) else signed(d.delta))
             continue
-        tests.add(d.test)
+        tests.add((d.kind, d.ci.method == "bootstrap"))
         star = d.significant if raced is None else decided(raced, row, ref)
         deltas.append(f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}]" + (" *" if star else ""))
     columns = {f"{label} 95% CI": cis, f"Δ {label} vs {ref_name} [95% CI]": deltas}

@@ -53,8 +53,12 @@ class Difference:
         return self.ci.excludes_zero()
 
     @property
+    def kind(self) -> str:
+        return "paired t" if self.paired else "Welch t"
+
+    @property
     def test(self) -> str:
-        return ("paired t" if self.paired else "Welch t") + (", bootstrap CI" if self.ci.method == "bootstrap" else "")
+        return self.kind + (", bootstrap CI" if self.ci.method == "bootstrap" else "")
 
 
 def _bootstrap(samples: list[np.ndarray], statistic: Callable[..., np.ndarray]) -> tuple[float, float]:
