@@ -24,6 +24,7 @@ class FakeLauncher:
 
     def __init__(self, metric, shuffle: bool = False):
         self.metric, self.shuffle, self.store, self.batches = metric, shuffle, {}, []
+        self.seconds: dict[str, float] = {}  # a row's job seconds, as the store's runs say (none: rows alike)
 
     def launch(self, job_overrides, initial_job_idx):
         jobs = [dict(o.split("=", 1) for o in overrides) for overrides in job_overrides]
@@ -53,6 +54,7 @@ def sweeper_for(tmp_path, monkeypatch, metric, *overrides, shuffle=False, launch
     monkeypatch.setattr(
         impl, "table_values", lambda tracker, table: {r: pd.Series(v) for r, v in launcher.store.items()}
     )
+    monkeypatch.setattr(impl, "row_seconds", lambda tracker, table: launcher.seconds)
     monkeypatch.setattr(impl.RacingSweeperImpl, "_tracker", lambda self, sdir: None)
     return sweeper, launcher
 
@@ -110,18 +112,19 @@ def test_a_seed_on_the_command_line_runs_every_job_at_once(tmp_path, monkeypatch
 
 class TimedLauncher(FakeLauncher):
     """A launcher on a fake clock: a job the store already holds (``held``) returns SKIPPED and costs no time; every
-    other job trains for ``minutes``, two at a time."""
+    other job trains for ``minutes`` (a number, or per row), two at a time."""
 
-    def __init__(self, metric, clock: list[float], held: set, minutes: float):
+    def __init__(self, metric, clock: list[float], held: set, minutes: float | dict[str, float]):
         super().__init__(metric)
-        self.clock, self.held, self.minutes = clock, held, minutes
+        self.clock, self.held = clock, held
+        self.minutes = minutes if isinstance(minutes, dict) else dict.fromkeys(("chinet", "unet", "fusenet"), minutes)
 
     def launch(self, job_overrides, initial_job_idx):
         out = super().launch(job_overrides, initial_job_idx)
         jobs = self.batches[-1]
         for ret, job in zip(out, jobs):
             ret.return_value = "SKIPPED" if job in self.held else "FINISHED"
-        self.clock[0] += self.minutes * 60 * sum(job not in self.held for job in jobs) / 2
+        self.clock[0] += sum(self.minutes[row] * 60 for row, seed in jobs if (row, seed) not in self.held) / 2
         return out
 
 
@@ -135,7 +138,24 @@ def test_the_budget_counts_only_the_jobs_that_trained(tmp_path, monkeypatch):
     sweeper, _ = sweeper_for(tmp_path, monkeypatch, None, "scale.race.budget_min=15", launcher=launcher)
     sweeper.sweep([])
     assert len(launcher.batches) == 1
-    assert impl.look_estimate(6 * 60, 3, 6) == 12 * 60 and impl.look_estimate(60, 0, 6) == 0.0
+    assert impl.look_estimate(6 * 60, [1.0] * 3, [1.0] * 6) == 12 * 60 and impl.look_estimate(60, [], [1.0] * 6) == 0
+
+
+def test_a_look_is_estimated_from_each_rows_own_job_time(tmp_path, monkeypatch):
+    # look 1: chinet's three seeds are copied from another table (held), where each took 8 min; U-Net and FuseNet
+    # train their three for 2 min each, two at a time: 6 min. Look 2 (two seeds of each row) needs 4 x 2 + 2 x 8 =
+    # 24 min of jobs, 12 of wall time: past a budget of 15. Counted per job alike, it would look like 6 min.
+    clock = [0.0]
+    monkeypatch.setattr(impl.time, "monotonic", lambda: clock[0])
+    held = {("chinet", s) for s in range(3)}
+    minutes = {"chinet": 8.0, "unet": 2.0, "fusenet": 2.0}
+    launcher = TimedLauncher(lambda r, s: 95.0 + noise(r, s), clock, held, minutes)
+    launcher.seconds = {row: m * 60 for row, m in minutes.items()}
+    sweeper, _ = sweeper_for(tmp_path, monkeypatch, None, "scale.race.budget_min=15", launcher=launcher)
+    sweeper.sweep([])
+    assert len(launcher.batches) == 1
+    costs = impl.job_costs({"chinet": 480.0, "unet": 120.0})
+    assert costs("fusenet") == 300.0 and impl.job_costs({})("unet") == 1.0
 
 
 def test_a_look_whose_jobs_were_all_held_does_not_stop_the_race(tmp_path, monkeypatch):

@@ -7,6 +7,7 @@ from omegaconf import OmegaConf
 
 from ablate.store.tracker import KIND_JOB, Tracker
 from ablate.tables import collect, write_table
+from ablate.tables.collect import row_seconds
 from ablate.tables.summary import kendall, summarise
 
 TABLE = OmegaConf.create(
@@ -176,3 +177,21 @@ def test_an_ad_hoc_sweep_keeps_the_typed_order_and_has_no_paper_columns(tmp_path
     assert rows == ["fusion=sum", "fusion=max", "fusion=sharpen", "fusion=smoe"]
     assert "vs fusion=sum" in text and "reference" in text.splitlines()[4]
     assert "paper" not in text and "Kendall" not in text
+
+
+def test_a_rows_job_time_is_its_runs_and_a_copied_run_counts_its_sources(tmp_path):
+    # the racing sweeper's look estimate weighs rows by these seconds: a copy took milliseconds, its source minutes
+    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tags = {"kind": KIND_JOB, "scale": "cpu", "seed": "0"}
+
+    def job(exp, row, start_s, minutes):
+        run = tracker.client.create_run(exp, start_time=int(start_s * 1000), tags={**tags, "row": row})
+        tracker.client.set_terminated(run.info.run_id, "FINISHED", end_time=int((start_s + minutes * 60) * 1000))
+        return tracker.client.get_run(run.info.run_id)
+
+    other, mine = tracker.experiment_id("table_i"), tracker.experiment_id("table_ii")
+    source = job(other, "dgfn", 1_000, 19.0)
+    job(mine, "ssd", 3_000, 9.0)
+    job(mine, "ssd", 4_000, 10.0)
+    tracker.copy_run(source, mine, {"row": "dgfn", "seed": "0"})
+    assert row_seconds(tracker, "table_ii") == {"dgfn": 19 * 60.0, "ssd": 9.5 * 60}

@@ -47,6 +47,7 @@ def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
             **{f"made_{k}": r.data.tags.get(k, "?") for k in MADE},
             "sweep_id": r.data.tags.get("sweep_id", ""),
             "race_plan": r.data.tags.get("race_plan", ""),
+            "reused_from": r.data.tags.get("reused_from", ""),
             "started": r.info.start_time,
             "ended": r.info.end_time or r.info.start_time,
             **r.data.metrics,
@@ -56,6 +57,26 @@ def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
     if not records:
         return pd.DataFrame()
     return pd.DataFrame.from_records(records).sort_values(["started", "config_hash"], kind="stable")
+
+
+def row_seconds(tracker: Tracker, table: str) -> dict[str, float]:
+    """Per row of ``table``, the median seconds one of its jobs took, start to end, over its FINISHED runs at the
+    latest scale. A run copied from another table (tag ``reused_from``, ``ablate.run.job``) took seconds to copy:
+    the time of the run it was copied from counts. The racing sweeper weighs its estimate of a look's wall time
+    with these (``hydra_plugins/ablate_racing_sweeper``): rows of one table can differ twofold in their cost."""
+    runs = at_latest_scale(job_runs(tracker, table))
+    if not len(runs):
+        return {}
+    seconds = ((runs["ended"] - runs["started"]) / 1000.0).astype(float)
+    for i, source in runs["reused_from"].items():
+        if source:
+            try:
+                run = retry(tracker.client.get_run, source)
+                seconds[i] = ((run.info.end_time or run.info.start_time) - run.info.start_time) / 1000.0
+            except Exception:  # the source is gone from this store: its time is unknown
+                seconds[i] = float("nan")
+    medians = seconds.groupby(runs["row"]).median().dropna()
+    return {str(row): float(value) for row, value in medians.items()}
 
 
 def made_lines(runs: pd.DataFrame) -> list[str]:

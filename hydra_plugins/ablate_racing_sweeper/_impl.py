@@ -16,6 +16,7 @@ import json
 import logging
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ from ablate.run import progress
 from ablate.store import AccessDenied, ServerUnreachable, Tracker
 from ablate.store.sweepdir import PARENT_FILE, STORE_FILE
 from ablate.tables import table_spec
+from ablate.tables.collect import row_seconds
 from ablate.tables.racing import RacePlan, RaceState, race, table_values
 from ablate.tables.spec import LOWER_IS_BETTER
 
@@ -51,12 +53,23 @@ def row_key(combo: list[str], swept: set[str]) -> str:
     return " ".join(own) or "default"
 
 
-def look_estimate(elapsed: float, trained: int, jobs: int) -> float:
-    """Seconds the next look's ``jobs`` should take: the wall time so far per job that trained. A job the store
-    already held (skipped, or copied from another table: ``ablate.run.job``) costs seconds, so it does not count;
-    until one job has trained there is nothing to go by (0). Jobs of the next look that the store holds make this an
+def look_estimate(elapsed: float, trained: list[float], batch: list[float]) -> float:
+    """Seconds the next look should take: the wall time so far, scaled from the jobs that trained to the next look's
+    jobs by their costs (``trained``: one per job that trained in this command; ``batch``: one per job of the next
+    look; each its row's job seconds, :func:`job_costs`). With every row of one cost this is the wall time per
+    trained job times the look's jobs; a row twice as costly counts twice. A job the store already held (skipped,
+    or copied from another table: ``ablate.run.job``) took seconds, so it is not among ``trained``; until one job
+    has trained there is nothing to go by (0). Jobs of the next look that the store holds make this an
     overestimate, which stops a race early rather than past its budget."""
-    return elapsed * jobs / trained if trained else 0.0
+    return elapsed * sum(batch) / sum(trained) if sum(trained) > 0 else 0.0
+
+
+def job_costs(seconds: dict[str, float]) -> Callable[[str], float]:
+    """A row's cost for :func:`look_estimate`: its job seconds in the store (:func:`ablate.tables.collect.row_seconds`),
+    else the mean of the known rows' (1 where none is known: every row alike)."""
+    known = [s for s in seconds.values() if s > 0]
+    default = sum(known) / len(known) if known else 1.0
+    return lambda row: seconds[row] if seconds.get(row, 0) > 0 else default
 
 
 class RacingSweeperImpl:
@@ -118,13 +131,16 @@ class RacingSweeperImpl:
         have = dict.fromkeys(rows, 0)
         state = RaceState(plan, racing=rows)
         returns: list[list[JobReturn]] = []
-        started, launched, trained, stopped = time.monotonic(), 0, 0, ""
+        started, launched, stopped = time.monotonic(), 0, ""
+        trained: list[str] = []  # the row of each job that trained in this command
         while not state.over:
             look = state.looks_done + 1
             n = plan.looks[state.looks_done]
+            batch_rows = [r for r in state.racing for _ in range(have[r], n)]
             batch = [jobs[r] + [f"seed={s}"] for r in state.racing for s in range(have[r], n)]
             elapsed = time.monotonic() - started
-            needed = look_estimate(elapsed, trained, len(batch))
+            cost = self._costs(sdir, table) if trained else job_costs({})
+            needed = look_estimate(elapsed, [cost(r) for r in trained], [cost(r) for r in batch_rows])
             if plan.budget_min and elapsed + needed > plan.budget_min * 60:
                 stopped = (
                     f"the wall-time budget of {plan.budget_min:g} min stopped the race before look {look} "
@@ -142,7 +158,7 @@ class RacingSweeperImpl:
             progress.replan(sdir, launched + len(batch))
             returns.append(self._launch(batch, launched))
             launched += len(batch)
-            trained += sum(r.return_value != SKIPPED for r in returns[-1])
+            trained += [row_key(list(r.overrides), swept) for r in returns[-1] if r.return_value != SKIPPED]
             for r in state.racing:
                 have[r] = n
             try:
@@ -169,6 +185,13 @@ class RacingSweeperImpl:
             recorded = json.loads(path.read_text())
             return Tracker(str(recorded["uri"]), recorded["artifact_location"])
         return Tracker.from_config(self.config)
+
+    def _costs(self, sdir: Path, table: DictConfig) -> Callable[[str], float]:
+        try:
+            return job_costs(row_seconds(self._tracker(sdir), str(table.name)))
+        except Exception as err:  # an estimate: never the reason a sweep fails
+            log.warning("Could not read the rows' job times (every row counted alike): %s", err)
+            return job_costs({})
 
     def _values(self, sdir: Path, table: DictConfig) -> dict:
         return table_values(self._tracker(sdir), table)
