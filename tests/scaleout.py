@@ -12,15 +12,25 @@ from pathlib import Path
 import pytest
 from mlflow.tracking import MlflowClient
 
+from tests.stores import seed_store
+
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["scale=smoke", "data.synth.frames=20", "trainer.enable_progress_bar=false", "comp_time.repeats=2"]
 
 
 def ablate(
-    cwd: Path, *args: str, module: str = "ablate", env: dict[str, str] | None = None, timeout: int = 600
+    cwd: Path,
+    *args: str,
+    module: str = "ablate",
+    env: dict[str, str] | None = None,
+    timeout: int = 600,
+    fresh_store: bool = False,
 ) -> subprocess.CompletedProcess:
     """``python -m MODULE ARGS`` in ``cwd``, with ``env`` added to this environment (and no tracking URI unless
-    ``env`` names one)."""
+    ``env`` names one). Without a tracking URI in ``env`` the store is ``cwd/mlflow.db``, an empty one copied there
+    (:func:`tests.stores.seed_store`) unless ``fresh_store``."""
+    if not fresh_store and "MLFLOW_TRACKING_URI" not in (env or {}):
+        seed_store(cwd)
     full = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
     for key in ("MLFLOW_TRACKING_URI", "RAY_AUTH_MODE", "RAY_ADDRESS"):
         full.pop(key, None)

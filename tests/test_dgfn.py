@@ -3,7 +3,7 @@
 import math
 
 import pytest
-from test_cli import TINY, ablate, runs
+from test_cli import SERIAL, TINY, ablate, runs
 
 CONDITIONS = [
     "full",
@@ -20,8 +20,8 @@ CONDITIONS = [
 @pytest.fixture(scope="module")
 def tables(tmp_path_factory):
     cwd = tmp_path_factory.mktemp("dgfn")
-    first = ablate(cwd, "-m", "experiment=dgfn_table1", *TINY)
-    second = ablate(cwd, "-m", "experiment=dgfn_table2", *TINY)
+    first = ablate(cwd, "-m", "experiment=dgfn_table1", SERIAL, *TINY)
+    second = ablate(cwd, "-m", "experiment=dgfn_table2", SERIAL, *TINY)
     return cwd, first, second
 
 

@@ -20,7 +20,7 @@ from tests.scaleout import REPO, TINY, ablate, free_port, most_at_once, need, ou
 
 def test_submitit_local_runs_a_table_its_jobs_at_once_on_a_fresh_sqlite_store(tmp_path):
     need("submitit", "hydra_plugins.hydra_submitit_launcher")
-    out = ablate(tmp_path, "-m", "experiment=chinet_table2", "hydra/launcher=submitit_local", *TINY)
+    out = ablate(tmp_path, "-m", "experiment=chinet_table2", "hydra/launcher=submitit_local", *TINY, fresh_store=True)
     assert out.returncode == 0, output(out)
     _, jobs = runs(f"sqlite:///{tmp_path / 'mlflow.db'}", "chinet_table2")
     assert sorted(r.data.tags["row"] for r in jobs) == ["chinet", "fusenet", "unet"]

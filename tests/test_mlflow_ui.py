@@ -44,7 +44,7 @@ def ui(tmp_path_factory) -> tuple[Path, str, str]:
         pytest.skip("Chromium is not installed (apt-get install chromium)")
     need("playwright")
     cwd = tmp_path_factory.mktemp("ui")
-    out = ablate(cwd, "-m", "experiment=chinet_table2", *TINY)
+    out = ablate(cwd, "-m", "experiment=chinet_table2", "hydra/launcher=basic", *TINY)
     assert out.returncode == 0, output(out)
     found = re.search(r"Runs in the MLflow UI.*?: (http://127\.0\.0\.1:5000/\S+)", out.stdout + out.stderr)
     assert found, output(out)

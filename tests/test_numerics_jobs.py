@@ -19,8 +19,7 @@ ONE_STEP = [
 
 @pytest.mark.parametrize(
     "options",
-    [
-        ["trainer.precision=bf16-mixed"],
+    [  # each option once: precision and memory format together, then the compiled model
         ["trainer.precision=bf16-mixed", "trainer.channels_last=true"],
         ["trainer.channels_last=true", "trainer.compile=eager"],
     ],

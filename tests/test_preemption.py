@@ -12,10 +12,14 @@ from pathlib import Path
 
 from test_cli import REPO, TINY, ablate, runs
 
-EPOCHS = 30  # 3 steps an epoch at TINY: long enough to be stopped in the middle
+from tests.stores import seed_store
+
+EPOCHS = 30  # 3 steps an epoch at TINY: long enough to be stopped in the middle, both jobs of a sweep
+RESUMED_EPOCHS = 10  # a job stopped after its first epoch and rerun to its end: the rerun trains the rest
 
 
 def start(cwd: Path, *args: str) -> subprocess.Popen:
+    seed_store(cwd)
     env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
     env.pop("MLFLOW_TRACKING_URI", None)
     return subprocess.Popen(
@@ -41,7 +45,7 @@ def steps(client, run_id: str) -> list[int]:
 
 
 def test_sigterm_checkpoints_a_job_marks_it_killed_and_the_rerun_loses_less_than_an_epoch(tmp_path):
-    job = ["row=unet", "experiment=chinet_table2", *TINY, f"trainer.max_epochs={EPOCHS}"]
+    job = ["row=unet", "experiment=chinet_table2", *TINY, f"trainer.max_epochs={RESUMED_EPOCHS}"]
     proc = start(tmp_path, *job)
     wait_for(tmp_path, "checkpoints/chinet_table2/*/last.ckpt", 1, proc)  # an epoch is done: it is training
     time.sleep(0.5)
@@ -62,13 +66,13 @@ def test_sigterm_checkpoints_a_job_marks_it_killed_and_the_rerun_loses_less_than
     resumed = int(rerun.data.tags["resumed_step"])
     assert rerun.data.tags["resumed_from"].endswith("last.ckpt")
     total = max(steps(client, rerun.info.run_id)) + 1
-    per_epoch = total / EPOCHS
+    per_epoch = total / RESUMED_EPOCHS
     lost = (max(done) + 1 - resumed) / per_epoch  # steps trained before the signal that the rerun does again
     print(
         f"preempted at step {max(done) + 1} of {total} ({per_epoch:.0f} an epoch); resumed at {resumed}; lost {lost:.2f} epochs"
     )
     assert 0 <= lost < 1
-    assert min(steps(client, rerun.info.run_id)) == resumed and total == EPOCHS * per_epoch
+    assert min(steps(client, rerun.info.run_id)) == resumed and total == RESUMED_EPOCHS * per_epoch
 
 
 def children(pid: int) -> list[int]:
