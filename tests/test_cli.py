@@ -1,30 +1,12 @@
 """`python -m ablate` end to end at scale=smoke, as a user runs it: sweeps, tables, skip, failure and resume."""
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 from mlflow.tracking import MlflowClient
 
-from tests.stores import seed_store
-
-REPO = Path(__file__).resolve().parents[1]
-TINY = ["scale=smoke", "data.synth.frames=20", "trainer.enable_progress_bar=false", "comp_time.repeats=2"]
-# a sweep whose parallelism is not what a test is about runs its jobs in its own process: a parallel sweep's two
-# worker processes would import torch and Lightning again (seconds each) for tiny jobs
-SERIAL = "hydra/launcher=basic"
-
-
-def ablate(cwd: Path, *args: str, module: str = "ablate") -> subprocess.CompletedProcess:
-    seed_store(cwd)
-    env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
-    env.pop("MLFLOW_TRACKING_URI", None)
-    return subprocess.run(
-        [sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
-    )
+from tests.scaleout import REPO, SERIAL, TINY, ablate  # noqa: F401 (the other end-to-end tests import them from here)
 
 
 def runs(cwd: Path, experiment: str, kind: str = "job"):

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from scripts.tracking_server import wait_healthy
-from tests.scaleout import TINY, ablate, free_port, need, output, runs
+from tests.scaleout import SERIAL, TINY, ablate, free_port, need, output, runs
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 #: Chromium as root in a sandbox with no network: no sandbox, no GPU, none of its background connections.
@@ -44,7 +44,7 @@ def ui(tmp_path_factory) -> tuple[Path, str, str]:
         pytest.skip("Chromium is not installed (apt-get install chromium)")
     need("playwright")
     cwd = tmp_path_factory.mktemp("ui")
-    out = ablate(cwd, "-m", "experiment=chinet_table2", "hydra/launcher=basic", *TINY)
+    out = ablate(cwd, "-m", "experiment=chinet_table2", SERIAL, *TINY)
     assert out.returncode == 0, output(out)
     found = re.search(r"Runs in the MLflow UI.*?: (http://127\.0\.0\.1:5000/\S+)", out.stdout + out.stderr)
     assert found, output(out)

@@ -51,10 +51,9 @@ def sweeper_for(tmp_path, monkeypatch, metric, *overrides, shuffle=False, launch
     launcher = launcher or FakeLauncher(metric, shuffle)
     sweeper.sweeper.config, sweeper.sweeper.launcher = config, launcher
     sweeper.sweeper.hydra_context = type("Context", (), {"config_loader": None})()
-    monkeypatch.setattr(
-        impl, "table_values", lambda tracker, table: {r: pd.Series(v) for r, v in launcher.store.items()}
-    )
-    monkeypatch.setattr(impl, "row_seconds", lambda tracker, table: launcher.seconds)
+    monkeypatch.setattr(impl, "job_runs", lambda tracker, table: None)
+    monkeypatch.setattr(impl, "table_values", lambda runs, table: {r: pd.Series(v) for r, v in launcher.store.items()})
+    monkeypatch.setattr(impl, "row_seconds", lambda tracker, runs: launcher.seconds)
     monkeypatch.setattr(impl.RacingSweeperImpl, "_tracker", lambda self, sdir: None)
     return sweeper, launcher
 

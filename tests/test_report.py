@@ -7,7 +7,7 @@ from omegaconf import OmegaConf
 
 from ablate.store.tracker import KIND_JOB, Tracker
 from ablate.tables import collect, write_table
-from ablate.tables.collect import row_seconds
+from ablate.tables.collect import job_runs, row_seconds
 from ablate.tables.summary import kendall, summarise
 
 TABLE = OmegaConf.create(
@@ -194,4 +194,4 @@ def test_a_rows_job_time_is_its_runs_and_a_copied_run_counts_its_sources(tmp_pat
     job(mine, "ssd", 3_000, 9.0)
     job(mine, "ssd", 4_000, 10.0)
     tracker.copy_run(source, mine, {"row": "dgfn", "seed": "0"})
-    assert row_seconds(tracker, "table_ii") == {"dgfn": 19 * 60.0, "ssd": 9.5 * 60}
+    assert row_seconds(tracker, job_runs(tracker, "table_ii")) == {"dgfn": 19 * 60.0, "ssd": 9.5 * 60}

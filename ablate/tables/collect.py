@@ -17,7 +17,12 @@ def collect(tracker: Tracker, table: str) -> pd.DataFrame:
     A rerun after a config change (another recipe, another dataset) supersedes the earlier run of the same row and
     seed instead of counting as one more seed; runs at another scale (a smoke sweep beside the default-scale table)
     stay in the store and out of the table."""
-    df = at_latest_scale(job_runs(tracker, table))
+    return latest(job_runs(tracker, table))
+
+
+def latest(runs: pd.DataFrame) -> pd.DataFrame:
+    """Of :func:`job_runs`' frame, the latest run per (row, seed) at the latest scale: what :func:`collect` gives."""
+    df = at_latest_scale(runs)
     return df.drop_duplicates(["row", "seed"], keep="last").reset_index(drop=True) if len(df) else df
 
 
@@ -59,12 +64,13 @@ def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
     return pd.DataFrame.from_records(records).sort_values(["started", "config_hash"], kind="stable")
 
 
-def row_seconds(tracker: Tracker, table: str) -> dict[str, float]:
-    """Per row of ``table``, the median seconds one of its jobs took, start to end, over its FINISHED runs at the
-    latest scale. A run copied from another table (tag ``reused_from``, ``ablate.run.job``) took seconds to copy:
-    the time of the run it was copied from counts. The racing sweeper weighs its estimate of a look's wall time
-    with these (``hydra_plugins/ablate_racing_sweeper``): rows of one table can differ twofold in their cost."""
-    runs = at_latest_scale(job_runs(tracker, table))
+def row_seconds(tracker: Tracker, runs: pd.DataFrame) -> dict[str, float]:
+    """Per row of a table's :func:`job_runs`, the median seconds one of its jobs took, start to end, over its
+    FINISHED runs at the latest scale. A run copied from another table (tag ``reused_from``, ``ablate.run.job``)
+    took seconds to copy: the time of the run it was copied from counts (read from ``tracker``). The racing sweeper
+    weighs its estimate of a look's wall time with these (``hydra_plugins/ablate_racing_sweeper``): rows of one
+    table can differ twofold in their cost."""
+    runs = at_latest_scale(runs)
     if not len(runs):
         return {}
     seconds = ((runs["ended"] - runs["started"]) / 1000.0).astype(float)

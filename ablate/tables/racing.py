@@ -44,8 +44,7 @@ import pandas as pd
 from omegaconf import DictConfig
 from scipy import stats
 
-from ablate.store import Tracker
-from ablate.tables.collect import collect, under_condition
+from ablate.tables.collect import latest, under_condition
 
 CORRECTIONS = ("bonferroni", "pocock", "obrien_fleming", "none")
 LEVEL = 0.95
@@ -282,10 +281,11 @@ def seed_values(runs: pd.DataFrame, key: str) -> dict[str, pd.Series]:
     return out
 
 
-def table_values(tracker: Tracker, table: DictConfig) -> dict[str, pd.Series]:
-    """Per row, the primary metric by seed of ``table``'s FINISHED runs (under ``primary_condition`` where the
-    table has one): the very values the table shows."""
-    runs = under_condition(collect(tracker, str(table.name)), table)
+def table_values(runs: pd.DataFrame, table: DictConfig) -> dict[str, pd.Series]:
+    """Per row, the primary metric by seed of ``table``'s FINISHED runs (``runs``, from
+    :func:`ablate.tables.collect.job_runs`; under ``primary_condition`` where the table has one): the very values
+    the table shows."""
+    runs = under_condition(latest(runs), table)
     return seed_values(runs, str(table.primary))
 
 

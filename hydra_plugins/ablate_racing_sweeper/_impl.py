@@ -20,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pandas as pd
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.plugins import Plugins
@@ -32,7 +33,7 @@ from ablate.run import progress
 from ablate.store import AccessDenied, ServerUnreachable, Tracker
 from ablate.store.sweepdir import PARENT_FILE, STORE_FILE
 from ablate.tables import table_spec
-from ablate.tables.collect import row_seconds
+from ablate.tables.collect import job_runs, row_seconds
 from ablate.tables.racing import RacePlan, RaceState, race, table_values
 from ablate.tables.spec import LOWER_IS_BETTER
 
@@ -133,13 +134,13 @@ class RacingSweeperImpl:
         returns: list[list[JobReturn]] = []
         started, launched, stopped = time.monotonic(), 0, ""
         trained: list[str] = []  # the row of each job that trained in this command
+        cost = job_costs({})  # each row's job time, read with the values after each look
         while not state.over:
             look = state.looks_done + 1
             n = plan.looks[state.looks_done]
             batch_rows = [r for r in state.racing for _ in range(have[r], n)]
             batch = [jobs[r] + [f"seed={s}"] for r in state.racing for s in range(have[r], n)]
             elapsed = time.monotonic() - started
-            cost = self._costs(sdir, table) if trained else job_costs({})
             needed = look_estimate(elapsed, [cost(r) for r in trained], [cost(r) for r in batch_rows])
             if plan.budget_min and elapsed + needed > plan.budget_min * 60:
                 stopped = (
@@ -162,10 +163,14 @@ class RacingSweeperImpl:
             for r in state.racing:
                 have[r] = n
             try:
-                values = self._values(sdir, table)
+                tracker = self._tracker(sdir)
+                runs = job_runs(tracker, str(table.name))
             except (ServerUnreachable, AccessDenied) as err:
                 print(f"error: {err}; the race stopped after look {look}: the same command resumes it", file=sys.stderr)
                 raise SystemExit(1) from None
+            values = table_values(runs, table)
+            if trained:
+                cost = self._costs(tracker, runs)
             state = race(values, rows, reference, plan, higher, stop_after=look)
             if state.looks_done < look:
                 stopped = f"look {look} gave no values (its jobs failed): the race stopped there"
@@ -186,15 +191,13 @@ class RacingSweeperImpl:
             return Tracker(str(recorded["uri"]), recorded["artifact_location"])
         return Tracker.from_config(self.config)
 
-    def _costs(self, sdir: Path, table: DictConfig) -> Callable[[str], float]:
+    @staticmethod
+    def _costs(tracker: Tracker, runs: pd.DataFrame) -> Callable[[str], float]:
         try:
-            return job_costs(row_seconds(self._tracker(sdir), str(table.name)))
+            return job_costs(row_seconds(tracker, runs))
         except Exception as err:  # an estimate: never the reason a sweep fails
             log.warning("Could not read the rows' job times (every row counted alike): %s", err)
             return job_costs({})
-
-    def _values(self, sdir: Path, table: DictConfig) -> dict:
-        return table_values(self._tracker(sdir), table)
 
     def _tag_parent(self, sdir: Path, tags: dict[str, str]) -> None:
         parent = sdir / PARENT_FILE
