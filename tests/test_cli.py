@@ -4,15 +4,14 @@ import json
 from pathlib import Path
 
 import pytest
-from mlflow.tracking import MlflowClient
 
 from tests.scaleout import REPO, SERIAL, TINY, ablate  # noqa: F401 (the other end-to-end tests import them from here)
+from tests.scaleout import runs as store_runs
 
 
 def runs(cwd: Path, experiment: str, kind: str = "job"):
-    client = MlflowClient(f"sqlite:///{cwd / 'mlflow.db'}")
-    exp = client.get_experiment_by_name(experiment)
-    return client, client.search_runs([exp.experiment_id], f"tags.kind = '{kind}'") if exp else []
+    """:func:`tests.scaleout.runs` of the store ``cwd/mlflow.db``."""
+    return store_runs(f"sqlite:///{cwd / 'mlflow.db'}", experiment, kind)
 
 
 @pytest.fixture(scope="module")
