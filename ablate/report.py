@@ -5,7 +5,7 @@ summary (one line per paper table, :mod:`ablate.tables.index`) is rewritten in `
 ``README.md`` where they hold its markers, from the tables there, whether or not this store had their runs.
 
 ``python -m ablate.report --reproduce experiment=<table> row=<row> [seed=N]`` reruns one seed of a row here and says
-whether it holds (:mod:`ablate.run.reproduce`). ``python -m ablate.report --parity experiment=<table> row=<row>`` writes
+whether it holds (:mod:`ablate.analysis.reproduce`). ``python -m ablate.report --parity experiment=<table> row=<row>`` writes
 that row's section of ``results/precision_parity.md`` from its fp32 and bf16 runs (:mod:`ablate.tables.parity`)."""
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from pathlib import Path
 from hydra.errors import HydraException
 from omegaconf import DictConfig
 
+from ablate.analysis.reproduce import reproduce
 from ablate.config import CONF, compose
-from ablate.run.reproduce import reproduce
 from ablate.store import KIND_SWEEP, AccessDenied, Tracker, retry
 from ablate.tables import table_spec, write_table
 from ablate.tables.index import write_index
@@ -25,9 +25,9 @@ from ablate.tables.parity import parity, write_parity
 
 
 def fingerprint(cfg: DictConfig) -> dict[str, list[float]]:
-    """Today's fingerprint of a row's job config (:func:`ablate.run.fingerprint.compute`), imported on first use: it
+    """Today's fingerprint of a row's job config (:func:`ablate.jobs.fingerprint.compute`), imported on first use: it
     builds models with torch and Lightning, which a table whose runs match today's code never needs."""
-    from ablate.run.fingerprint import compute
+    from ablate.jobs.fingerprint import compute
 
     return compute(cfg)
 

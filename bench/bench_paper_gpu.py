@@ -5,7 +5,7 @@ fp32 weights), at the recipe's batch, against the estimates of ``results/paper_s
         [--steps 20] [--warmup 5] [--precision bf16,fp32] [--set "task.optimizer.lr=1e-4"] [--deterministic]
         [--device cuda] [--json results/paper_scale_gpu.json]
 
-Each row is built as the paper check builds it (:func:`ablate.run.paper_measure._build`: generated frames at the
+Each row is built as the paper check builds it (:func:`ablate.capacity.measure._build`: generated frames at the
 paper's 375 x 1242, the row's model, task, frozen experts and training corruptions), with a training batch of the
 recipe's ``data.batch_size`` distinct frames (``distinct_frames`` in the JSON; runs before it counted them used one
 frame repeated) and no feature cache (at the paper's sizes the experts run every step: ``results/paper_scale.md``'s
@@ -16,10 +16,10 @@ optimiser and scheduler step, the device synchronised. One test step follows (th
 metrics computed). A loss :data:`DIVERGED` times the first step's, or non-finite, stops the row as diverged, with
 :func:`diagnose`'s account of where the values blow up.
 
-Printed per row: the GPU, the median training step, the step the estimate assumes (:func:`ablate.run.paper_estimates.
+Printed per row: the GPU, the median training step, the step the estimate assumes (:func:`ablate.capacity.estimates.
 gpu_hours` for one step of the batch: (3 x trainable + frozen MACs) x 2 FLOPs a frame at 40 % of the dense bf16 peak
 of an H100 SXM, which an H200 shares), the achieved share of that peak, the peak memory allocated and reserved after
-the warm-up against :func:`~ablate.run.paper_estimates.gpu_memory`'s estimate, the loss at the first and the last
+the warm-up against :func:`~ablate.capacity.estimates.gpu_memory`'s estimate, the loss at the first and the last
 step, and the test step. A row that fails or diverges prints why and the others go on; the exit status is then 1.
 
 The estimates use the row's CPU measurement in ``results/paper_scale.json`` (``python -m ablate.check_paper``); a
@@ -48,9 +48,9 @@ from typing import Any
 import torch
 from lightning.fabric.utilities.apply_func import move_data_to_device
 
-from ablate.run.paper_estimates import GPU, gpu_hours, gpu_memory
-from ablate.run.paper_measure import _build, _loss, sample_config
-from ablate.run.paper_rows import measure_key, measured_config, recipe
+from ablate.capacity.estimates import GPU, gpu_hours, gpu_memory
+from ablate.capacity.measure import _build, _loss, sample_config
+from ablate.capacity.rows import measure_key, measured_config, recipe
 
 ROWS = "smoe_table2:smoe_fpn,smoe_table1:smoe_rgb,dgfn_table1:dgfn,chinet_table2:chinet,bifnet_table4:bifnet_dst_cbf"
 GIB = 2**30

@@ -38,9 +38,9 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from ablate.analysis.latency import macs
 from ablate.hardware import cpu
-from ablate.run.experts import expert_config, needed
-from ablate.run.latency import macs
+from ablate.jobs.experts import expert_config, needed
 
 warnings.filterwarnings("ignore")
 CONF = Path(__file__).resolve().parents[1] / "conf"

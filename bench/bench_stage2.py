@@ -1,5 +1,5 @@
 """Stage-2 training step (SMoE §4.3: the fusion network on frozen experts) with and without the experts' feature
-cache (ablate.run.experts.FeatureCache), at the cpu scale: the default job with fusion=smoe (RGB + DDM fused at P3..P7,
+cache (ablate.jobs.experts.FeatureCache), at the cpu scale: the default job with fusion=smoe (RGB + DDM fused at P3..P7,
 ResNet-18 x0.25 + FPN 64 per expert, YOLACT head), batch 8 at 128x416. Prints milliseconds per training step
 (forward, SMoE eq. 7 loss, backward, Adam step; median over steps) and the cache's memory.
 
@@ -21,7 +21,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from ablate.run.experts import FeatureCache, expert_config, feature_cache
+from ablate.jobs.experts import FeatureCache, expert_config, feature_cache
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 FIT_SHARE = 0.8  # train + val frames of the generated data (its split is 60/20/20): what one fit caches

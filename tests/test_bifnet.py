@@ -63,7 +63,7 @@ def test_every_row_builds_its_network(table, row):
 
 
 def test_experts_are_shared_by_dst_and_shpl_rows():
-    from ablate.run.experts import expert_config
+    from ablate.jobs.experts import expert_config
     from ablate.store import config_hash
 
     dst, shpl = (config("experiment=bifnet_table5", f"row={r}") for r in TABLES["bifnet_table5"])
@@ -126,7 +126,7 @@ def test_table4_end_to_end_at_smoke_scale(tmp_path):
 def test_a_stage_option_the_model_does_not_read_is_refused_by_name(overrides, option):
     from omegaconf.errors import ValidationError
 
-    from ablate.run.job import check_stage
+    from ablate.jobs.job import check_stage
 
     with pytest.raises(ValidationError, match=option):
         check_stage(config(*overrides))
@@ -134,7 +134,7 @@ def test_a_stage_option_the_model_does_not_read_is_refused_by_name(overrides, op
 
 @pytest.mark.parametrize("table", sorted(TABLES) + ["smoe_table1", "smoe_table2", "chinet_table2", "dgfn_table1"])
 def test_every_row_of_the_tables_passes_the_stage_check(table):
-    from ablate.run.job import check_stage
+    from ablate.jobs.job import check_stage
 
     for row in config(f"experiment={table}").table.rows:
         if not row.get("paper_only"):

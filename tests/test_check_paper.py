@@ -1,4 +1,4 @@
-"""The paper path's check (ablate.run.paper_check and its paper_* pieces, `python -m ablate.check_paper`): one
+"""The paper path's check (ablate.capacity.check and its paper_* pieces, `python -m ablate.check_paper`): one
 row per task family at the paper's architecture (full widths and depths, the paper's recipes) runs a training and a
 test step on a small input, so that a broken paper config fails here; the estimates' arithmetic; a failing row is
 reported and fails the command; the paper recipes' steps; the GPU trainers' precision and the paper scale's loader
@@ -11,8 +11,11 @@ import pytest
 import torch
 
 from ablate import hardware
+from ablate.capacity import check as paper_check
+from ablate.capacity import estimates as paper_estimates
+from ablate.capacity import measure as paper_measure
+from ablate.capacity import rows as paper_rows
 from ablate.config import compose
-from ablate.run import paper_check, paper_estimates, paper_measure, paper_rows
 
 #: One row per family: SMoE on frozen ResNet-101 experts (instance), DGFN's two VGG-16 SSD trunks with GFUs
 #: (detection), ChiNet (semantic), BiFNet with DST and CBF (road).
@@ -277,7 +280,7 @@ def test_smoes_paper_recipe_trains_both_stages_80k_steps_at_batch_8():
     i the iteration): the experts (stage 1) and the fusion network on them (stage 2) alike."""
     import lightning as L
 
-    from ablate.run.experts import expert_config, needed
+    from ablate.jobs.experts import expert_config, needed
 
     if SMOE_TEXT.is_file():
         assert "80k iterations with a batch size of 8" in SMOE_TEXT.read_text(encoding="utf-8")
@@ -299,7 +302,7 @@ def test_smoes_paper_recipe_trains_both_stages_80k_steps_at_batch_8():
 def test_long_rows_train_twice_the_recipes_steps_at_every_scale():
     from omegaconf import OmegaConf
 
-    from ablate.run.experts import expert_config
+    from ablate.jobs.experts import expert_config
     from ablate.store import config_hash
 
     def cfg(row, scale):

@@ -17,7 +17,7 @@ import torch
 from mlflow.tracking import MlflowClient
 from test_cli import REPO, TINY, ablate, runs
 
-from ablate.run.checkpoint import AtomicCheckpointIO, resume_point, write_atomic
+from ablate.jobs.checkpoint import AtomicCheckpointIO, resume_point, write_atomic
 from ablate.store import DiskFull, Tracker
 
 JOB = ["row=unet", "experiment=chinet_table2", *TINY]
@@ -33,7 +33,7 @@ def checkpoint(step: int, size: int = 10) -> dict:
 SLOW_SAVE = """
 import sys, time, torch
 from pathlib import Path
-from ablate.run.checkpoint import AtomicCheckpointIO
+from ablate.jobs.checkpoint import AtomicCheckpointIO
 
 class Slow:  # pickling it announces the write has begun, then stalls it
     def __reduce__(self):
@@ -185,7 +185,7 @@ def test_a_job_resuming_from_a_truncated_last_checkpoint_warns_once_and_finishes
 
 FULL_DISK = """
 import errno, runpy, sys
-import ablate.run.checkpoint as checkpoint
+import ablate.jobs.checkpoint as checkpoint
 
 real, writes = checkpoint.write_atomic, []
 

@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 import torch
 
-from ablate.run.diagnose import checks, found_objects, recall_table
+from ablate.analysis.diagnose import checks, found_objects, recall_table
 
 
 def _mask(h, w, y0, y1, x0, x1):

@@ -1,4 +1,4 @@
-"""The frozen experts' feature cache of two-stage training (ablate.run.experts.FeatureCache, SMoE §4.3): same loss,
+"""The frozen experts' feature cache of two-stage training (ablate.jobs.experts.FeatureCache, SMoE §4.3): same loss,
 outputs and gradients as running the experts, the experts not run on a cached step, and on only where valid."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import torch
 from omegaconf import OmegaConf
 
 from ablate.fusion import FusionModel, build
-from ablate.run.experts import FeatureCache, feature_cache
+from ablate.jobs.experts import FeatureCache, feature_cache
 from ablate.tasks.instance import InstanceTask, YolactHead
 
 MODALITIES = {"rgb": 3, "ddm_jet": 3}
@@ -32,7 +32,7 @@ def tiny(stage: str, single: str | None = None) -> FusionModel:
 
 
 def stage2(stage: str, freeze: bool = True) -> FusionModel:
-    """A fused model on experts that differ from its own initialisation, loaded as in ablate.run.experts.attach."""
+    """A fused model on experts that differ from its own initialisation, loaded as in ablate.jobs.experts.attach."""
     torch.manual_seed(0)
     model = tiny(stage)
     for m in MODALITIES:
@@ -195,7 +195,7 @@ def test_on_a_gpu_the_cache_is_kept_there_where_the_features_fit_and_turned_off_
     assert FeatureCache()._place(gpu, 4 * 2**20) == torch.device("cpu")  # frames unknown: the CPU, as before
     assert FeatureCache(fit_frames=10**6)._place(torch.device("cpu"), 4 * 2**20) == torch.device("cpu")
     too_big = FeatureCache(fit_frames=5985)
-    with caplog.at_level("INFO", logger="ablate.run.experts"):
+    with caplog.at_level("INFO", logger="ablate.jobs.experts"):
         too_big._place(gpu, 19 * 2**20)  # SMoE's P3-P7 at scale=paper: 111 GiB
     assert too_big.off
     assert [r.getMessage() for r in caplog.records if "cache_features is off" in r.getMessage()] == [

@@ -1,4 +1,4 @@
-"""A job's fingerprint (ablate.run.fingerprint) and the provenance footer that judges runs by it: a rename or a move
+"""A job's fingerprint (ablate.jobs.fingerprint) and the provenance footer that judges runs by it: a rename or a move
 keeps every number, a changed loss or data pipeline changes the component it is in, and runs without a
 fingerprint fall back to the file check."""
 
@@ -10,7 +10,7 @@ import pytest
 import ablate.data.kitti
 import ablate.tasks.semantic
 from ablate.config import compose
-from ablate.run.fingerprint import COMPONENTS, compute, decode, differs, encode
+from ablate.jobs.fingerprint import COMPONENTS, compute, decode, differs, encode
 from ablate.tables.provenance import ROOT, provenance
 
 

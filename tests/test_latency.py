@@ -5,7 +5,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from ablate.run.latency import interleaved, machine_load, macs, quartiles
+from ablate.analysis.latency import interleaved, machine_load, macs, quartiles
 from ablate.tables.rows import to_markdown
 from ablate.tables.summary import summarise
 
@@ -130,7 +130,7 @@ def test_a_loaded_machine_is_flagged_under_the_table():
 
 
 def test_a_reused_run_is_timed_from_its_source_runs_checkpoint(tmp_path, monkeypatch):
-    from ablate.run.latency import row_checkpoint
+    from ablate.analysis.latency import row_checkpoint
     from ablate.store.tracker import Tracker
 
     monkeypatch.chdir(tmp_path)

@@ -110,7 +110,7 @@ def test_ray_on_a_cluster_started_elsewhere_writes_the_table_into_the_drivers_st
 def compose_launcher(*overrides: str):
     from hydra import compose, initialize_config_dir
 
-    import ablate.run  # noqa: F401  (what `python -m ablate` imports before Hydra composes)
+    import ablate.__main__  # noqa: F401  (its warning filter, set before Hydra composes)
 
     with initialize_config_dir(str(REPO / "conf"), version_base="1.3"):
         return compose("config", overrides=list(overrides), return_hydra_config=True).hydra
@@ -136,7 +136,7 @@ def test_the_slurm_launcher_is_the_plugins_schema_with_the_projects_defaults():
 
 @pytest.mark.filterwarnings(
     "ignore:(?s).*validated against ConfigStore"
-)  # pytest resets the filter of ablate.run.sweep
+)  # pytest resets the filter of ablate.sweep.callback
 def test_the_ray_launcher_never_passes_an_object_store_size_to_a_running_cluster():
     need("ray", "hydra_plugins.hydra_ray_launcher")
     init = compose_launcher("hydra/launcher=ray", "hydra.launcher.ray.init.address=auto").launcher.ray.init

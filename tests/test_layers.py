@@ -10,7 +10,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent / "ablate"
 #: Lower layers first; a module may import from a lower layer or from its own piece, never from a higher one or a
-#: sibling of its layer. The root package (``ablate/__init__.py``: the version, the config resolvers) is beside them.
+#: sibling of its layer. Above the tasks: the store (MLflow), the tables (runs in, tables out), running one job
+#: (``jobs``), what is read from trained runs afterwards (``analysis``: latency, the reproduction check, the
+#: diagnosis), then the sweep (its callback and progress) and the capacity planning for the paper scale, side by
+#: side, and the commands on top. The root package (``ablate/__init__.py``: the version, the config resolvers) is beside them.
 LAYERS = [
     ["ablate.hardware", "ablate.config"],
     ["ablate.data"],
@@ -19,7 +22,9 @@ LAYERS = [
     ["ablate.tasks"],
     ["ablate.store"],
     ["ablate.tables"],
-    ["ablate.run"],
+    ["ablate.jobs"],
+    ["ablate.analysis"],
+    ["ablate.sweep", "ablate.capacity"],
     ["ablate.__main__", "ablate.report", "ablate.latency", "ablate.diagnose", "ablate.check_paper"],
 ]
 RANK = {piece: i for i, layer in enumerate(LAYERS) for piece in layer}
@@ -113,13 +118,15 @@ def test_no_module_imports_itself_back_through_others():
 
 def test_the_checker_sees_an_upward_edge(tmp_path):
     """The parser finds a function-level import, relative or absolute (a check that can fail)."""
-    known = {"ablate.store.x": tmp_path / "x.py", "ablate.run.job": tmp_path / "job.py", "ablate.run": tmp_path}
+    known = {"ablate.store.x": tmp_path / "x.py", "ablate.jobs.job": tmp_path / "job.py", "ablate.jobs": tmp_path}
     src = tmp_path / "x.py"
-    src.write_text("def f():\n    from ablate.run import job\n")
-    assert imports("ablate.store.x", src, known) == {"ablate.run.job"}
+    src.write_text("def f():\n    from ablate.jobs import job\n")
+    assert imports("ablate.store.x", src, known) == {"ablate.jobs.job"}
 
 
-@pytest.mark.parametrize("package", ["ablate.store", "ablate.tables", "ablate.run"])
+@pytest.mark.parametrize(
+    "package", ["ablate.store", "ablate.tables", "ablate.jobs", "ablate.analysis", "ablate.sweep", "ablate.capacity"]
+)
 def test_each_room_imports_alone(package):
     subprocess.run([sys.executable, "-c", f"import {package}"], check=True, timeout=120)
 

@@ -14,10 +14,10 @@ from hydra.core.hydra_config import HydraConfig
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf, open_dict
 
-from ablate.run.job import JobFailed, in_launch_dir
-from ablate.run.sweep import check_launcher, ray_driver_auth
+from ablate.jobs.job import JobFailed, in_launch_dir
 from ablate.store.sweepdir import STORE_FILE
 from ablate.store.tracker import EXPERIMENT_KIND, Tracker, artifact_location, resolve_uri, tracking_uri
+from ablate.sweep.callback import check_launcher, ray_driver_auth
 from tests.scaleout import REPO, need
 
 

@@ -10,7 +10,7 @@ import pytest
 import requests
 from mlflow.exceptions import MlflowException
 
-from ablate.run.record import deliver_earlier, kept_for_later, record_end, unreachable
+from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unreachable
 from ablate.store import Outbox, RunLogger, ServerUnreachable, Tracker
 from ablate.store import run_logger as logger_module
 from ablate.store import tracker as tracker_module

@@ -1,10 +1,10 @@
-"""A sweep's overall progress (ablate.run.progress): jobs finished of planned, and the ETA from finished jobs."""
+"""A sweep's overall progress (ablate.sweep.progress): jobs finished of planned, and the ETA from finished jobs."""
 
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-from ablate.run.progress import finished, planned_jobs, start, summary
+from ablate.sweep.progress import finished, planned_jobs, start, summary
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 

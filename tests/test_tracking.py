@@ -90,8 +90,8 @@ def test_sweeps_whose_process_died_are_closed_as_killed(tmp_path):
     import subprocess
     import sys
 
-    from ablate.run.sweep import close_dead_sweeps
     from ablate.store.tracker import KIND_SWEEP
+    from ablate.sweep.callback import close_dead_sweeps
 
     tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
     exp = tracker.experiment_id("table")

@@ -159,7 +159,7 @@ def outage(server, tmp_path_factory) -> Outage:  # noqa: F811
     finally:  # a failure above leaves no command running
         for proc in (sweep, short):
             if proc is not None and proc.poll() is None:
-                proc.terminate()  # a sweep passes SIGTERM on to its workers (ablate.run.preempt)
+                proc.terminate()  # a sweep passes SIGTERM on to its workers (ablate.jobs.preempt)
                 proc.wait(timeout=120)
     return Outage(uri, sweep_dir, sweep_end, short_dir, short_end, short_run.info.run_id, down_at, back_at, began)
 

@@ -1,5 +1,5 @@
 """The store: where runs are recorded, and what identifies them. It imports nothing of the orchestration
-(:mod:`ablate.run`) or of the tables (:mod:`ablate.tables`).
+(:mod:`ablate.jobs` and above) or of the tables (:mod:`ablate.tables`).
 
 - :mod:`~ablate.store.tracker`: the MLflow :class:`Tracker`, the store's URI and artifact root, :func:`retry` and
   :func:`file_lock`; :mod:`~ablate.store.run_logger`: the Lightning :class:`RunLogger` of a job;

@@ -1,6 +1,6 @@
 """A job's fingerprint as the store keeps it: numbers per component, compared with a relative tolerance.
 
-Computed by :func:`ablate.run.fingerprint.compute` at a job's start; stored as the run's ``fingerprint`` tag
+Computed by :func:`ablate.jobs.fingerprint.compute` at a job's start; stored as the run's ``fingerprint`` tag
 (compact JSON); compared by the tables (:mod:`ablate.tables.provenance`) with :func:`differs`.
 """
 

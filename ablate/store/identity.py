@@ -27,7 +27,7 @@ SOURCE = Path(__file__).resolve().parents[2]
 
 #: Config keys that do not change a result, so they are left out of the config hash (``table`` holds only
 #: the paper's numbers and row names; the experiment a run lands in already separates tables; the float32 feature
-#: cache of frozen experts, ablate.run.experts.FeatureCache, changes the speed only).
+#: cache of frozen experts, ablate.jobs.experts.FeatureCache, changes the speed only).
 UNHASHED = (
     "force",
     "logger",

@@ -5,7 +5,7 @@ Jobs find the parent through a file in the sweep directory (``.parent_run``), an
 another (``.tracking.json``), which works for every launcher whose jobs see the sweep directory: the basic one,
 joblib, submitit (local or SLURM, on a shared filesystem) and Ray (the sweep directory is absolute, under the launch
 directory). A job so writes to its parent's store even where its own environment names no store (a Ray worker does
-not inherit the driver's ``MLFLOW_TRACKING_URI``). The sweep callback (:mod:`ablate.run.sweep`) writes these files;
+not inherit the driver's ``MLFLOW_TRACKING_URI``). The sweep callback (:mod:`ablate.sweep.callback`) writes these files;
 this module only names and reads them, so the store never imports the orchestration.
 """
 

@@ -4,7 +4,7 @@ Only FINISHED job runs count (per row and seed the latest, at the scale of the l
 becomes a row; a row with no finished run is listed under the table instead, and the footer counts the runs still
 RUNNING (a report while a sweep writes) and the bad frames the runs skipped. The same runs give the same bytes:
 no timestamps, rows in the paper's order, PNG written without metadata. It imports the store, never the job or the
-sweep (:mod:`ablate.run`): what it needs from them (recomputing a run's fingerprint) is passed in.
+sweep (:mod:`ablate.jobs`, :mod:`ablate.sweep`): what it needs from them (recomputing a run's fingerprint) is passed in.
 
 Two layouts (``table.layout``) share one API, ``write_<layout>(cfg, table, runs, tracker, parent_run,
 results_dir, footer) -> paths``: ``rows`` (:mod:`~ablate.tables.rows`, the default) has a row per trained model;
@@ -39,7 +39,7 @@ def write_table(
 ) -> list[Path]:
     """Write ``cfg``'s table and its figures under ``results_dir`` from the store's runs; log them to
     ``parent_run`` if given. Returns the paths written. ``fingerprint`` recomputes a run's fingerprint from its
-    config (:func:`ablate.run.fingerprint.compute`, passed in by the caller) for the provenance footer; without it
+    config (:func:`ablate.jobs.fingerprint.compute`, passed in by the caller) for the provenance footer; without it
     the footer names changed files."""
     table = table_spec(cfg)
     layout = table.get("layout", "rows")

@@ -10,7 +10,7 @@ for other importers): those count where a module names the package itself (``fro
 a ChiNet run, which imports ``ablate.nn.unet``, does not depend on the VGG-16 it never builds. A file of that set
 changed between the run's commit and the working tree makes the run a candidate: its numbers may not be what the code
 gives today. Whether they are is judged by behaviour, not by file: a run that recorded a fingerprint
-(:mod:`ablate.run.fingerprint`) has it recomputed on today's code and is flagged only where a component differs, so a
+(:mod:`ablate.jobs.fingerprint`) has it recomputed on today's code and is flagged only where a component differs, so a
 rename or a move flags nothing; a run without one (made before fingerprints) falls back to the file check. Config files are covered by the config hash: a row whose config changed gets a new hash and is trained
 again. A metric whose rule changed is named outright (:func:`evaluators`): a run records the evaluator it was
 scored with as its ``evaluator`` tag, and :data:`ablate.metrics.EVALUATORS` names today's.
@@ -116,7 +116,7 @@ def evaluators(targets: set[str], root: Path = ROOT, package: str = "ablate") ->
     return {m: e for m, e in sorted(EVALUATORS.items()) if (f := module_file(m, root)) and f.resolve() in deps}
 
 
-#: Recomputes a run's fingerprint from its resolved config (:func:`ablate.run.fingerprint.compute`): passed in by
+#: Recomputes a run's fingerprint from its resolved config (:func:`ablate.jobs.fingerprint.compute`): passed in by
 #: the caller, the tables never import the job.
 Recompute = Callable[[DictConfig], dict[str, list[float]]]
 

@@ -29,9 +29,9 @@ from hydra.plugins.launcher import Launcher
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf
 
-from ablate.run import progress
 from ablate.store import AccessDenied, ServerUnreachable, Tracker
 from ablate.store.sweepdir import PARENT_FILE, STORE_FILE
+from ablate.sweep import progress
 from ablate.tables import table_spec
 from ablate.tables.collect import job_runs, row_seconds
 from ablate.tables.racing import RacePlan, RaceState, race, table_values
@@ -39,12 +39,12 @@ from ablate.tables.spec import LOWER_IS_BETTER
 
 log = logging.getLogger(__name__)
 
-#: What a job returns (``ablate.run.job.main``) when the store already held its run and nothing trained.
+#: What a job returns (``ablate.jobs.job.main``) when the store already held its run and nothing trained.
 SKIPPED = "SKIPPED"
 
 
 def row_key(combo: list[str], swept: set[str]) -> str:
-    """The ``row`` tag the job of ``combo`` records (:func:`ablate.run.job.row_name`): its ``row`` choice, else
+    """The ``row`` tag the job of ``combo`` records (:func:`ablate.jobs.job.row_name`): its ``row`` choice, else
     its swept overrides, sorted."""
     for item in combo:
         key, _, value = item.lstrip("+~").partition("=")
@@ -59,7 +59,7 @@ def look_estimate(elapsed: float, trained: list[float], batch: list[float]) -> f
     jobs by their costs (``trained``: one per job that trained in this command; ``batch``: one per job of the next
     look; each its row's job seconds, :func:`job_costs`). With every row of one cost this is the wall time per
     trained job times the look's jobs; a row twice as costly counts twice. A job the store already held (skipped,
-    or copied from another table: ``ablate.run.job``) took seconds, so it is not among ``trained``; until one job
+    or copied from another table: ``ablate.jobs.job``) took seconds, so it is not among ``trained``; until one job
     has trained there is nothing to go by (0). Jobs of the next look that the store holds make this an
     overestimate, which stops a race early rather than past its budget."""
     return elapsed * sum(batch) / sum(trained) if sum(trained) > 0 else 0.0

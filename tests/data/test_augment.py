@@ -157,7 +157,7 @@ def test_only_the_training_split_is_augmented_and_every_epoch_draws_anew(data_di
 def test_the_feature_cache_is_off_when_frames_are_augmented():
     from omegaconf import OmegaConf
 
-    from ablate.run.experts import feature_cache
+    from ablate.jobs.experts import feature_cache
 
     model = type("Frozen", (torch.nn.Module,), {"cacheable": True})()
     cfg = OmegaConf.create({"experts": {"cache_features": True}, "data": {}})

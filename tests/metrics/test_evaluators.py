@@ -1,4 +1,4 @@
-"""Which evaluator a task's metrics follow: the ``evaluator`` tag its runs record (ablate.run.job) and the report
+"""Which evaluator a task's metrics follow: the ``evaluator`` tag its runs record (ablate.jobs.job) and the report
 compares with today's (ablate.metrics.EVALUATORS)."""
 
 from __future__ import annotations

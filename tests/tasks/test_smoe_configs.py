@@ -109,7 +109,7 @@ def test_paper_numbers_match_the_paper_text(table, title):
 
 
 def test_followup_rows_change_only_epochs_or_freezing_and_share_their_experts():
-    from ablate.run.experts import expert_config
+    from ablate.jobs.experts import expert_config
     from ablate.store import config_hash
 
     rows = table_rows("smoe_table1_followup")

@@ -35,8 +35,8 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from ablate import hardware
 from ablate.config import compose as compose_root
-from ablate.run import fingerprint
-from ablate.run.experts import expert_config, load_model
+from ablate.jobs import fingerprint
+from ablate.jobs.experts import expert_config, load_model
 from ablate.store import Tracker, retry
 from ablate.tables import collect, table_spec, write_table
 

@@ -1,19 +1,19 @@
-"""One row of the paper check measured (:mod:`ablate.run.paper_check`): one training step and one test step of its
+"""One row of the paper check measured (:mod:`ablate.capacity.check`): one training step and one test step of its
 config at ``scale=paper``, at batch 1, on the CPU in fp32, in the calling process.
 
 - The data (:func:`sample_config`): :data:`FRAMES` frames of the generated dataset at the paper's resolution
   (``data.synth`` height and width of ``conf/scale/paper.yaml``: KITTI's 375 x 1242), batch 1, no loader workers;
   the data module as configured otherwise (BiFNet's paper augmentation included).
-- The model and task (:func:`_build`) built with hydra's ``instantiate`` as :mod:`ablate.run.job` does, with the
+- The model and task (:func:`_build`) built with hydra's ``instantiate`` as :mod:`ablate.jobs.job` does, with the
   frozen experts of a two-stage row (SMoE §4.3; BiFNet §V-B) loaded into the fused model from freshly built experts
   (``load_expert`` with ``experts.freeze``), so that what is frozen is what a job freezes.
 - One training step (the row's training corruptions, forward, loss, backward, the recipe's optimiser and scheduler
   step), then one test step with the task's test conditions, its metrics computed.
 
 Figures (:func:`measure`): parameters; MACs of the training step's forward pass (``FlopCounterMode``: convolutions
-and matrix products, MACs = FLOPs / 2, as :func:`ablate.run.latency.macs` counts them), and of them those run in
+and matrix products, MACs = FLOPs / 2, as :func:`ablate.analysis.latency.macs` counts them), and of them those run in
 frozen parts (:class:`FrozenMacs`: the frozen experts); the bytes of one frame's frozen expert features (what a
-feature cache, :class:`ablate.run.experts.FeatureCache`, holds of a frame); the training and test steps' wall times
+feature cache, :class:`ablate.jobs.experts.FeatureCache`, holds of a frame); the training and test steps' wall times
 on this CPU; the bytes of the tensors saved for backward at batch 1 (:class:`SavedTensors`: each storage counted
 once, the parameters left out): the activation memory; the weights, gradients and optimiser state after the step;
 the trainable parameters that got no gradient (``unused``: DDP needs ``find_unused_parameters`` for them,
@@ -33,9 +33,9 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
+from ablate.capacity.rows import needed_experts
 from ablate.data.datamodule import collate
-from ablate.run.experts import expert_config, feature_cache
-from ablate.run.paper_rows import needed_experts
+from ablate.jobs.experts import expert_config, feature_cache
 
 #: Frames of generated data each row reads (one training, one test frame after the 60/20/20 split).
 FRAMES = 2
@@ -162,7 +162,7 @@ def _build(cfg: DictConfig, small: DictConfig, batch_size: int = 1) -> dict[str,
     """The data (a training batch of ``batch_size`` frames, the training split's first ones, repeated where it has
     fewer, and a test batch of one frame), model and task of job config ``cfg`` on the frames of ``small``, with the
     experts of a two-stage row loaded (frozen where ``experts.freeze``) and the frozen experts' feature cache a job
-    would use on the CPU (:func:`ablate.run.experts.feature_cache`)."""
+    would use on the CPU (:func:`ablate.jobs.experts.feature_cache`)."""
     L.seed_everything(int(small.seed), workers=True, verbose=False)
     datamodule = instantiate(small.data)
     datamodule.setup("fit")
@@ -174,7 +174,7 @@ def _build(cfg: DictConfig, small: DictConfig, batch_size: int = 1) -> dict[str,
     model = instantiate(small.model)
     task = instantiate(small.task, model=model)
     freeze = bool((cfg.get("experts") or {}).get("freeze", True))
-    for modality in needed_experts(cfg):  # stage 2 starts from the experts, as ablate.run.experts.attach loads them
+    for modality in needed_experts(cfg):  # stage 2 starts from the experts, as ablate.jobs.experts.attach loads them
         model.load_expert(modality, instantiate(expert_config(cfg, modality).model), freeze=freeze)
     task.feature_cache = feature_cache(small, model)
     task.train()

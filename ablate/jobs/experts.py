@@ -60,7 +60,7 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
 
 
 #: How stage 1 runs an expert's job: ``run(cfg, kind=..., row=...) -> Outcome`` with ``ckpt_dir`` and ``run_id``
-#: (:func:`ablate.run.job.run`, which passes itself in: this module never imports the job back).
+#: (:func:`ablate.jobs.job.run`, which passes itself in: this module never imports the job back).
 RunJob = Callable[..., Any]
 
 

@@ -4,10 +4,10 @@ runs one training step and one evaluation step at batch 1, with its memory and G
 ``python -m ablate.check_paper [experiment=a,b] [row=x,y] [budget_min=40] [force=true] [reuse=true]``
 (:mod:`ablate.check_paper`; :func:`main`). The pieces, one job each:
 
-- :mod:`ablate.run.paper_rows`: the rows, their job configs, what each trains and its recipe (batch, steps, seeds);
-- :mod:`ablate.run.paper_measure`: one row's training and test step, and the figures measured on them;
-- :mod:`ablate.run.paper_estimates`: GPU memory and GPU-hours from those figures, for the GPUs named there;
-- :mod:`ablate.run.paper_report`: ``results/paper_scale.md``;
+- :mod:`ablate.capacity.rows`: the rows, their job configs, what each trains and its recipe (batch, steps, seeds);
+- :mod:`ablate.capacity.measure`: one row's training and test step, and the figures measured on them;
+- :mod:`ablate.capacity.estimates`: GPU memory and GPU-hours from those figures, for the GPUs named there;
+- :mod:`ablate.capacity.report`: ``results/paper_scale.md``;
 - this module: each measurement in a process of its own (:func:`run_isolated`: its peak RSS, ``resource.getrusage``,
   is the row's, and a crash is the row's error), under a time budget, the CPU it ran on recorded (:func:`cpu_name`,
   with the CPU's family and model numbers); the store of figures; the command.
@@ -39,9 +39,9 @@ from pathlib import Path
 from typing import Any
 
 from ablate import hardware
-from ablate.run.paper_measure import count_macs, measure, sample_config
-from ablate.run.paper_report import failed, line, report
-from ablate.run.paper_rows import describe, experiments, measured_config, order, plan, recipe
+from ablate.capacity.measure import count_macs, measure, sample_config
+from ablate.capacity.report import failed, line, report
+from ablate.capacity.rows import describe, experiments, measured_config, order, plan, recipe
 
 RESULTS = Path("results")
 

@@ -3,9 +3,9 @@
 A job whose config hash already has a FINISHED run is skipped unless ``force=true``. A job that crashed or was
 killed is recorded FAILED or KILLED and runs again next time, resuming from its last checkpoint
 (``checkpoints/<table>/<config hash>/last.ckpt``) when one exists and loads, else from ``best.ckpt``, else from
-scratch (:mod:`ablate.run.checkpoint`, which also writes every checkpoint atomically). SIGTERM or SIGINT stops a job
+scratch (:mod:`ablate.jobs.checkpoint`, which also writes every checkpoint atomically). SIGTERM or SIGINT stops a job
 after the batch in progress with its checkpoint saved, its run KILLED with the reason, and exit status 143 (130)
-(:mod:`ablate.run.preempt`). A full disk fails the job with one message naming the file.
+(:mod:`ablate.jobs.preempt`). A full disk fails the job with one message naming the file.
 
 A tracking server that does not answer never stops training: the run's metrics wait in the job's outbox
 (``outbox.jsonl`` beside its checkpoints, :mod:`ablate.store.outbox`) and are delivered once it answers. Where the
@@ -44,13 +44,13 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException, ValidationError
 
 from ablate import hardware
-from ablate.run import fingerprint
-from ablate.run.checkpoint import AtomicCheckpointIO, resume_point
-from ablate.run.experts import attach as attach_experts
-from ablate.run.experts import feature_cache
-from ablate.run.experts import prepare as prepare_experts
-from ablate.run.preempt import SETTLE_S, STOP, SaveOnStop, Stopped, exit_status, loky_worker
-from ablate.run.record import deliver_earlier, kept_for_later, record_end, unreachable
+from ablate.jobs import fingerprint
+from ablate.jobs.checkpoint import AtomicCheckpointIO, resume_point
+from ablate.jobs.experts import attach as attach_experts
+from ablate.jobs.experts import feature_cache
+from ablate.jobs.experts import prepare as prepare_experts
+from ablate.jobs.preempt import SETTLE_S, STOP, SaveOnStop, Stopped, exit_status, loky_worker
+from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unreachable
 from ablate.store import (
     KIND_JOB,
     SKIPPED_FRAMES,
@@ -216,7 +216,7 @@ def stopped_reason(stop: Stopped, ckpt_dir: Path) -> str:
 
 
 def record_fingerprint(cfg: DictConfig, tracker: Tracker, run_id: str) -> None:
-    """Tag the run with its config's fingerprint (:mod:`ablate.run.fingerprint`) and the seconds it took."""
+    """Tag the run with its config's fingerprint (:mod:`ablate.jobs.fingerprint`) and the seconds it took."""
     numbers, seconds = fingerprint.timed(cfg)
     tracker.set_tags(run_id, {fingerprint.TAG: fingerprint.encode(numbers), "fingerprint_s": f"{seconds:.2f}"})
     log.info("Fingerprint in %.1f s", seconds)

@@ -21,12 +21,13 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from ablate.analysis.latency import measure
 from ablate.config import compose
-from ablate.run import fingerprint, progress
-from ablate.run.latency import measure
-from ablate.run.preempt import GRACE_S, alive, install_parent
+from ablate.jobs import fingerprint
+from ablate.jobs.preempt import GRACE_S, alive, install_parent
 from ablate.store import KIND_SWEEP, AccessDenied, ServerUnreachable, Tracker, is_server, provenance_tags, sweep_dir
 from ablate.store.sweepdir import FAILURES, PARENT_FILE, STORE_FILE, SWEPT_FILE
+from ablate.sweep import progress
 from ablate.tables import COSTS, table_spec, write_table
 
 log = logging.getLogger(__name__)
@@ -44,7 +45,7 @@ def close_dead_sweeps(tracker: Tracker, experiment_id: str) -> int:
 
 
 def stop_sweep(tracker: Tracker, run_id: str, signame: str, stopped: int, killed: int) -> None:
-    """Record a sweep stopped by ``signame`` (its workers already stopped, :func:`ablate.run.preempt.stop_workers`):
+    """Record a sweep stopped by ``signame`` (its workers already stopped, :func:`ablate.jobs.preempt.stop_workers`):
     its parent run KILLED with the reason, and one line for the user."""
     reason = f"stopped by {signame}: {stopped} worker(s) stopped" + (
         f", {killed} killed after {GRACE_S:.0f} s" if killed else ", each job checkpointed and marked KILLED"

@@ -48,8 +48,8 @@ from tqdm import tqdm  # noqa: E402
 
 from ablate.config import compose  # noqa: E402
 from ablate.data.difficulty import counted  # noqa: E402
+from ablate.jobs.experts import EXPERTS_TABLE, expert_config, load_model  # noqa: E402
 from ablate.metrics.coco import MaskAP  # noqa: E402
-from ablate.run.experts import EXPERTS_TABLE, expert_config, load_model  # noqa: E402
 from ablate.store import Tracker, config_hash, retry  # noqa: E402
 from ablate.tasks.yolact.figures import draw_rows  # noqa: E402
 from ablate.tasks.yolact.task import CONDITION_GROUPS, condition_group  # noqa: E402

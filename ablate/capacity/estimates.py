@@ -1,5 +1,5 @@
-"""The paper check's estimates for a GPU (:mod:`ablate.run.paper_check`), from a row's measurement
-(:mod:`ablate.run.paper_measure`) and its recipe (:func:`ablate.run.paper_rows.recipe`); no GPU ran them.
+"""The paper check's estimates for a GPU (:mod:`ablate.capacity.check`), from a row's measurement
+(:mod:`ablate.capacity.measure`) and its recipe (:func:`ablate.capacity.rows.recipe`); no GPU ran them.
 
 - GPU memory (:func:`gpu_memory`) at the recipe's batch (``data.batch_size`` of ``conf/recipe/<task>_paper.yaml`` or
   of the scale) under ``trainer=gpu``'s bf16-mixed: fp32 weights + fp32 gradients + the optimiser state as measured
@@ -10,7 +10,7 @@
   peak x :data:`UTILISATION`. The reading: the trainable parts run forward and backward (backward ~ twice the
   forward); the frozen experts of a two-stage row (SMoE §4.3, stage 2 "with fixed weights of each expert network")
   run forward only, no gradient reaching them, every step unless their feature cache fits the GPU
-  (:func:`cache_share`, as :class:`ablate.run.experts.FeatureCache` decides on a GPU), when they run once per
+  (:func:`cache_share`, as :class:`ablate.jobs.experts.FeatureCache` decides on a GPU), when they run once per
   training and validation frame. Fine-tuned experts (``experts.freeze: false``, BiFNet's paper recipe) are trainable
   parts. A table also pays for the experts its fused rows start from (stage 1: 3 x each expert's MACs, its own
   steps, every seed), counted once per table (:func:`table_hours`); validation passes are not counted.
@@ -21,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from ablate.run.experts import GPU_CACHE_SHARE
+from ablate.jobs.experts import GPU_CACHE_SHARE
 
 
 @dataclass(frozen=True)
@@ -78,7 +78,7 @@ def gpu_hours(
 
 def cache_share(m: dict[str, Any], entry: dict[str, Any], gpu: Gpu = GPU) -> float:
     """The share of the training and validation frames whose frozen features a job's feature cache holds on
-    ``gpu`` (:class:`ablate.run.experts.FeatureCache`): 0 without one (``feature_bytes`` 0: none was built, as for
+    ``gpu`` (:class:`ablate.jobs.experts.FeatureCache`): 0 without one (``feature_bytes`` 0: none was built, as for
     fine-tuned experts or augmented data) or where it turns itself off, its features of ``fit_frames`` frames being
     over ``GPU_CACHE_SHARE`` of the memory free at the first batch (taken as the GPU's less the weights and
     :data:`CUDA_OVERHEAD`); else what its cap (``experts.cache_max_gb``) holds of them."""

@@ -1,4 +1,4 @@
-"""The rows of the paper check (:mod:`ablate.run.paper_check`) and what each trains at ``scale=paper``.
+"""The rows of the paper check (:mod:`ablate.capacity.check`) and what each trains at ``scale=paper``.
 
 Every row of every table (``conf/experiment/*.yaml``) has a job config (:func:`ablate.config.compose` of
 ``experiment=<table> row=<row> scale=paper``) and a config its training runs (:func:`measured_config`: for a
@@ -19,7 +19,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from ablate.config import CONF, compose
-from ablate.run.experts import expert_config, needed
+from ablate.jobs.experts import expert_config, needed
 
 
 def experiments() -> list[str]:
@@ -40,7 +40,7 @@ def job_config(experiment: str, row: str, overrides: Iterable[str] = ()) -> Dict
 
 def measured_config(experiment: str, row: str, expert: str | None = None, overrides: Iterable[str] = ()) -> DictConfig:
     """The config a row's training runs: its job config; for a single-modal row of a two-stage table, and for an
-    ``expert`` of a fused row, the expert's (:func:`ablate.run.experts.expert_config`: the job that trains it)."""
+    ``expert`` of a fused row, the expert's (:func:`ablate.jobs.experts.expert_config`: the job that trains it)."""
     cfg = job_config(experiment, row, overrides)
     if expert is None and cfg.get("experts") and cfg.stage.name == "single":
         expert = str(cfg.stage.modality)
@@ -92,7 +92,7 @@ def recipe(cfg: DictConfig, train_frames: int | None = None) -> dict[str, Any]:
 
     trainer, experts = cfg.trainer, cfg.get("experts") or {}
     own = steps(trainer.get("max_steps"), trainer.get("max_epochs"))
-    # the experts' trainer as ablate.run.experts.expert_config makes it: the job's, with experts.max_epochs and
+    # the experts' trainer as ablate.jobs.experts.expert_config makes it: the job's, with experts.max_epochs and
     # experts.max_steps where the recipe or the row sets them (SMoE at scale=paper: 80k steps each stage, §4.3)
     expert_steps = steps(
         _set_or(experts.get("max_steps"), trainer.get("max_steps")),
