@@ -14,7 +14,7 @@ memorised frames. dgfn_table1's cpu recipe gives DGFN 226 updates over 900 frame
 0.4 % on the test frames: at this scale the SSD needs several times more updates than the cpu budget holds.
 With ``--set model.batch_norm=true`` (ScratchDet's BatchNorm in the trunk, ablate.nn.vgg), same machine and load:
 300 updates 477 s (1.59 s per update), loss 0.03, Car moderate 63.6 %, mean 45.5 %: the cpu recipe now has it
-(conf/recipe/detection_cpu.yaml).
+(conf/recipe/detection_cpu.yaml; docs/recipes.md#detection_cpu).
 """
 
 from __future__ import annotations

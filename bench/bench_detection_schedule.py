@@ -1,5 +1,5 @@
 """How many epochs the cpu-scale detection recipe should train: the learning curves of the single-sensor SSDs and of
-DGFN's baseline without GFU, before any GFU row is trained (conf/recipe/detection_cpu.yaml records the decision).
+DGFN's baseline without GFU, before any GFU row is trained (docs/recipes.md#detection_cpu records the decision).
 
     PYTHONPATH=. python bench/bench_detection_schedule.py [--epochs 8] [--seed 0] [--store /tmp/schedule]
         [--read-only] [--set trainer.precision=auto ...]
