@@ -1,5 +1,7 @@
 """ablate: ablation studies of camera + LiDAR sensor-fusion networks."""
 
+from collections.abc import Sequence
+
 from omegaconf import OmegaConf
 
 from ablate.hardware import register_resolvers
@@ -7,7 +9,7 @@ from ablate.hardware import register_resolvers
 __version__ = "0.1.0"
 
 
-def _channels(names) -> dict[str, int]:
+def _channels(names: Sequence[str]) -> dict[str, int]:
     """Config resolver ``${channels:${modalities}}``: modality names -> {name: input channels}."""
     from ablate.data.dataset import MODALITIES
 

@@ -67,6 +67,7 @@ class Cpu:
 @lru_cache(maxsize=1)
 def cpu() -> Cpu:
     """This machine's CPU, read from ``/proc/cpuinfo`` (Linux); elsewhere the platform's name and no flags."""
+    flags: frozenset[str]
     model, flags = platform.processor() or platform.machine(), frozenset()
     family = number = ""
     try:

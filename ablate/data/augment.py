@@ -105,7 +105,7 @@ def mirror_points(points: np.ndarray, calib: kitti.Calibration) -> np.ndarray:
     return out
 
 
-def flip_box(bbox, width: int) -> tuple[float, float, float, float]:
+def flip_box(bbox: tuple[float, float, float, float], width: int) -> tuple[float, float, float, float]:
     """An xyxy box in the flipped image (``u' = W - 1 - u``)."""
     x0, y0, x1, y1 = bbox
     return (width - 1.0 - x1, y0, width - 1.0 - x0, y1)

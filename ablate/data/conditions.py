@@ -8,9 +8,11 @@ the Complex-KITTI conditions).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 Image = np.ndarray  # (H,W,3) float32 RGB in [0, 1]
 
@@ -24,10 +26,10 @@ def night(img: Image, rng: np.random.Generator, severity: float = 1.0) -> Image:
     """SMoE §3.3 night: reduced brightness (gamma and gain), Gaussian sensor noise and motion blur."""
     dark = np.power(img, 1.0 + 1.2 * severity) * (1.0 - 0.6 * min(severity, 1.0))
     length = 1 + 2 * int(round(rng.uniform(2, 5) * severity))
-    kernel = np.zeros((length, length), np.float32)
+    kernel: np.ndarray = np.zeros((length, length), np.float32)
     kernel[length // 2] = 1.0 / length
     rot = cv2.getRotationMatrix2D((length / 2 - 0.5, length / 2 - 0.5), rng.uniform(-30, 30), 1.0)
-    kernel = cv2.warpAffine(kernel, rot, (length, length))
+    kernel = cast("NDArray[np.float32]", cv2.warpAffine(kernel, rot, (length, length)))  # float32 in, float32 out
     kernel /= max(kernel.sum(), 1e-6)
     blurred = cv2.filter2D(dark.astype(np.float32), -1, kernel, borderType=cv2.BORDER_REFLECT)
     noise = rng.normal(0, 0.025 * severity, img.shape).astype(np.float32)
@@ -40,7 +42,7 @@ def rain_day(img: Image, rng: np.random.Generator, severity: float = 1.0) -> Ima
     h, w = img.shape[:2]
     sigma = max(2.0, 0.02 * w)
     blurred = cv2.GaussianBlur(img, (0, 0), sigma)
-    mask = np.zeros((h, w), np.float32)
+    mask: np.ndarray = np.zeros((h, w), np.float32)
     for _ in range(int(round(rng.uniform(8, 20) * severity))):
         centre = (int(rng.uniform(0, w)), int(rng.uniform(0, h)))
         cv2.circle(mask, centre, max(2, int(rng.uniform(0.03, 0.09) * h)), 1.0, -1, lineType=cv2.LINE_AA)

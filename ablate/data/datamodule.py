@@ -50,6 +50,7 @@ import hashlib
 import json
 import logging
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import lightning as L
@@ -126,7 +127,7 @@ def splits(split_dir: Path) -> dict[str, list[str]]:
     return split_frames(frames, 0)
 
 
-def check_on_bad_frame(value) -> str:
+def check_on_bad_frame(value: str) -> str:
     """``value`` if ``data.on_bad_frame`` takes it, else a ValidationError naming the option and what it takes."""
     if value not in ON_BAD_FRAME:
         raise ValidationError(
@@ -174,9 +175,9 @@ class KittiDataModule(L.LightningDataModule):
         root: str | None = None,
         synth: dict | None = None,
         data_dir: str = "data",
-        modalities: list[str] = ("rgb", "dense_depth"),
-        targets: list[str] = (),
-        conditions: list[str] = ("clear",),
+        modalities: Sequence[str] = ("rgb", "dense_depth"),
+        targets: Sequence[str] = (),
+        conditions: Sequence[str] = ("clear",),
         severity: float = 1.0,
         corruption: dict | None = None,
         batch_size: int = 4,
@@ -301,7 +302,7 @@ class KittiDataModule(L.LightningDataModule):
 def prepare(
     root: str | None,
     data_dir: str = "data",
-    modalities: list[str] = ("sparse_depth", "dense_depth"),
+    modalities: Sequence[str] = ("sparse_depth", "dense_depth"),
     max_depth: float = 80.0,
 ) -> int:
     """Precompute the cache of derived LiDAR modalities for every frame of ``root`` (tqdm progress bar)."""

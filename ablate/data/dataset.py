@@ -9,8 +9,10 @@ import json
 import os
 import uuid
 import zlib
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -51,14 +53,14 @@ def spread(frames: list[str], names: list[str], seed: int, *salt: int) -> dict[s
     return {f: names[i % len(names)] for f, i in zip(frames, np.argsort(order))}
 
 
-def _key(obj) -> str:
+def _key(obj: object) -> str:
     return hashlib.sha1(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:10]
 
 
-def _sources(*paths: Path) -> list:
+def _sources(*paths: Path) -> list[list[int] | None]:
     """[size, mtime_ns] of each file (None where there is none): part of a cache key, so that an entry derived from a
     file is never served for another one written in its place (a damaged scan repaired, a frame replaced)."""
-    out: list = []
+    out: list[list[int] | None] = []
     for path in paths:
         try:
             st = path.stat()
@@ -80,14 +82,14 @@ class KittiDataset(Dataset):
         targets: list[str],
         conditions: list[str],
         severity: float = 1.0,
-        corruption: dict | None = None,
+        corruption: dict[str, Any] | None = None,
         seed: int = 0,
         max_depth: float = 80.0,
         cache_dir: str | Path | None = None,
-        bev: dict | None = None,
-        image_size: tuple[int, int] | None = None,
+        bev: dict[str, Any] | None = None,
+        image_size: Sequence[int] | None = None,
         lidar_weather: list[str] | None = None,
-        augment: dict | None = None,
+        augment: dict[str, Any] | None = None,
     ) -> None:
         for m in modalities:
             if m not in MODALITIES:
@@ -99,9 +101,11 @@ class KittiDataset(Dataset):
         self.modalities, self.targets = list(modalities), list(targets)
         self.severity, self.corruption, self.seed, self.max_depth = severity, corruption, seed, max_depth
         bev = {k: v if isinstance(v, (int, float, str)) else tuple(v) for k, v in dict(bev or {}).items()}  # plain
-        self.bev = {"x_range": (6.0, 46.0), "y_range": (-10.0, 10.0), "cell": 0.5, **bev}
+        self.bev: dict[str, Any] = {"x_range": (6.0, 46.0), "y_range": (-10.0, 10.0), "cell": 0.5, **bev}
         # options of the dense heights and points (GEOMETRY), kept apart from the raster's own
-        self.heights = {k: self.bev.pop(k) for k in ("window", "azimuth_res", "max_points") if k in self.bev}
+        self.heights: dict[str, Any] = {
+            k: self.bev.pop(k) for k in ("window", "azimuth_res", "max_points") if k in self.bev
+        }
         self.cache_dir = Path(cache_dir) / _key(str(self.split_dir.resolve())) if cache_dir else None
         self.cache_hits = self.cache_misses = 0
         self.image_size = tuple(image_size) if image_size else None  # bottom-centre crop (KITTI sizes vary)
@@ -147,7 +151,14 @@ class KittiDataset(Dataset):
     def __len__(self) -> int:
         return len(self.frames)
 
-    def _cached(self, frame: str, name: str, params: dict, compute, sources: list | None = None):
+    def _cached(
+        self,
+        frame: str,
+        name: str,
+        params: dict[str, Any],
+        compute: Callable[[], np.ndarray],
+        sources: list[list[int] | None] | None = None,
+    ) -> np.ndarray:
         """``compute()``'s value for ``frame``, from the cache when there; ``sources`` (:func:`_sources` of the files
         it reads) is in the entry's name, so an entry is only ever served for the files it was derived from."""
         if self.cache_dir is None:
@@ -176,11 +187,11 @@ class KittiDataset(Dataset):
         key.update({"flip": True} if flip else {})
         sources = _sources(paths["velodyne"], paths["calib"])
 
-        def calib():
+        def calib() -> kitti.Calibration:
             c = kitti.Calibration.from_file(paths["calib"])
             return flip_calibration(c, shape[1]) if flip else c
 
-        def points():
+        def points() -> np.ndarray:
             pts = kitti.read_velodyne(paths["velodyne"])
             if weather != "clear":
                 rng = np.random.default_rng([self.seed, zlib.crc32(frame.encode()), 1])
@@ -205,7 +216,7 @@ class KittiDataset(Dataset):
             )
         grid = {k: self.bev[k] for k in ("x_range", "y_range", "cell")}
         if name == "height_image":
-            opts = {k: v for k, v in self.heights.items() if k == "window"}
+            opts: dict[str, Any] = {k: v for k, v in self.heights.items() if k == "window"}
             return self._cached(
                 frame,
                 name,
@@ -225,7 +236,7 @@ class KittiDataset(Dataset):
             )
         return self._cached(frame, name, {**self.bev, **key}, lambda: lidar.bev_image(points(), **self.bev), sources)
 
-    def lidar_instances(self, frame: str, labels: list, shape: tuple[int, int]) -> np.ndarray:
+    def lidar_instances(self, frame: str, labels: list[kitti.Object3D], shape: tuple[int, int]) -> np.ndarray:
         """(H,W) uint16 instance map in instance_2's encoding from ``ablate.data.masks.from_lidar`` of the clean
         scan (never the LiDAR weather of the frame), cached."""
         paths = kitti.frame_paths(self.split_dir, frame)
@@ -241,7 +252,7 @@ class KittiDataset(Dataset):
             _sources(paths["velodyne"], paths["calib"], paths["label"]),
         )
 
-    def __getitem__(self, i: int) -> dict:
+    def __getitem__(self, i: int) -> dict[str, Any]:
         frame = self.frames[i]
         paths = kitti.frame_paths(self.split_dir, frame)
         condition = self.condition[frame]
@@ -255,12 +266,12 @@ class KittiDataset(Dataset):
         corr = self.corruption or {}
         if corr.get("modality") == "rgb" and rng.random() < corr.get("p", 1.0):
             rgb = apply_corruption(corr["name"], rgb.transpose(2, 0, 1), rng, "rgb", self.severity).transpose(1, 2, 0)
-        sample: dict = {"frame": frame, "condition": condition}
+        sample: dict[str, Any] = {"frame": frame, "condition": condition}
         if self.lidar_condition:
             sample["lidar_condition"] = self.lidar_condition[frame]
         for m in self.modalities:
             if m == "rgb":
-                x = rgb.transpose(2, 0, 1)
+                x: np.ndarray = rgb.transpose(2, 0, 1)
             elif m == "intensity":
                 x = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)[None]
             elif m in ("sparse_depth", "dense_depth"):
@@ -280,8 +291,9 @@ class KittiDataset(Dataset):
             sample = warp(sample, view.affine, shape)
         return self._crop(sample, shape) if self.image_size and self.image_size != shape else sample
 
-    def _crop(self, sample: dict, shape: tuple[int, int]) -> dict:
+    def _crop(self, sample: dict[str, Any], shape: tuple[int, int]) -> dict[str, Any]:
         """Crop every image-space tensor to ``image_size``, keeping the bottom rows and the centre columns."""
+        assert self.image_size is not None  # called only with an image_size
         (h, w), (ch, cw) = shape, self.image_size
         if ch > h or cw > w:
             raise DataError(f"{self.split_dir}: image {w}x{h} is smaller than image_size {cw}x{ch}")
@@ -307,13 +319,15 @@ class KittiDataset(Dataset):
                 sample[k] = v
         return sample
 
-    def _targets(self, paths: dict, shape: tuple[int, int], flip: bool = False) -> dict:
-        out: dict = {}
+    def _targets(self, paths: dict[str, Path], shape: tuple[int, int], flip: bool = False) -> dict[str, Any]:
+        out: dict[str, Any] = {}
         if not self.targets:
             return out
         h, w = shape
         labels = kitti.read_labels(paths["label"]) if paths["label"].is_file() else []
-        road_gt = kitti.read_road_gt(paths["road_gt"]) if "road_gt" in paths and paths["road_gt"].is_file() else None
+        road_gt: tuple[np.ndarray, ...] | None = (
+            kitti.read_road_gt(paths["road_gt"]) if "road_gt" in paths and paths["road_gt"].is_file() else None
+        )
         inst = cv2.imread(str(paths["instance"]), cv2.IMREAD_UNCHANGED) if paths["instance"].is_file() else None
         if (
             inst is None
@@ -335,12 +349,16 @@ class KittiDataset(Dataset):
         if any(t in self.targets for t in ("road_objects", "semantic", "instances")) and inst is None:
             raise DataError(f"{paths['image']}: instance masks {paths['instance']} are missing")
         if "free_space" in self.targets:
+            assert road is not None  # checked above
             out["free_space"] = torch.from_numpy(road[None].astype(np.float32))
         if "road_objects" in self.targets:
+            assert inst is not None  # checked above
             out["road_objects"] = torch.from_numpy((inst > 0)[None].astype(np.float32))
         if "semantic" in self.targets:
+            assert inst is not None and road is not None  # checked above
             out["semantic"] = torch.from_numpy(np.where(inst > 0, 2, road.astype(np.int64)).astype(np.int64))
         if "instances" in self.targets:
+            assert inst is not None  # checked above
             present = set(np.unique(inst).tolist())  # a labelled object with no mask pixel is left out
             ids = [k + 1 for k, o in enumerate(labels) if o.type in CLASSES[:2] and k + 1 in present]
             out["instances"] = {
@@ -366,9 +384,11 @@ class KittiDataset(Dataset):
         out.update(self._road(paths, shape, road_gt, flip))
         return out
 
-    def _road(self, paths: dict, shape: tuple[int, int], road_gt, flip: bool = False) -> dict:
+    def _road(
+        self, paths: dict[str, Path], shape: tuple[int, int], road_gt: tuple[np.ndarray, ...] | None, flip: bool = False
+    ) -> dict[str, Any]:
         """The road targets beyond ``free_space`` (the image road mask) and the frame's geometry (GEOMETRY)."""
-        out: dict = {}
+        out: dict[str, Any] = {}
         grid = {k: self.bev[k] for k in ("x_range", "y_range", "cell")}
         calib = (
             kitti.Calibration.from_file(paths["calib"])
@@ -377,12 +397,16 @@ class KittiDataset(Dataset):
         )
         calib = flip_calibration(calib, shape[1]) if flip and calib is not None else calib
         if "road_valid" in self.targets:
+            assert road_gt is not None  # _targets raised otherwise
             out["road_valid"] = torch.from_numpy(road_gt[1][None].astype(np.float32))
         if "road_bev" in self.targets:
+            assert road_gt is not None and calib is not None  # _targets raised otherwise; read above
             out["road_bev"] = torch.from_numpy(road_bev(road_gt[0], calib, **grid)[None])
         if "road_bev_valid" in self.targets:  # cells whose centre on the road plane sees a non-void gt pixel
+            assert road_gt is not None and calib is not None  # _targets raised otherwise; read above
             out["road_bev_valid"] = torch.from_numpy(road_bev(road_gt[1], calib, **grid)[None])
         if "calib" in self.targets:
+            assert calib is not None  # read above
             out["calib"] = torch.from_numpy(calib_array(calib))
         for name in [g for g in GEOMETRY[1:] if g in self.targets]:  # heights get their channel axis
             value = self.lidar(paths["image"].stem, name, shape, flip)
@@ -401,7 +425,7 @@ def calib_array(calib: kitti.Calibration) -> np.ndarray:
     return out
 
 
-def calibration(array) -> kitti.Calibration:
+def calibration(array: np.ndarray | torch.Tensor) -> kitti.Calibration:
     """The :class:`~ablate.data.kitti.Calibration` of a :func:`calib_array` (numpy or a CPU/GPU tensor)."""
     a = np.asarray(array.detach().cpu() if isinstance(array, torch.Tensor) else array, np.float64)
     road = None if np.isnan(a[3]).any() else a[3]
@@ -409,7 +433,11 @@ def calibration(array) -> kitti.Calibration:
 
 
 def road_bev(
-    road: np.ndarray, calib: kitti.Calibration, x_range=(6.0, 46.0), y_range=(-10.0, 10.0), cell: float = 0.5
+    road: np.ndarray,
+    calib: kitti.Calibration,
+    x_range: tuple[float, float] = (6.0, 46.0),
+    y_range: tuple[float, float] = (-10.0, 10.0),
+    cell: float = 0.5,
 ) -> np.ndarray:
     """Road mask in the BEV grid of :func:`ablate.data.lidar.bev_image`: each cell centre is dropped onto the road
     plane (Tr_cam_to_road) and looked up in the image road mask; cells outside the image are 0."""

@@ -11,7 +11,7 @@ MIN_HEIGHT, REFERENCE_HEIGHT = 25.0, 375.0
 
 
 def counted(
-    heights: Tensor, image_height: int, min_height: float = MIN_HEIGHT, reference_height: float = REFERENCE_HEIGHT
+    heights: Tensor, image_height: float, min_height: float = MIN_HEIGHT, reference_height: float = REFERENCE_HEIGHT
 ) -> Tensor:
     """Which ground truths of box heights ``heights`` (px) count in an image ``image_height`` px tall: the
     threshold ``min_height`` scales with ``image_height / reference_height``."""

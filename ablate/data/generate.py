@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -98,7 +99,9 @@ def scan(scene: dict, rng: np.random.Generator, height: int, width: int, lidar_f
     return np.hstack([velo * distance[:, None], reflectance[:, None]]).astype(np.float32)
 
 
-def _labels(scene, hit, owner, calib, height, width) -> tuple[list[Object3D], np.ndarray]:
+def _labels(
+    scene: dict[str, Any], hit: dict[str, np.ndarray], owner: np.ndarray, calib: Calibration, height: int, width: int
+) -> tuple[list[Object3D], np.ndarray]:
     """label_2 objects (true 3D boxes, projected 2D boxes, truncation, occlusion) and the instance map."""
     instance = np.zeros(height * width, np.uint16)
     labels: list[Object3D] = []
@@ -158,7 +161,9 @@ def _job(args: tuple) -> None:
     write_frame(Path(out), render_frame(seed, index, height, width, fov), f"{index:06d}")
 
 
-def split_frames(frames: list[str], seed: int, fractions=(0.6, 0.2, 0.2)) -> dict[str, list[str]]:
+def split_frames(
+    frames: list[str], seed: int, fractions: tuple[float, float, float] = (0.6, 0.2, 0.2)
+) -> dict[str, list[str]]:
     """Seeded permutation of the sorted frames cut into train/val/test (sorted within each split)."""
     order = np.random.default_rng(seed).permutation(len(frames))
     n_train = int(round(fractions[0] * len(frames)))

@@ -23,6 +23,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -240,7 +241,18 @@ def read_labels(path: str | Path) -> list[Object3D]:
             v = [float(x) for x in f[1:15]]
         except ValueError as err:
             raise DataError(f"{path}:{num}: non-numeric label field") from err
-        objects.append(Object3D(f[0], v[0], int(v[1]), v[2], tuple(v[3:7]), tuple(v[7:10]), tuple(v[10:13]), v[13]))
+        objects.append(
+            Object3D(
+                f[0],
+                v[0],
+                int(v[1]),
+                v[2],
+                cast("tuple[float, float, float, float]", tuple(v[3:7])),
+                cast("tuple[float, float, float]", tuple(v[7:10])),
+                cast("tuple[float, float, float]", tuple(v[10:13])),
+                v[13],
+            )
+        )
     return objects
 
 

@@ -90,7 +90,8 @@ def dense_depth(sparse: np.ndarray) -> np.ndarray:
             sub = cv2.Subdiv2D((-1, -1, w + 2, h + 2))
             order = np.argsort(xs.astype(np.uint16), kind="stable")  # column-major insertion keeps OpenCV's
             # point location walk short
-            sub.insert(np.stack([xs[order], ys[order]], 1).astype(np.float32))
+            # an (N,2) float32 array is a vector of points to OpenCV; its stubs only know Sequence[Sequence[float]]
+            sub.insert(np.stack([xs[order], ys[order]], 1).astype(np.float32))  # type: ignore[call-overload]
             tri = np.asarray(sub.getTriangleList(), np.float32).reshape(-1, 3, 2)  # () when all collinear
             if len(tri) and tri.min() < 0:  # drop the triangles on Subdiv2D's outer virtual vertices (each has a
                 # coordinate < 0); getTriangleList of OpenCV 4 leaves them out already
@@ -147,7 +148,12 @@ def bev_grid(
     return int(round((x_range[1] - x_range[0]) / cell)), int(round((y_range[1] - y_range[0]) / cell))
 
 
-def bev_cells(points: np.ndarray, x_range=(6.0, 46.0), y_range=(-10.0, 10.0), cell: float = 0.5):
+def bev_cells(
+    points: np.ndarray,
+    x_range: tuple[float, float] = (6.0, 46.0),
+    y_range: tuple[float, float] = (-10.0, 10.0),
+    cell: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
     """Flat BEV cell index of each point inside the ranges, and the mask of those points."""
     hb, wb = bev_grid(x_range, y_range, cell)
     row = np.floor((x_range[1] - points[:, 0]) / cell).astype(np.int64)
@@ -206,6 +212,8 @@ def perspective_height(
     lin, idx = project_points(points, calib, shape)
     if len(lin) == 0:
         raise DataError("perspective_height: no LiDAR point projects into the image")
+    sparse: np.ndarray
+    mask: np.ndarray
     sparse, mask = np.zeros(h * w, np.float32), np.zeros(h * w, np.float32)
     sparse[lin], mask[lin] = points[idx, 2], 1.0
     sparse, mask = sparse.reshape(h, w), mask.reshape(h, w)
@@ -213,7 +221,7 @@ def perspective_height(
     kernel = 1.0 / (1.0 + np.hypot(r[:, None], r[None, :]))
     num = cv2.filter2D(sparse, cv2.CV_32F, kernel, borderType=cv2.BORDER_CONSTANT)
     den = cv2.filter2D(mask, cv2.CV_32F, kernel, borderType=cv2.BORDER_CONSTANT)
-    out = np.empty(h * w, np.float32)
+    out: np.ndarray = np.empty(h * w, np.float32)
     seeds = (mask == 0).astype(np.uint8)  # 0 at the LiDAR pixels
     _nearest_fill(
         seeds,

@@ -40,9 +40,9 @@ SUB_RAYS = ((0.0, 0.0), (0.35, 0.0), (-0.35, 0.0), (0.0, 0.35), (0.0, -0.35))
 
 
 def received_power(
-    reflectance: np.ndarray,
-    cos_incidence: np.ndarray,
-    distance: np.ndarray,
+    reflectance: np.ndarray | float,
+    cos_incidence: np.ndarray | float,
+    distance: np.ndarray | float,
     gloss: np.ndarray | float = 1.0,
     alpha: float = ALPHA_CLEAR,
 ) -> np.ndarray:

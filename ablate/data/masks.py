@@ -10,6 +10,7 @@ dataset (``ablate.data.dataset``) uses them for a KITTI folder with no instance_
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 import cv2
 import numpy as np
@@ -17,6 +18,9 @@ from scipy import ndimage
 
 from ablate.data.kitti import Calibration, Object3D
 from ablate.data.lidar import dense_depth, project_points, sparse_depth
+
+if TYPE_CHECKING:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 MARGIN = 0.2
 """Metres each 3D box is enlarged by on every side except its bottom (label noise, the LiDAR's range noise)."""
@@ -80,7 +84,7 @@ def from_lidar(
     seed_rect = calib.velo_to_rect(points[idx, :3])
     if dense is None:
         dense = dense_depth(sparse_depth(points, calib, shape))
-    distance = {}
+    distance: dict[int, float] = {}
     for k in boxed:
         o = objects[k]
         seeds = lin[o.contains(seed_rect, MARGIN, GROUND)]
@@ -109,7 +113,7 @@ def from_lidar(
         distance[k] = float(np.linalg.norm(corners.mean(0)))
     owner = np.full((h, w), -1)
     for stack in (masks, cores):  # far to near, the filled parts first: the nearest paints last and wins, and a
-        for k in sorted(distance, key=distance.get, reverse=True):  # confirmed pixel beats another's filled one
+        for k in sorted(distance, key=distance.__getitem__, reverse=True):  # confirmed pixel beats another's filled one
             owner[stack[k]] = k
     for k in distance:
         masks[k] &= owner == k
@@ -122,7 +126,7 @@ def instance_map(masks: np.ndarray) -> np.ndarray:
     return (masks * ids).max(0, initial=0).astype(np.uint16) if len(masks) else np.zeros(masks.shape[1:], np.uint16)
 
 
-def figure(split_dir, frame: str, out) -> None:
+def figure(split_dir: str | Path, frame: str, out: str | Path) -> None:
     """Save ``frame`` with its :func:`from_lidar` masks in colour and the labelled 2D boxes (DontCare dashed):
     the whole image above, the objects' region enlarged below; 80 dpi, 128 colours (a few hundred KB)."""
     import matplotlib
@@ -179,5 +183,7 @@ def figure(split_dir, frame: str, out) -> None:
     fig.tight_layout(pad=0.2)
     fig.canvas.draw()
     Path(out).parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]).quantize(128).save(out, optimize=True)
+    Image.fromarray(np.asarray(cast("FigureCanvasAgg", fig.canvas).buffer_rgba())[..., :3]).quantize(128).save(
+        out, optimize=True
+    )
     plt.close(fig)

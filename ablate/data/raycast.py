@@ -5,18 +5,22 @@ Everything is in KITTI's rectified camera frame: x right, y down, z forward (met
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import numpy as np
 
 CAMERA_HEIGHT = 1.65  # KITTI's camera height above the road (m)
 SKY, ROAD, BORDER, BOX = 0, 1, 2, 3  # surface kinds
+#: What the elementwise geometry below takes and gives: one value or an array of them.
+Num = TypeVar("Num", float, np.ndarray)
 
 
-def road_centre(scene: dict, z: np.ndarray) -> np.ndarray:
+def road_centre(scene: dict, z: Num) -> Num:
     """Lateral position of the road centre line at depth z (a parabola: offset + curvature z^2 / 2)."""
     return scene["offset"] + 0.5 * scene["curvature"] * z * z
 
 
-def to_world(yaw: np.ndarray, lx: np.ndarray, lz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def to_world(yaw: Num, lx: Num, lz: Num) -> tuple[Num, Num]:
     """A box-frame horizontal offset (local x along the length, local z along the width) in the camera frame."""
     c, s = np.cos(yaw), np.sin(yaw)
     return c * lx + s * lz, -s * lx + c * lz
@@ -101,7 +105,7 @@ def cast(scene: dict, origin: np.ndarray, dirs: np.ndarray, max_t: float = 1000.
     t_road = np.where(t_road > 0, t_road, np.inf)
     half = scene["road_half_width"]
 
-    def lateral(t):
+    def lateral(t: np.ndarray) -> np.ndarray:
         p = origin + np.where(np.isfinite(t), t, 0)[:, None] * dirs
         return p[:, 0] - road_centre(scene, p[:, 2])
 

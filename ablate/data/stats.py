@@ -29,7 +29,9 @@ object, does the LiDAR return from it, and does it stand out in the camera image
 from __future__ import annotations
 
 import zlib
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import matplotlib
@@ -42,6 +44,9 @@ from tqdm import tqdm  # noqa: E402
 
 from ablate.data import DataError, kitti  # noqa: E402
 from ablate.data.conditions import CONDITIONS, apply_condition  # noqa: E402
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 CLASSES = ("Car", "Pedestrian")
 MIN_RETURNS, MARGIN, GROUND = 10, 0.2, 0.1  # returns; metres; metres
@@ -67,7 +72,11 @@ def noise_sigma(channel: np.ndarray) -> float:
 
 
 def contrast(
-    lab: np.ndarray, bbox, mask: np.ndarray | None = None, shrink: float = SHRINK, ring: float = RING
+    lab: np.ndarray,
+    bbox: tuple[float, float, float, float],
+    mask: np.ndarray | None = None,
+    shrink: float = SHRINK,
+    ring: float = RING,
 ) -> float:
     """ΔE*ab between the mean colour of an object in ``lab`` ((H,W,3) CIELab) and of a ring around its 2D box
     ``bbox`` (xyxy px). The object's pixels are ``mask`` ((H,W) bool) where given and not empty, else ``bbox`` with
@@ -91,7 +100,7 @@ def contrast(
 
 
 def frame_objects(
-    split_dir: Path, frame: str, conditions=tuple(CONDITIONS), seed: int = 0, severity: float = 1.0
+    split_dir: Path, frame: str, conditions: Sequence[str] = tuple(CONDITIONS), seed: int = 0, severity: float = 1.0
 ) -> list[dict]:
     """One record per counted object of ``frame`` and condition: class, distance, height (px) and the image's rows,
     returns, ΔE, threshold."""
@@ -136,7 +145,7 @@ def frame_objects(
 def compute(
     root: str | Path,
     frames: int | None = None,
-    conditions=tuple(CONDITIONS),
+    conditions: Sequence[str] = tuple(CONDITIONS),
     seed: int = 0,
     severity: float = 1.0,
     min_returns: int = MIN_RETURNS,
@@ -194,7 +203,7 @@ def summarize(df: pd.DataFrame, by: list[str]) -> pd.DataFrame:
     return out.reset_index()
 
 
-def missed_heights(df: pd.DataFrame, rows=HEIGHT_ROWS, min_px: float = MIN_PX) -> pd.DataFrame:
+def missed_heights(df: pd.DataFrame, rows: Sequence[int] = HEIGHT_ROWS, min_px: float = MIN_PX) -> pd.DataFrame:
     """Per image height in ``rows``: the objects the LiDAR misses (``lidar`` false; each object once), the
     quartiles of their 2D box height rescaled from the data's own rows (``height * r / rows``), and the share (%)
     at least ``min_px`` tall."""
@@ -281,7 +290,7 @@ def to_markdown(df: pd.DataFrame, root: str, command: str, min_returns: int = MI
     return "\n".join(lines)
 
 
-def plot(df: pd.DataFrame, min_returns: int = MIN_RETURNS):
+def plot(df: pd.DataFrame, min_returns: int = MIN_RETURNS) -> Figure:
     """Shares of the four patterns per condition; LiDAR-hit and camera-visible shares per distance bin; returns
     against distance."""
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))

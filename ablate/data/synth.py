@@ -19,7 +19,10 @@ window rows) or open land (then the road is visible beyond 60 m).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ablate.data.lidar_physics import GLOSS_EXPONENT
 from ablate.data.raycast import CAMERA_HEIGHT, road_centre, to_world
@@ -67,10 +70,19 @@ class _Boxes:
     def __init__(self) -> None:
         self.rows: list[tuple] = []
 
-    def add(self, box, owner, cls, part, rgb, refl, gloss=1.0) -> None:
+    def add(
+        self,
+        box: tuple[float, ...],
+        owner: int,
+        cls: int,
+        part: int,
+        rgb: ArrayLike,
+        refl: float,
+        gloss: float = 1.0,
+    ) -> None:
         self.rows.append((box, owner, cls, part, np.asarray(rgb, np.float32), refl, gloss))
 
-    def into(self, s: dict) -> None:
+    def into(self, s: dict[str, Any]) -> None:
         cols = list(zip(*self.rows)) if self.rows else [()] * 7
         s["boxes"] = np.array(cols[0], np.float32).reshape(-1, 7)
         s["owner"], s["cls"], s["part"] = (np.array(c, np.int64) for c in cols[1:4])
@@ -78,7 +90,7 @@ class _Boxes:
         s["box_refl"], s["box_gloss"] = np.array(cols[5], np.float32), np.array(cols[6], np.float32)
 
 
-def sample_scene(rng: np.random.Generator) -> dict:
+def sample_scene(rng: np.random.Generator) -> dict[str, Any]:
     """Road layout, border mode, palette, sun, buildings, cars and pedestrians of one frame."""
     road_grey = rng.uniform(0.25, 0.45)
     mode = rng.choice(["kerb_distinct", "kerb_camouflaged", "flat_distinct"])
@@ -159,7 +171,18 @@ def sample_scene(rng: np.random.Generator) -> dict:
     return s
 
 
-def _car(boxes: _Boxes, owner: int, rng, xc, base, zc, dims, yaw, camo, paint: int | None = None) -> None:
+def _car(
+    boxes: _Boxes,
+    owner: int,
+    rng: np.random.Generator,
+    xc: float,
+    base: float,
+    zc: float,
+    dims: tuple[float, float, float],
+    yaw: float,
+    camo: np.ndarray | None,
+    paint: int | None = None,
+) -> None:
     """Body, glass cabin (roof in the body's paint) and four tyres; heading along local +x (front). ``paint``: an
     index into :data:`PAINTS` (default: drawn by their shares)."""
     l, h, w = dims
@@ -189,7 +212,17 @@ def _car(boxes: _Boxes, owner: int, rng, xc, base, zc, dims, yaw, camo, paint: i
             boxes.add((xc + ox, base, zc + oz, 0.32, 0.32, 0.11, yaw), owner, CAR, WHEEL, (0.05, 0.05, 0.05), 0.05)
 
 
-def _pedestrian(boxes: _Boxes, owner: int, rng, xc, base, zc, dims, yaw, camo) -> None:
+def _pedestrian(
+    boxes: _Boxes,
+    owner: int,
+    rng: np.random.Generator,
+    xc: float,
+    base: float,
+    zc: float,
+    dims: tuple[float, float, float],
+    yaw: float,
+    camo: np.ndarray | None,
+) -> None:
     """Legs, torso and head: trousers, a shirt and skin."""
     l, h, w = dims
     shirt = rng.uniform(0.05, 0.9, 3) if camo is None else camo * rng.uniform(0.95, 1.05, 3)

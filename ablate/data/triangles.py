@@ -12,6 +12,7 @@ import math
 import threading
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 KEY = 65536
 """Vertex sort key y * KEY + x; exact for pixel coordinates below KEY."""
@@ -29,7 +30,7 @@ class Scratch(threading.local):
     def __init__(self) -> None:
         self.buffers: dict[str, np.ndarray] = {}
 
-    def __call__(self, name: str, shape: int | tuple[int, ...], dtype=np.float64) -> np.ndarray:
+    def __call__(self, name: str, shape: int | tuple[int, ...], dtype: DTypeLike = np.float64) -> np.ndarray:
         shape = (shape,) if isinstance(shape, int) else shape
         n = math.prod(shape)
         buf = self.buffers.get(name)
@@ -55,7 +56,7 @@ def _segments(firsts: np.ndarray, total: int, name: str) -> np.ndarray:
     return np.cumsum(idx, out=idx)
 
 
-def _arange(n: int, dtype, name: str) -> np.ndarray:
+def _arange(n: int, dtype: DTypeLike, name: str) -> np.ndarray:
     """0, 1, ..., n-1, kept between calls (read only)."""
     buf = scratch.buffers.get(name)
     if buf is None or buf.size < n:
@@ -115,14 +116,29 @@ def _table(tri: np.ndarray, flat: np.ndarray, w: int, j0: int, j1: int, f64: np.
         np.divide(np.subtract(x2, x1, out=t1), np.subtract(y2, y1, out=t2), out=srl)
         np.subtract(x1, np.multiply(y1, srl, out=t1), out=irl)
     fy0, fy1, rows_u, rows_l = i32[:, j0:j1]
-    np.copyto(fy0, y0, casting="unsafe"), np.copyto(fy1, y1, casting="unsafe")
-    np.copyto(rows_u, dy1, casting="unsafe"), np.copyto(rows_l, t2, casting="unsafe")
+    np.copyto(fy0, y0, casting="unsafe")
+    np.copyto(fy1, y1, casting="unsafe")
+    np.copyto(rows_u, dy1, casting="unsafe")
+    np.copyto(rows_l, t2, casting="unsafe")
     degenerate = np.equal(det, 0, out=scratch("tab.degenerate", m, bool))
     rows_u[degenerate] = 0
     rows_l[degenerate] = 0
 
 
-def _spans(cum: np.ndarray, r0: np.ndarray, il, sl, ir, sr, a, b, c, w: int, q_off: int, out: np.ndarray) -> int:
+def _spans(
+    cum: np.ndarray,
+    r0: np.ndarray,
+    il: np.ndarray,
+    sl: np.ndarray,
+    ir: np.ndarray,
+    sr: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    c: np.ndarray,
+    w: int,
+    q_off: int,
+    out: np.ndarray,
+) -> int:
     """Rasterise one block of triangle parts (at most SPANS row spans in all) into `out`; cum: number of spans
     before each part and after the last (cumulative, from the start of the sweep), q_off: number of pixels drawn
     before this block. Returns the number of pixels drawn.

@@ -12,10 +12,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
 from torch import Tensor
+
+if TYPE_CHECKING:
+    from ablate.data.kitti import Calibration
 
 GEOMETRY_KEYS = ("calib", "height_image", "height_bev", "lidar_points")
 #: Keys of ``data.bev`` that set the dense heights and points (``ablate.data.dataset``), not the grid.
@@ -37,7 +41,8 @@ class BevGrid:
         unknown = sorted(set(grid) - {"x_range", "y_range", "cell"})
         if unknown:
             raise ValueError(f"BEV grid: unknown key(s) {unknown}; valid: x_range, y_range, cell")
-        out = cls(**{k: tuple(float(x) for x in v) if k != "cell" else float(v) for k, v in grid.items()})
+        values: dict[str, Any] = {k: tuple(float(x) for x in v) if k != "cell" else float(v) for k, v in grid.items()}
+        out = cls(**values)
         if out.cell <= 0 or out.x_range[1] <= out.x_range[0] or out.y_range[1] <= out.y_range[0]:
             raise ValueError(f"BEV grid: need cell > 0 and increasing ranges, got {out}")
         return out
@@ -71,7 +76,7 @@ class Geometry:
         return cls(
             batch["calib"].double(),
             grid,
-            tuple(image_size),
+            cast("tuple[int, int]", tuple(image_size)),
             batch.get("height_image"),
             batch.get("height_bev"),
             batch.get("lidar_points"),
@@ -79,7 +84,12 @@ class Geometry:
 
     @classmethod
     def from_frame(
-        cls, points: np.ndarray, calib, image_size: tuple[int, int], grid: BevGrid = BevGrid(), **heights
+        cls,
+        points: np.ndarray,
+        calib: Calibration,
+        image_size: tuple[int, int],
+        grid: BevGrid = BevGrid(),
+        **heights: Any,
     ) -> Geometry:
         """The geometry of one frame (B = 1) from its velodyne scan and :class:`~ablate.data.kitti.Calibration`,
         built as the data module builds it; ``heights``: options of the height functions (``window``,
@@ -87,14 +97,14 @@ class Geometry:
         from ablate.data import lidar
         from ablate.data.dataset import calib_array
 
-        box = {"x_range": grid.x_range, "y_range": grid.y_range, "cell": grid.cell}
+        box: dict[str, Any] = {"x_range": grid.x_range, "y_range": grid.y_range, "cell": grid.cell}
         window = {k: heights[k] for k in ("window",) if k in heights}
         azimuth = {k: heights[k] for k in ("azimuth_res",) if k in heights}
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a))[None]  # noqa: E731
         return cls(
             t(calib_array(calib)).double(),
             grid,
-            tuple(image_size),
+            cast("tuple[int, int]", tuple(image_size)),
             t(lidar.perspective_height(points, calib, image_size, **window))[:, None],
             t(lidar.bev_height(points, **box, **azimuth))[:, None],
             t(lidar.bev_points(points, **box)),

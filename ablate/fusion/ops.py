@@ -14,21 +14,24 @@ The BiFNet operators (cbf, lidcamnet, plard) live in ``ops_bifnet.py`` and regis
 from __future__ import annotations
 
 import inspect
+from collections.abc import Callable
 from functools import reduce
+from typing import Any, TypeVar
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 OPERATORS: dict[str, type[FusionOp]] = {}
+_Class = TypeVar("_Class", bound=type)
 
 
-def registry(table: dict, kind: str, attribute: str):
+def registry(table: dict[str, _Class], kind: str, attribute: str) -> Callable[[str], Callable[[_Class], _Class]]:
     """A class decorator factory: ``@reg(name)`` adds the class to ``table`` under ``name`` and sets
     ``cls.<attribute> = name``; a name registered twice is an error naming ``kind``."""
 
-    def reg(name: str):
-        def add(cls):
+    def reg(name: str) -> Callable[[_Class], _Class]:
+        def add(cls: _Class) -> _Class:
             if name in table:
                 raise ValueError(f"{kind} {name!r} registered twice")
             setattr(cls, attribute, name)
@@ -44,7 +47,7 @@ def registry(table: dict, kind: str, attribute: str):
 register = registry(OPERATORS, "fusion operator", "op_name")
 
 
-def build(name: str, channels: int, num_inputs: int = 2, **options) -> nn.Module:
+def build(name: str, channels: int, num_inputs: int = 2, **options: Any) -> nn.Module:
     """Build the fusion operator ``name`` for ``num_inputs`` inputs of ``channels`` channels."""
     if name not in OPERATORS:
         raise ValueError(f"unknown fusion operator {name!r}; valid: {', '.join(sorted(OPERATORS))}")

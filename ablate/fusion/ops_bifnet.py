@@ -5,6 +5,7 @@ Input order as everywhere: ``features[0]`` camera, ``features[1]`` LiDAR, furthe
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import reduce
 
 import torch
@@ -95,9 +96,7 @@ class PLARD(FusionOp):
     N-way: the camera input is the reference; every other input gets its own map.
     """
 
-    def __init__(
-        self, channels: int, num_inputs: int = 2, size: tuple[int, int] = (48, 160), init: float = 1.0
-    ) -> None:
+    def __init__(self, channels: int, num_inputs: int = 2, size: Sequence[int] = (48, 160), init: float = 1.0) -> None:
         super().__init__(channels, num_inputs)
         size = tuple(int(s) for s in size)
         if len(size) != 2 or min(size) < 1:

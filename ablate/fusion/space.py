@@ -19,6 +19,7 @@ rows and columns; BEV rows along x with row 0 the farthest, columns along y with
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol, cast
 
 import torch
 from torch import Tensor
@@ -88,19 +89,31 @@ class PointPooling:
         return count.scatter_add_(1, self.target.clamp(min=0), valid).view(-1, *self.size) > 0
 
 
+class SpaceMap(Protocol):
+    """One direction of a space transform (:class:`IndexMap`, :class:`PointPooling`): ``[B,C,h,w] -> [B,C,h',w']``,
+    and the target positions it reaches."""
+
+    def __call__(self, x: Tensor) -> Tensor: ...
+
+    @property
+    def coverage(self) -> Tensor: ...
+
+
 class SpaceTransform:
     """Base class: ``maps(geometry, cam_size, bev_size, stride) -> (to_bev, to_cam)``."""
 
     space_name = "?"
 
-    def maps(self, geometry: Geometry, cam_size: tuple[int, int], bev_size: tuple[int, int], stride: int):
+    def maps(
+        self, geometry: Geometry, cam_size: tuple[int, int], bev_size: tuple[int, int], stride: int
+    ) -> tuple[SpaceMap, SpaceMap]:
         raise NotImplementedError
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
 
 
-def _centres(size: tuple[int, int], stride: int, limit: tuple[int, int], device) -> tuple[Tensor, Tensor]:
+def _centres(size: tuple[int, int], stride: int, limit: tuple[int, int], device: torch.device) -> tuple[Tensor, Tensor]:
     """Input positions (rows, cols; float64, each [h*w]) that feature positions of ``size`` at ``stride`` stand for,
     clamped into an input of ``limit`` (rows, cols)."""
     rows = ((torch.arange(size[0], device=device, dtype=torch.float64) + 0.5) * stride - 0.5).clamp(0, limit[0] - 1)
@@ -144,6 +157,7 @@ class DST(SpaceTransform):
     ) -> tuple[IndexMap, IndexMap]:
         g = geometry
         g.need("height_image", "height_bev", by="space transform 'dst'")
+        assert g.height_image is not None and g.height_bev is not None  # need raised otherwise
         dev = g.height_image.device
         image, bev = g.image_size, g.grid.shape
         # camera -> BEV features: every BEV feature position projected into the image (eq. 8)
@@ -167,7 +181,10 @@ class DST(SpaceTransform):
             stride,
         )
         to_cam = torch.where(ok, to_cam, torch.full_like(to_cam, -1))
-        return IndexMap(to_bev, tuple(bev_size)), IndexMap(to_cam, tuple(cam_size))
+        return (
+            IndexMap(to_bev, cast("tuple[int, int]", tuple(bev_size))),
+            IndexMap(to_cam, cast("tuple[int, int]", tuple(cam_size))),
+        )
 
 
 @register_space("shpl")
@@ -187,6 +204,7 @@ class SHPL(SpaceTransform):
     ) -> tuple[PointPooling, PointPooling]:
         g = geometry
         g.need("points", by="space transform 'shpl'")
+        assert g.points is not None  # need raised otherwise
         present = torch.isfinite(g.points).all(-1)
         count = int(present.sum(1).max()) if present.numel() else 0  # the padding (NaN rows) comes last
         pts, present = g.points[:, :count].double(), present[:, :count]
@@ -201,4 +219,7 @@ class SHPL(SpaceTransform):
         )
         used = present & (depth > 0) & (pixel >= 0) & (cell >= 0)
         pixel, cell = (torch.where(used, t, torch.full_like(t, -1)) for t in (pixel, cell))
-        return PointPooling(cell, pixel, tuple(bev_size)), PointPooling(pixel, cell, tuple(cam_size))
+        return (
+            PointPooling(cell, pixel, cast("tuple[int, int]", tuple(bev_size))),
+            PointPooling(pixel, cell, cast("tuple[int, int]", tuple(cam_size))),
+        )

@@ -84,6 +84,7 @@ class FusionModel(FreezableModel):
         else:
             self.fpn = self._fpn(enc_channels)
         if stage == "late":
+            assert fusion is not None  # checked above
             self.heads = nn.ModuleDict({m: head(in_channels=fpn_channels, num_levels=NUM_LEVELS) for m in modalities})
             self.late_keys = list(self.out_channels)
             self.fuse = nn.ModuleList(
@@ -93,8 +94,10 @@ class FusionModel(FreezableModel):
         else:
             self.head = head(in_channels=fpn_channels, num_levels=NUM_LEVELS)
         if stage == "backbone":
+            assert fusion is not None  # checked above
             self.fuse = nn.ModuleList(fusion(channels=c, num_inputs=n) for c in enc_channels[1:])
         elif stage == "fpn":
+            assert fusion is not None  # checked above
             self.fuse = nn.ModuleList(fusion(channels=fpn_channels, num_inputs=n) for _ in range(NUM_LEVELS))
 
     def _resnet(self, in_channels: int, modality: str | None) -> ResNet:

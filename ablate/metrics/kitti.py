@@ -58,7 +58,7 @@ States are flat per-image tensors concatenated with ``dist_reduce_fx="cat"``, so
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -256,7 +256,7 @@ class KittiAP(Metric):
         s["pred_boxes"], s["gt_boxes"] = s["pred_boxes"].reshape(-1, 4), s["gt_boxes"].reshape(-1, 4)
         s["pred_in_dc"] = s["pred_in_dc"].astype(bool)
 
-        def per_image(keys: tuple[str, ...], counts: str):
+        def per_image(keys: tuple[str, ...], counts: str) -> Iterator[tuple[np.ndarray, ...]]:
             cuts = np.cumsum(s[counts].astype(np.int64))[:-1]
             return zip(*(np.split(s[k], cuts) for k in keys))
 

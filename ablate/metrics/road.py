@@ -80,12 +80,16 @@ def road_homography(calib: Calibration, camera_height: float | None = None) -> n
     return (calib.P2 @ rect @ np.linalg.inv(road))[:, [0, 2, 3]]
 
 
-def bev_shape(res: float = BEV_RES, x_range=BEV_X, z_range=BEV_Z) -> tuple[int, int]:
+def bev_shape(
+    res: float = BEV_RES, x_range: Sequence[float] = BEV_X, z_range: Sequence[float] = BEV_Z
+) -> tuple[int, int]:
     """(rows, columns) of the BEV grid: rows run along z (far at row 0), columns along x (left at column 0)."""
     return int(round((z_range[1] - z_range[0]) / res)), int(round((x_range[1] - x_range[0]) / res))
 
 
-def bev_centres(res: float = BEV_RES, x_range=BEV_X, z_range=BEV_Z) -> tuple[np.ndarray, np.ndarray]:
+def bev_centres(
+    res: float = BEV_RES, x_range: Sequence[float] = BEV_X, z_range: Sequence[float] = BEV_Z
+) -> tuple[np.ndarray, np.ndarray]:
     """(x, z) road-plane coordinates (m) of every cell centre, each (rows, columns)."""
     rows, cols = bev_shape(res, x_range, z_range)
     return np.meshgrid(x_range[0] + (np.arange(cols) + 0.5) * res, z_range[1] - (np.arange(rows) + 0.5) * res)
@@ -102,8 +106,8 @@ def bev_lookup(
     homography: np.ndarray,
     image_shape: tuple[int, int],
     res: float = BEV_RES,
-    x_range=BEV_X,
-    z_range=BEV_Z,
+    x_range: Sequence[float] = BEV_X,
+    z_range: Sequence[float] = BEV_Z,
     lookup: str = "devkit",
 ) -> tuple[np.ndarray, np.ndarray]:
     """For each BEV cell (flattened row-major): the flat index of the image pixel it takes, and whether it is kept

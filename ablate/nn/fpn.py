@@ -32,7 +32,7 @@ class FPN(nn.Module):
             raise ValueError(
                 f"FPN built for inputs with channels {self.in_channels}, got {[tuple(f.shape) for f in features]}"
             )
-        outs: list[Tensor] = [None] * len(features)  # type: ignore[list-item]
+        outs: list[Tensor] = [None] * len(features)
         x = None
         for j in range(len(features) - 1, -1, -1):
             lat = self.lateral[j](features[j])

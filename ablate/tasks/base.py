@@ -8,7 +8,7 @@ import inspect
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import lightning as L
 import torch
@@ -17,6 +17,9 @@ from torch import nn
 from torchmetrics import Metric
 
 from ablate.tasks.conditions import EvalConditions, TrainCorruptions
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 # The training corruptions are applied in the module's batch hook whatever the data module: intended.
 warnings.filterwarnings("ignore", ".*overridden `on_before_batch_transfer` in `LightningModule`.*")
@@ -243,7 +246,7 @@ class FusionTask(L.LightningModule):
                 return tuple(batch[key].shape[-2:])
         raise KeyError(f"{type(self).__name__}: batch has no image tensor (need one of {names}); got {sorted(batch)}")
 
-    def figure(self, batch: dict):
+    def figure(self, batch: dict) -> Figure | None:
         """A matplotlib figure of predictions on ``batch`` (fixed test frames), or None."""
         return None
 
@@ -252,7 +255,7 @@ class FusionTask(L.LightningModule):
         """The evaluators its metrics follow (their ``evaluator``, e.g. ``kitti_object_devkit_2017``; see
         :mod:`ablate.metrics`), comma-separated: the run's ``evaluator`` tag. None when no metric names one."""
         names = {getattr(m, "evaluator", None) for m in self.modules() if isinstance(m, Metric)}
-        return ", ".join(sorted(names - {None})) or None
+        return ", ".join(sorted(cast("set[str]", names - {None}))) or None
 
 
 def _plain(value: Any) -> Any:

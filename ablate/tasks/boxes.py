@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import cast
 
 import numpy as np
 import torch
@@ -44,9 +45,9 @@ class Anchors:
         extra: bool = False,
     ) -> None:
         per_level = (
-            [tuple(r) for r in aspect_ratios]
+            [tuple(r) for r in cast("Sequence[Sequence[float]]", aspect_ratios)]
             if aspect_ratios and isinstance(aspect_ratios[0], Sequence)
-            else [tuple(aspect_ratios)] * len(scales)
+            else [tuple(cast("Sequence[float]", aspect_ratios))] * len(scales)
         )
         if not scales or min(scales) <= 0 or any(not r or min(r) <= 0 for r in per_level):
             raise ValueError(f"Anchors: scales and aspect_ratios must be positive, got {scales}, {aspect_ratios}")

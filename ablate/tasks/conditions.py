@@ -16,6 +16,7 @@ from __future__ import annotations
 import re
 import zlib
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -66,7 +67,7 @@ def corrupt(batch: dict, spec: dict[str, str], seed: Sequence[int], severity: fl
     frames = batch.get("frame") or [str(i) for i in range(_batch_size(batch))]
     for target, name in spec.items():
         for m in ROLES.get(target, (target,)):
-            x = batch.get(m)
+            x: Any = batch.get(m)  # a batch holds tensors, lists and dicts
             if not torch.is_tensor(x) or x.ndim != 4:
                 continue
             if name in CONDITIONS and x.shape[1] != 3:

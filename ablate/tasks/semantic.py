@@ -24,6 +24,9 @@ their IoU at 0, so class imbalance alone does not explain that seed.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING, Any
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -34,6 +37,9 @@ from torch import nn  # noqa: E402
 from torchmetrics.classification import MulticlassJaccardIndex, MulticlassRecall  # noqa: E402
 
 from ablate.tasks.base import FusionTask  # noqa: E402
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 CLASSES = ("background", "free_space", "road_objects")
 BRANCHES = ("free_space", "road_objects")
@@ -72,7 +78,7 @@ def class_map(outputs: dict[str, torch.Tensor], size: tuple[int, int]) -> torch.
     return torch.where(obj, 2, torch.where(free, 1, 0))
 
 
-def median_frequency(batches) -> torch.Tensor:
+def median_frequency(batches: Iterable[dict[str, Any]]) -> torch.Tensor:
     """Median frequency balancing weights median(f) / f_c from the ``semantic`` labels of ``batches``; a class
     absent from every label gets weight 0 (it has no pixel to weigh)."""
     counts = torch.zeros(len(CLASSES), dtype=torch.float64)
@@ -97,8 +103,8 @@ class SemanticTask(FusionTask):
     def __init__(
         self,
         model: nn.Module,
-        optimizer,
-        scheduler=None,
+        optimizer: Callable[..., torch.optim.Optimizer],
+        scheduler: Callable[..., Any] | None = None,
         monitor: str = "val/det_rate",
         figure_frames: int = 4,
         class_weights: str | list[float] | None = None,
@@ -157,7 +163,7 @@ class SemanticTask(FusionTask):
         iou.reset()
 
     @torch.no_grad()
-    def figure(self, batch: dict):
+    def figure(self, batch: dict) -> Figure:
         """Input intensity, ground truth and prediction for the first frames; red free space, blue objects
         (the colours of ChiNet Fig. 4)."""
         self.model.eval()

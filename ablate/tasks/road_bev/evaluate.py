@@ -15,12 +15,15 @@ Lookups depend on the calibration only and are cached per calibration and image 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 from torch import Tensor
 
 from ablate.data import DataError
 from ablate.data.dataset import calibration
+from ablate.data.kitti import Calibration
 from ablate.fusion.geometry import BevGrid
 from ablate.metrics.road import BEV_RES, BEV_X, BEV_Z, bev_centres, bev_lookup, bev_shape, road_homography
 
@@ -29,7 +32,12 @@ class MetricBev:
     """Warps [B,H,W] camera maps and [B,Hb,Wb] LiDAR-BEV maps to the devkit grid [B,rows,cols]."""
 
     def __init__(
-        self, grid: BevGrid = BevGrid(), res: float = BEV_RES, x_range=BEV_X, z_range=BEV_Z, cache_size: int = 256
+        self,
+        grid: BevGrid = BevGrid(),
+        res: float = BEV_RES,
+        x_range: Sequence[float] = BEV_X,
+        z_range: Sequence[float] = BEV_Z,
+        cache_size: int = 256,
     ) -> None:
         self.grid, self.res, self.x_range, self.z_range = grid, res, tuple(x_range), tuple(z_range)
         self.shape = bev_shape(res, self.x_range, self.z_range)
@@ -56,8 +64,9 @@ class MetricBev:
             self._cache[key] = torch.from_numpy(index), torch.from_numpy(inside)
         return self._cache[key]
 
-    def _lidar(self, cal) -> tuple[np.ndarray, np.ndarray]:
+    def _lidar(self, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
         """Per metric cell: the flat index of the LiDAR raster cell holding its centre, and whether there is one."""
+        assert cal.Tr_cam_to_road is not None  # _lookup raised otherwise
         x, z = bev_centres(self.res, self.x_range, self.z_range)
         road = np.stack([x.ravel(), np.zeros(x.size), z.ravel(), np.ones(x.size)])
         to_road = np.vstack([cal.Tr_cam_to_road, [0, 0, 0, 1]])

@@ -3,12 +3,18 @@ CBF's gains per channel (eq. 10) at each fusion point."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+    from torch import nn
 
 
 def _image(batch: dict, i: int) -> np.ndarray | None:
@@ -19,10 +25,10 @@ def _image(batch: dict, i: int) -> np.ndarray | None:
     return None
 
 
-def draw_roads(batch: dict, probs: dict[str, torch.Tensor]):
+def draw_roads(batch: dict, probs: dict[str, torch.Tensor]) -> Figure:
     """One row per frame: image, then per space the ground truth and the predicted road probability (BEV rasters
     drawn with the far end up and left on the left, as the driver sees them)."""
-    columns = [("image", None)]
+    columns: list[tuple[str, tuple[str, str] | None]] = [("image", None)]
     if "cam" in probs or "free_space" in batch:
         columns += [("camera ground truth", ("gt", "free_space")), ("camera prediction", ("p", "cam"))]
     if "bev" in probs or "road_bev" in batch:
@@ -57,7 +63,7 @@ def draw_roads(batch: dict, probs: dict[str, torch.Tensor]):
     return fig
 
 
-def draw_gains(operators: list, levels: tuple[int, ...]):
+def draw_gains(operators: list[nn.Module], levels: tuple[int, ...]) -> Figure | None:
     """Bars of the mean gain per channel of the camera and the LiDAR input, one panel per operator with gains
     (camera group and BEV group per level); None when no operator keeps gains (plain sum, LidCamNet, PLARD)."""
     from ablate.fusion.bidirectional import gains

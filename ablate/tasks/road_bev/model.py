@@ -158,6 +158,7 @@ class RoadNet(FreezableModel):
         if features is None:
             features = {m: self.branches[m].encoder(inputs[m]) for m in self.modalities}
         if self.mode == "single":
+            assert self.single is not None  # set with mode single
             return {OUTPUTS[space_of(self.single)]: self.branches[self.single].decode(features[self.single])}
         if self.mode == "perspective":
             first, second = self.modalities

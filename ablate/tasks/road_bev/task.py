@@ -13,6 +13,9 @@ branch is the final result for testing", Fig. 4), else the BEV branch (the BEV-o
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
 import torch
 from torch import nn
 
@@ -22,6 +25,9 @@ from ablate.tasks.base import FusionTask
 from ablate.tasks.road_bev.evaluate import MetricBev
 from ablate.tasks.road_bev.figures import draw_gains, draw_roads
 from ablate.tasks.road_bev.loss import RoadLoss, upsample
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 MEASURES = ("max_f", "ap", "pre", "rec")
 BRANCHES = {"cam": "road_cam", "bev": "road_bev"}
@@ -34,13 +40,13 @@ class RoadTask(FusionTask):
     def __init__(
         self,
         model: nn.Module,
-        optimizer,
-        scheduler=None,
+        optimizer: Callable[..., torch.optim.Optimizer],
+        scheduler: Callable[..., Any] | None = None,
         monitor: str = "val/max_f",
         loss: dict | None = None,
         grid: dict | None = None,
         figure_frames: int = 4,
-        **options,
+        **options: Any,
     ) -> None:
         super().__init__(model, optimizer, scheduler, monitor, **options)
         loss = dict(loss or {})
@@ -100,7 +106,7 @@ class RoadTask(FusionTask):
             metric.reset()
 
     @torch.no_grad()
-    def figure(self, batch: dict):
+    def figure(self, batch: dict) -> Figure:
         """Image, ground truth and predicted road probability in camera space and in BEV for the first frames."""
         n = min(self.figure_frames, len(batch["frame"]) if "frame" in batch else 1)
         sub = {k: v[:n] for k, v in batch.items() if torch.is_tensor(v)}
@@ -114,10 +120,10 @@ class RoadTask(FusionTask):
         return draw_roads(sub, {k: v.cpu() for k, v in probs.items()})
 
     @torch.no_grad()
-    def gate_figure(self, batch: dict):
+    def gate_figure(self, batch: dict) -> Figure | None:
         """CBF's gains per channel (camera and LiDAR input) at every fusion point, mean over the first frames; None
         for a model without CBF gains."""
-        fusion = getattr(self.model, "fusion_modules", lambda: [])()
+        fusion: list[nn.Module] = getattr(self.model, "fusion_modules", lambda: [])()
         if not fusion:
             return None
         self.figure(batch)  # one forward pass fills each operator's last gains

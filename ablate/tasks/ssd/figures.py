@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -11,6 +13,10 @@ from matplotlib.patches import Rectangle  # noqa: E402
 
 from ablate.metrics.kitti import LABEL_NAMES  # noqa: E402
 
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
 
 def _rgb(image: torch.Tensor) -> torch.Tensor:
     """[C, H, W] in 0-1 -> [H, W, 3] for imshow (one channel shown as grey)."""
@@ -18,7 +24,7 @@ def _rgb(image: torch.Tensor) -> torch.Tensor:
     return img.expand(-1, -1, 3) if img.shape[-1] == 1 else img[..., :3]
 
 
-def _boxes(ax, boxes: torch.Tensor, captions: list[str], colours: list[str], dashed: list[bool]) -> None:
+def _boxes(ax: Axes, boxes: torch.Tensor, captions: list[str], colours: list[str], dashed: list[bool]) -> None:
     for (x1, y1, x2, y2), caption, colour, dash in zip(boxes.tolist(), captions, colours, dashed):
         ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, lw=0.8, color=colour, ls="--" if dash else "-"))
         if caption:
@@ -40,7 +46,7 @@ def draw_detections(
     conditions: list[str] | None,
     num_classes: int,
     score: float = 0.5,
-):
+) -> Figure:
     """Rows: frames; columns: ground truth (classes solid, KITTI's ignored Van / Person_sitting / DontCare
     dashed grey) and predictions with score >= ``score`` (class and score captioned)."""
     n = images.shape[0]

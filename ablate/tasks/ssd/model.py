@@ -4,6 +4,7 @@ each of the six SSD maps, SSD's predictors on the fused maps."""
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from typing import cast
 
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -81,7 +82,10 @@ class DGFN(nn.Module):
                 branch.load(files[m])
         channels = next(iter(self.branches.values())).channels
         self.fuse = (
-            nn.ModuleList(fusion(channels=c, num_inputs=len(modalities)) for c in channels)
+            # without single, fusion is not None (checked above)
+            nn.ModuleList(
+                cast("Callable[..., nn.Module]", fusion)(channels=c, num_inputs=len(modalities)) for c in channels
+            )
             if single is None
             else nn.ModuleList()
         )

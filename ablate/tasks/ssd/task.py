@@ -17,6 +17,8 @@ weights are fixed to one). With ``eval_conditions`` every test metric is logged 
 from __future__ import annotations
 
 import inspect
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, cast
 
 import torch
 from torch import nn
@@ -30,6 +32,11 @@ from ablate.tasks.ssd.figures import draw_detections
 from ablate.tasks.ssd.loss import SSDLoss
 from ablate.tasks.yolact.figures import draw_gates
 from ablate.tasks.yolact.task import select, task_head
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from ablate.tasks.conditions import EvalConditions
 
 _DECODE_OPTIONS = tuple(
     p for p in inspect.signature(decode).parameters if p not in ("outputs", "image_size", "anchors")
@@ -51,15 +58,15 @@ class DetectionTask(FusionTask):
     def __init__(
         self,
         model: nn.Module,
-        optimizer,
-        scheduler=None,
+        optimizer: Callable[..., torch.optim.Optimizer],
+        scheduler: Callable[..., Any] | None = None,
         monitor: str = "val/ap11",
         loss: dict | None = None,
         decode: dict | None = None,
         classes: list[str] | tuple[str, ...] = ("Car", "Pedestrian"),
         figure_frames: int = 4,
         metric: dict | None = None,
-        **conditions,
+        **conditions: Any,
     ) -> None:
         super().__init__(model, optimizer, scheduler, monitor, **conditions)
         head = task_head(model)
@@ -68,6 +75,7 @@ class DetectionTask(FusionTask):
                 f"DetectionTask needs a detection head with `anchors` and `num_classes` (head="
                 f"ablate.tasks.detection.SSDHead); got {type(head).__name__}"
             )
+        assert head is not None  # it has anchors
         self.anchors, self.num_classes = head.anchors, int(head.num_classes)
         for option, given, valid in (
             ("task.loss", loss, _LOSS_OPTIONS),
@@ -135,7 +143,7 @@ class DetectionTask(FusionTask):
                 self.log(f"{stage}/gate_{m}", mean.compute())
             mean.reset()
 
-    def figure(self, batch: dict, score: float = 0.5):
+    def figure(self, batch: dict, score: float = 0.5) -> Figure:
         """Ground-truth and predicted boxes (score >= ``score``) over the camera image of the first frames."""
         n = min(self.figure_frames, len(self.targets(batch)))
         sub = select(batch, list(range(n)))
@@ -150,26 +158,30 @@ class DetectionTask(FusionTask):
             score,
         )
 
-    def gate_figure(self, batch: dict):
+    def gate_figure(self, batch: dict) -> Figure | None:
         """DGFN Fig. 5: the weight maps of the first fusion point (conv4_3) over each input, for the first frame
         under every named test condition (the first frames when there are none). None without a gated fusion."""
         ops = self.model.fusion_modules() if hasattr(self.model, "fusion_modules") else []
         if not ops or not getattr(ops[0], "gated", True):
             return None
+        plan: list[tuple[str | None, int]]
         if self.eval_conditions:
             plan = [(name, 0) for name in self.eval_conditions.base]
         else:
             plan = [(None, i) for i in range(min(2, len(self.targets(batch))))]
+        images: dict[str, list[torch.Tensor]]
+        gates: dict[str, list[torch.Tensor]]
         images, gates = {m: [] for m in self.model.modalities}, {m: [] for m in self.model.modalities}
         for name, i in plan:
             sub = select(batch, [i])
-            sub = self.eval_conditions.apply(sub, name) if name else sub
+            # a named frame of the plan comes from eval_conditions
+            sub = cast("EvalConditions", self.eval_conditions).apply(sub, name) if name else sub
             self.forward_eval(sub)
             for m, g in zip(self.model.modalities, ops[0].last_gates):
                 images[m].append(sub[m].cpu())
                 gates[m].append(g.mean(1).cpu())
         captions = (
-            [name for name, _ in plan]
+            cast("list[str]", [name for name, _ in plan])  # the plan of eval_conditions names every frame
             if self.eval_conditions
             else [batch["condition"][i] for _, i in plan]
             if batch.get("condition")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -11,6 +13,10 @@ import torch.nn.functional as F  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
 from ablate.tasks.yolact import CLASSES  # noqa: E402
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 
 def _rgb(image: torch.Tensor) -> torch.Tensor:
@@ -24,7 +30,7 @@ def _size(rows: int, cols: int, hw: tuple[int, int], panel: float = 3.2) -> tupl
     return panel * cols, rows * (panel * hw[0] / hw[1] + 0.35) + 0.2
 
 
-def _overlay(ax, image: torch.Tensor, masks: torch.Tensor, boxes: torch.Tensor, captions: list[str]) -> None:
+def _overlay(ax: Axes, image: torch.Tensor, masks: torch.Tensor, boxes: torch.Tensor, captions: list[str]) -> None:
     """Each mask in its own colour at half opacity over ``image`` [H, W, 3], with its box and caption."""
     shown = image.clone()
     colours = plt.get_cmap("tab10")
@@ -49,7 +55,7 @@ def _overlay(ax, image: torch.Tensor, masks: torch.Tensor, boxes: torch.Tensor, 
 
 def draw_instances(
     images: torch.Tensor, targets: list[dict], preds: list[dict], conditions: list[str] | None, score: float = 0.5
-):
+) -> Figure:
     """Rows: frames; columns: ground truth, predictions with score >= ``score`` (class and score captioned)."""
     n = images.shape[0]
     fig, axes = plt.subplots(n, 2, figsize=_size(n, 2, images.shape[-2:]), squeeze=False)
@@ -82,7 +88,7 @@ def draw_instances(
     return fig
 
 
-def draw_gates(images: dict[str, torch.Tensor], gates: list[torch.Tensor], conditions: list[str] | None):
+def draw_gates(images: dict[str, torch.Tensor], gates: list[torch.Tensor], conditions: list[str] | None) -> Figure:
     """Rows: frames; per modality its input, then its gate map (``gates[k]`` [B, h, w] in 0-1, bilinearly
     upsampled to the input size) over that input."""
     names = list(images)
@@ -111,7 +117,7 @@ def draw_gates(images: dict[str, torch.Tensor], gates: list[torch.Tensor], condi
 
 def draw_rows(
     images: torch.Tensor, targets: list[dict], preds: dict[str, list[dict]], captions: list[str], score: float = 0.5
-):
+) -> Figure:
     """SMoE Fig. 6: rows are frames, columns the ground truth and then each method's masks (score >= ``score``)
     on the same frames; ``preds[name][i]`` is method ``name``'s prediction on frame ``i``."""
     n, names = images.shape[0], list(preds)

@@ -14,6 +14,8 @@ value COCOeval leaves undefined (no counted ground truth) is logged as NaN.
 from __future__ import annotations
 
 import inspect
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
@@ -24,6 +26,9 @@ from ablate.tasks.yolact.anchors import Anchors
 from ablate.tasks.yolact.figures import draw_gates, draw_instances
 from ablate.tasks.yolact.loss import YolactLoss
 from ablate.tasks.yolact.nms import decode
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 #: Condition groups of the per-condition columns; members are ablate.data condition names (SMoE §3.3).
 CONDITION_GROUPS: dict[str, tuple[str, ...]] = {
@@ -88,8 +93,8 @@ class InstanceTask(FusionTask):
     def __init__(
         self,
         model: nn.Module,
-        optimizer,
-        scheduler=None,
+        optimizer: Callable[..., torch.optim.Optimizer],
+        scheduler: Callable[..., Any] | None = None,
         monitor: str = "val/map",
         loss: dict | None = None,
         decode: dict | None = None,
@@ -169,7 +174,7 @@ class InstanceTask(FusionTask):
         sub = select(batch, index)
         return sub, self.forward_eval(sub)
 
-    def figure(self, batch: dict, score: float = 0.5):
+    def figure(self, batch: dict, score: float = 0.5) -> Figure:
         """Ground truth and predicted masks (score >= ``score``) over the RGB of the first frames, as SMoE Fig. 6."""
         n = min(self.figure_frames, len(batch["instances"]))
         sub, outputs = self._forward_frames(batch, list(range(n)))
@@ -182,7 +187,7 @@ class InstanceTask(FusionTask):
             score,
         )
 
-    def gate_figure(self, batch: dict):
+    def gate_figure(self, batch: dict) -> Figure | None:
         """Gate maps of the first gated fusion op (finest fusion point) on a night and a glare frame, when the
         batch holds them (else the first frames), upsampled over each input (SMoE §4.2 eq. 2-3, DGFN Fig. 5).
         Each gate is averaged over channels. None when the model has no gated fusion op."""
