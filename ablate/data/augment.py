@@ -20,7 +20,7 @@ that every derived modality follows:
 
 Augmentation is for the training split only; the draws come from torch's generator (seeded per worker by
 Lightning), so a frame's augmentation changes from epoch to epoch. The frozen experts' feature cache
-(``ablate.run.experts.FeatureCache``), which assumes each frame's input is a constant, is off when it is on.
+(``ablate.jobs.experts.FeatureCache``), which assumes each frame's input is a constant, is off when it is on.
 """
 
 from __future__ import annotations

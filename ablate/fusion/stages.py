@@ -121,7 +121,7 @@ class FusionModel(FreezableModel):
 
     def forward(self, inputs: dict[str, Tensor], features: dict | None = None) -> dict[str, Tensor | list[Tensor]]:
         """The head's outputs for ``inputs``. ``features``: :meth:`frozen_features` of these inputs, computed
-        before (a cache of them, :class:`ablate.run.experts.FeatureCache`); the per-modality parts are then not run."""
+        before (a cache of them, :class:`ablate.jobs.experts.FeatureCache`); the per-modality parts are then not run."""
         if features is None:
             x = self._inputs(inputs)
             if self.stage == "early":

@@ -66,7 +66,7 @@ class FusionTask(L.LightningModule):
 
     ``optimizer`` is a partial taking ``params``; ``scheduler`` a partial taking ``optimizer`` (and
     ``total_steps`` when its signature has it, as :func:`poly_lr` does), stepped every optimisation step.
-    ``feature_cache``: when set (:func:`ablate.run.experts.feature_cache`, for the fit of a model on frozen experts),
+    ``feature_cache``: when set (:func:`ablate.jobs.experts.feature_cache`, for the fit of a model on frozen experts),
     ``forward`` takes the experts' features from it instead of running them.
 
     Conditions (:mod:`ablate.tasks.conditions`), for a subclass that passes these options on:

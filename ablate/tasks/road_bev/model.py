@@ -15,7 +15,7 @@ BEV raster (``bev``) lives in BEV space, every other modality in the camera's pe
   - two camera-space modalities (LidCamNet and PLARD, §V-F, fusing LiDAR projected into the image): the operator
     fuses them directly at each level into the first modality's branch; outputs ``road_cam``.
 
-Two-stage training (BiFNet §V-B "the two networks are trained separately first"; :mod:`ablate.run.experts`):
+Two-stage training (BiFNet §V-B "the two networks are trained separately first"; :mod:`ablate.jobs.experts`):
 :meth:`load_expert` copies a trained single-modal branch in (its encoder frozen with ``freeze``; its decoder and
 head, which see the fused features afterwards, as a trainable start).
 """
