@@ -23,11 +23,11 @@ run: setup
 test: setup
 	$(PY) -m pytest -q -n auto --dist loadfile
 
-# ruff (lint and format) on everything; mypy on the store and the tables, whose public functions are annotated
+# ruff (lint and format) on everything; mypy (every function annotated) on the package and the sweeper plugin
 lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
-	$(VENV)/bin/mypy ablate/store ablate/tables
+	$(VENV)/bin/mypy ablate hydra_plugins
 
 bench: setup
 	for f in bench/bench_*.py; do echo "== $$f"; $(PY) $$f || exit 1; done

@@ -18,7 +18,7 @@ from omegaconf import DictConfig
 
 from ablate.analysis.reproduce import reproduce
 from ablate.config import CONF, compose
-from ablate.store import KIND_SWEEP, AccessDenied, Tracker, retry
+from ablate.store import KIND_SWEEP, AccessDenied, Tracker
 from ablate.tables import table_spec, write_table
 from ablate.tables.index import write_index
 from ablate.tables.parity import parity, write_parity
@@ -55,13 +55,13 @@ def _main(argv: list[str] | None) -> int:
     for name in names:
         cfg = compose(rest + ([] if name == "ablate" else [f"experiment={name}"]))
         tracker = Tracker.from_config(cfg)
-        exp = retry(tracker.client.get_experiment_by_name, cfg.table.name)
+        exp = tracker.find_experiment(cfg.table.name)
         if exp is None:
             if named:
                 print(f"error: no runs for experiment '{name}' in {tracker.uri}", file=sys.stderr)
                 return 1
             continue
-        sweeps = tracker.runs(exp.experiment_id, f"tags.kind = '{KIND_SWEEP}'")
+        sweeps = tracker.runs(exp, f"tags.kind = '{KIND_SWEEP}'")
         parent = max(sweeps, key=lambda r: r.info.start_time).info.run_id if sweeps else None
         for path in write_table(cfg, tracker, parent_run=parent, fingerprint=fingerprint):
             print(path)

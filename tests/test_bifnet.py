@@ -10,6 +10,7 @@ from omegaconf import OmegaConf
 from test_cli import REPO, SERIAL, TINY, ablate, runs
 
 from ablate.fusion.bidirectional import WithContext  # (importing ablate registers ${channels:...})
+from ablate.tables.spec import sweep_params
 
 TABLES = {
     "bifnet_table4": ["bifnet_image", "bifnet_bev", "bifnet_dst_sum", "bifnet_dst_cbf"],
@@ -27,7 +28,7 @@ def config(*overrides: str, hydra: bool = False):
 def test_each_table_sweeps_its_rows_with_the_papers_numbers(table):
     cfg = config(f"experiment={table}", hydra=True)
     assert [r["row"] for r in cfg.table.rows] == TABLES[table]
-    assert cfg.hydra.sweeper.params.row == ",".join(TABLES[table])
+    assert sweep_params({}, [], cfg.table)["row"] == ",".join(TABLES[table])  # the sweep, from the rows
     assert all(r["paper"] for r in cfg.table.rows) and cfg.table.primary in cfg.table.metrics
     assert cfg.task._target_ == "ablate.tasks.road_bev.RoadTask" and cfg.model._target_.endswith("RoadNet")
 

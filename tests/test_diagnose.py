@@ -5,7 +5,8 @@ import pandas as pd
 import pytest
 import torch
 
-from ablate.analysis.diagnose import checks, found_objects, recall_table
+from ablate.tasks.yolact.diagnose import found_objects
+from ablate.tasks.yolact.diagnosis_report import checks, recall_table
 
 
 def _mask(h, w, y0, y1, x0, x1):

@@ -139,10 +139,8 @@ def test_a_reused_run_is_timed_from_its_source_runs_checkpoint(tmp_path, monkeyp
         tracker.experiment_id("table_a"), "dgfn seed=0", {"table": "table_a", "config_hash": "abc", "kind": "job"}
     )
     tracker.end(source_id, "FINISHED")
-    copy_id = tracker.copy_run(
-        tracker.client.get_run(source_id), tracker.experiment_id("table_b"), {"table": "table_b"}
-    )
-    copy = tracker.client.get_run(copy_id)
+    copy_id = tracker.copy_run(tracker.get_run(source_id), tracker.experiment_id("table_b"), {"table": "table_b"})
+    copy = tracker.get_run(copy_id)
     assert row_checkpoint(tracker, copy) is None  # neither checkpoint on this machine
     ckpt = tmp_path / "checkpoints" / "table_a" / "abc" / "best.ckpt"
     ckpt.parent.mkdir(parents=True)

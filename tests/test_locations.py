@@ -15,8 +15,10 @@ from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf, open_dict
 
 from ablate.jobs.job import JobFailed, in_launch_dir
-from ablate.store.sweepdir import STORE_FILE
-from ablate.store.tracker import EXPERIMENT_KIND, Tracker, artifact_location, resolve_uri, tracking_uri
+from ablate.store import SweepContext
+from ablate.store.context import STORE_FILE
+from ablate.store.tracker import EXPERIMENT_KIND, Tracker
+from ablate.store.uris import artifact_location, resolve_uri, tracking_uri
 from ablate.sweep.callback import check_launcher, ray_driver_auth
 from tests.scaleout import REPO, need
 
@@ -47,13 +49,16 @@ def test_relative_stores_resolve_against_the_launch_directory_not_the_working_on
     monkeypatch.chdir(tmp_path)  # a Ray task runs where its cluster was started
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     launch = tmp_path / "launch"
-    assert tracking_uri({"tracking_uri": "sqlite:///mlflow.db"}) == f"sqlite:///{launch / 'mlflow.db'}"
-    assert tracking_uri(None) == f"sqlite:///{launch / 'mlflow.db'}"
-    assert artifact_location(tracking_uri(None), None) == (launch / "mlartifacts").as_uri()
-    assert artifact_location(tracking_uri(None), "store/art") == (launch / "store" / "art").as_uri()
-    assert resolve_uri("sqlite:////abs/x.db") == "sqlite:////abs/x.db"
-    assert resolve_uri("http://127.0.0.1:5000") == "http://127.0.0.1:5000"
-    assert resolve_uri("runs") == str(launch / "runs")
+    with in_launch_dir(SweepContext.current().launch_dir):  # where a job starts
+        assert tracking_uri({"tracking_uri": "sqlite:///mlflow.db"}) == f"sqlite:///{launch / 'mlflow.db'}"
+        assert tracking_uri(None) == f"sqlite:///{launch / 'mlflow.db'}"
+        assert artifact_location(tracking_uri(None), None) == (launch / "mlartifacts").as_uri()
+        assert artifact_location(tracking_uri(None), "store/art") == (launch / "store" / "art").as_uri()
+        assert resolve_uri("sqlite:////abs/x.db") == "sqlite:////abs/x.db"
+        assert resolve_uri("http://127.0.0.1:5000") == "http://127.0.0.1:5000"
+        assert resolve_uri("runs") == str(launch / "runs")
+    # and explicitly, from anywhere
+    assert tracking_uri(None, launch) == f"sqlite:///{launch / 'mlflow.db'}"
 
 
 def test_a_server_keeps_the_artifacts_and_a_local_root_with_it_is_refused_by_name():
@@ -72,7 +77,8 @@ def test_jobs_of_a_sweep_write_to_the_store_it_recorded_whatever_their_environme
     recorded = f"sqlite:///{tmp_path / 'sweep.db'}"
     (sdir / STORE_FILE).write_text(json.dumps({"uri": recorded, "artifact_location": (tmp_path / "a").as_uri()}))
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'other.db'}")
-    tracker = Tracker.from_config(OmegaConf.create({"logger": {"tracking_uri": "sqlite:///third.db"}}))
+    cfg = OmegaConf.create({"logger": {"tracking_uri": "sqlite:///third.db"}})
+    tracker = Tracker.from_config(cfg, SweepContext.current())
     assert tracker.uri == recorded and tracker.artifact_location == (tmp_path / "a").as_uri()
 
 
@@ -94,12 +100,13 @@ def test_a_tracker_pickles_for_ddp_spawn_and_tags_every_experiment_as_model_trai
 def test_a_job_runs_in_the_launch_directory_and_goes_back(job_in, tmp_path, monkeypatch):
     job_in()
     monkeypatch.chdir(tmp_path)
-    with in_launch_dir() as where:
+    launch = SweepContext.current().launch_dir
+    with in_launch_dir(launch) as where:
         assert Path.cwd() == where == tmp_path / "launch"
     assert Path.cwd() == tmp_path
     (tmp_path / "launch").rmdir()  # a machine that does not see the launch directory
     with pytest.raises(JobFailed, match="launch directory .*launch does not exist"):
-        with in_launch_dir():
+        with in_launch_dir(launch):
             pass
 
 

@@ -12,10 +12,10 @@ from mlflow.exceptions import MlflowException
 
 from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unreachable
 from ablate.store import Outbox, RunLogger, ServerUnreachable, Tracker
+from ablate.store import retry as retry_module
 from ablate.store import run_logger as logger_module
-from ablate.store import tracker as tracker_module
 from ablate.store.outage import shown, symptom
-from ablate.store.tracker import retry
+from ablate.store.retry import retry
 
 REFUSED = (
     "API request to http://127.0.0.1:5999/api/2.0/mlflow/runs/log-batch failed with exception "
@@ -41,8 +41,8 @@ class Down:
     def __init__(self, tracker, monkeypatch):
         self.down, self.calls = False, 0
         for name in ("log_batch", "set_terminated"):
-            real = getattr(tracker.client, name)
-            monkeypatch.setattr(tracker.client, name, self.wrap(real))
+            real = getattr(tracker._client, name)  # the store's own client: the faults are injected under it
+            monkeypatch.setattr(tracker._client, name, self.wrap(real))
 
     def wrap(self, real):
         def call(*args, **kwargs):
@@ -55,7 +55,7 @@ class Down:
 
 
 def history(tracker, run_id, key):
-    return [(m.step, m.value, m.timestamp) for m in tracker.client.get_metric_history(run_id, key)]
+    return [(m.step, m.value, m.timestamp) for m in tracker.metric_history(run_id, key)]
 
 
 def test_batches_are_delivered_in_order_and_the_outbox_is_removed_after(tmp_path):
@@ -117,7 +117,7 @@ def test_a_batch_sent_again_after_a_crash_before_its_mark_adds_no_row_twice(trac
 def test_the_logger_keeps_training_while_the_server_is_down_and_delivers_each_value_once(
     tracker, tmp_path, monkeypatch, caplog
 ):
-    monkeypatch.setattr(tracker_module, "backoff", lambda attempt, cap=5.0: 0.0)
+    monkeypatch.setattr(retry_module, "backoff", lambda attempt, cap=5.0: 0.0)
     monkeypatch.setattr(logger_module, "backoff", lambda attempt, cap=5.0: 0.0)
     run_id = new_run(tracker)
     down = Down(tracker, monkeypatch)
@@ -211,10 +211,10 @@ def test_a_run_whose_end_the_server_did_not_take_is_ended_by_the_next_job(tracke
     assert unreachable(RuntimeError("x")) is None
     assert f"run {run_id} stays RUNNING" in message and "its end (FAILED) and 1 metric value(s) wait in" in message
     assert "(no checkpoint was written yet)" in message
-    assert tracker.client.get_run(run_id).info.status == "RUNNING"
+    assert tracker.get_run(run_id).info.status == "RUNNING"
     down.down = False
     deliver_earlier(tracker, Outbox(box.path))  # the next job of the same config
-    run = tracker.client.get_run(run_id)
+    run = tracker.get_run(run_id)
     assert run.info.status == "FAILED" and "did not answer for 2 s" in run.data.tags["error"]
     assert run.data.metrics["val/loss"] == 0.5 and not box.path.exists()
 
@@ -230,7 +230,7 @@ def test_a_stopped_job_whose_server_is_down_keeps_its_end_for_the_next(tracker, 
     assert [b.status for b in pending] == [None, "KILLED"] and pending[1].tags == {"killed_by": "SIGTERM"}
     down.down = False
     deliver_earlier(tracker, Outbox(box.path))
-    run = tracker.client.get_run(run_id)
+    run = tracker.get_run(run_id)
     assert run.info.status == "KILLED" and run.data.tags["killed_by"] == "SIGTERM" and run.data.metrics["m"] == 1.0
 
 

@@ -47,14 +47,14 @@ def sweeper_for(tmp_path, monkeypatch, metric, *overrides, shuffle=False, launch
         config = compose("config", overrides=["experiment=chinet_table2", *overrides], return_hydra_config=True)
     config.hydra.runtime.cwd = str(tmp_path)
     config.hydra.sweep.dir = "sweep"
-    sweeper = RacingSweeper(params=dict(config.hydra.sweeper.params))
+    sweeper = RacingSweeper(params=dict(config.hydra.sweeper.params or {}))
     launcher = launcher or FakeLauncher(metric, shuffle)
     sweeper.sweeper.config, sweeper.sweeper.launcher = config, launcher
     sweeper.sweeper.hydra_context = type("Context", (), {"config_loader": None})()
     monkeypatch.setattr(impl, "job_runs", lambda tracker, table: None)
     monkeypatch.setattr(impl, "table_values", lambda runs, table: {r: pd.Series(v) for r, v in launcher.store.items()})
     monkeypatch.setattr(impl, "row_seconds", lambda tracker, runs: launcher.seconds)
-    monkeypatch.setattr(impl.RacingSweeperImpl, "_tracker", lambda self, sdir: None)
+    monkeypatch.setattr(impl.RacingSweeperImpl, "_tracker", lambda self: None)
     return sweeper, launcher
 
 

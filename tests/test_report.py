@@ -3,6 +3,7 @@
 import math
 
 import pytest
+from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
 from ablate.store.tracker import KIND_JOB, Tracker
@@ -185,9 +186,10 @@ def test_a_rows_job_time_is_its_runs_and_a_copied_run_counts_its_sources(tmp_pat
     tags = {"kind": KIND_JOB, "scale": "cpu", "seed": "0"}
 
     def job(exp, row, start_s, minutes):
-        run = tracker.client.create_run(exp, start_time=int(start_s * 1000), tags={**tags, "row": row})
-        tracker.client.set_terminated(run.info.run_id, "FINISHED", end_time=int((start_s + minutes * 60) * 1000))
-        return tracker.client.get_run(run.info.run_id)
+        client = MlflowClient(tracker.uri)  # runs with the start and end times of jobs long past
+        run = client.create_run(exp, start_time=int(start_s * 1000), tags={**tags, "row": row})
+        client.set_terminated(run.info.run_id, "FINISHED", end_time=int((start_s + minutes * 60) * 1000))
+        return tracker.get_run(run.info.run_id)
 
     other, mine = tracker.experiment_id("table_i"), tracker.experiment_id("table_ii")
     source = job(other, "dgfn", 1_000, 19.0)

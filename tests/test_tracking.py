@@ -6,7 +6,9 @@ import pytest
 from omegaconf import OmegaConf
 
 from ablate.store import config_hash, flatten, git_commit
-from ablate.store.tracker import SHARED_VIEW_KEY, SHARED_VIEW_TAG, Tracker, retry, runs_link
+from ablate.store.retry import retry
+from ablate.store.tracker import Tracker
+from ablate.store.uris import SHARED_VIEW_KEY, SHARED_VIEW_TAG, runs_link
 
 
 def _cfg(**over):
@@ -78,7 +80,7 @@ def test_experiment_creation_is_idempotent_and_stale_runs_are_killed(tmp_path):
     run = tracker.start(exp, "job", {"config_hash": "abc"})
     assert tracker.finished_run(exp, "abc") is None
     assert tracker.close_stale(exp, "abc") == 1
-    assert tracker.client.get_run(run).info.status == "KILLED"
+    assert tracker.get_run(run).info.status == "KILLED"
     done = tracker.start(exp, "job", {"config_hash": "abc"})
     tracker.end(done, "FINISHED")
     assert tracker.finished_run(exp, "abc").info.run_id == done
@@ -101,7 +103,7 @@ def test_sweeps_whose_process_died_are_closed_as_killed(tmp_path):
     alive = tracker.start(exp, "s2", {"kind": KIND_SWEEP, "host": host, "pid": str(os.getpid())})
     elsewhere = tracker.start(exp, "s3", {"kind": KIND_SWEEP, "host": "another-host", "pid": dead.stdout.strip()})
     assert close_dead_sweeps(tracker, exp) == 1
-    status = {r: tracker.client.get_run(r).info.status for r in (gone, alive, elsewhere)}
+    status = {r: tracker.get_run(r).info.status for r in (gone, alive, elsewhere)}
     assert status == {gone: "KILLED", alive: "RUNNING", elsewhere: "RUNNING"}
 
 
@@ -111,7 +113,7 @@ def test_the_table_view_is_an_mlflow_shared_view_with_the_metric_columns(tmp_pat
     tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db")
     exp = tracker.experiment_id("chinet_table2")
     link = tracker.share_table_view(exp, ["det_rate", "normal/ap11"])
-    state = json.loads(tracker.client.get_experiment(exp).tags[SHARED_VIEW_TAG + SHARED_VIEW_KEY])
+    state = json.loads(tracker.experiment_tags(exp)[SHARED_VIEW_TAG + SHARED_VIEW_KEY])
     assert state["selectedColumns"] == ["metrics.`det_rate`", "metrics.`normal/ap11`"]  # the UI's column keys
     assert link == (
         f"http://127.0.0.1:5000/#/experiments/{exp}/runs?viewStateShareKey={SHARED_VIEW_KEY}"

@@ -6,12 +6,12 @@ import multiprocessing as mp
 
 def _job(args):
     uri, k = args
-    from ablate.store.tracker import Tracker, retry
+    from ablate.store.tracker import Tracker
 
     tracker = Tracker(uri)
-    run = retry(tracker.client.create_run, tracker.experiment_id("race"), tags={"k": str(k)})
-    retry(tracker.client.set_terminated, run.info.run_id, "FINISHED")
-    return run.info.run_id
+    run_id = tracker.start(tracker.experiment_id("race"), f"job {k}", {"k": str(k)})
+    tracker.end(run_id, "FINISHED")
+    return run_id
 
 
 def test_four_processes_on_a_fresh_sqlite_store_lose_no_run(tmp_path):
@@ -21,7 +21,7 @@ def test_four_processes_on_a_fresh_sqlite_store_lose_no_run(tmp_path):
     from ablate.store.tracker import Tracker
 
     tracker = Tracker(uri)
-    runs = tracker.client.search_runs([tracker.experiment_id("race")])
+    runs = tracker.runs(tracker.experiment_id("race"))
     assert sorted(r.info.run_id for r in runs) == sorted(ids)
     assert {r.info.status for r in runs} == {"FINISHED"} and {r.data.tags["k"] for r in runs} == {"0", "1", "2", "3"}
     assert (tmp_path / "mlflow.db-lock").exists()

@@ -25,11 +25,13 @@ import os
 import statistics
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import pandas as pd
 import torch
 from hydra.utils import instantiate
+from mlflow.entities import Run
 from omegaconf import DictConfig
 from torch.utils.flop_counter import FlopCounterMode
 
@@ -37,7 +39,8 @@ from ablate import hardware
 from ablate.config import compose as compose_root
 from ablate.jobs import fingerprint
 from ablate.jobs.experts import expert_config, load_model
-from ablate.store import Tracker, retry
+from ablate.jobs.spec import best_checkpoint
+from ablate.store import Tracker
 from ablate.tables import collect, table_spec, write_table
 
 log = logging.getLogger(__name__)
@@ -85,23 +88,21 @@ def macs(model: torch.nn.Module, sample: dict) -> int:
     return counter.get_total_flops() // 2
 
 
-def _checkpoint(tags: dict) -> Path:
-    return Path("checkpoints") / tags.get("table", "") / tags.get("config_hash", "") / "best.ckpt"
-
-
-def row_checkpoint(tracker: Tracker, run) -> Path | None:
-    """The best checkpoint of a job run, found from its tags (``checkpoints/<table>/<config hash>/``), not from
-    a recomputed hash; a run reused from another table's (``reused_from``) has its source's; a single-modal row of
-    a two-stage table was tested from its expert's, found through the ``expert_<modality>`` tag. None when it is
-    not on this machine."""
-    own = _checkpoint(run.data.tags)
+def row_checkpoint(tracker: Tracker, run: Run) -> Path | None:
+    """The best checkpoint of a job run, found from its tags (``checkpoints/<table>/<config hash>/``,
+    :func:`ablate.jobs.spec.best_checkpoint`), not from a recomputed hash; a run reused from another table's
+    (``reused_from``) has its source's; a single-modal row of a two-stage table was tested from its expert's, found
+    through the ``expert_<modality>`` tag. None when it is not on this machine."""
+    tags = run.data.tags
+    own = best_checkpoint(tags.get("table", ""), tags.get("config_hash", ""))
     if own.exists():
         return own
-    if "reused_from" in run.data.tags:
-        return row_checkpoint(tracker, retry(tracker.client.get_run, run.data.tags["reused_from"]))
-    experts = [v for k, v in run.data.tags.items() if k.startswith("expert_")]
+    if "reused_from" in tags:
+        return row_checkpoint(tracker, tracker.get_run(tags["reused_from"]))
+    experts = [v for k, v in tags.items() if k.startswith("expert_")]
     if len(experts) == 1:
-        expert = _checkpoint(retry(tracker.client.get_run, experts[0]).data.tags)
+        expert_tags = tracker.get_run(experts[0]).data.tags
+        expert = best_checkpoint(expert_tags.get("table", ""), expert_tags.get("config_hash", ""))
         return expert if expert.exists() else None
     return None
 
@@ -126,7 +127,7 @@ def measure(
     cfg: DictConfig,
     tracker: Tracker,
     compose: Callable[[list[str]], DictConfig],
-    overrides: list[str] = (),
+    overrides: Sequence[str] = (),
     only_if_missing: bool = False,
 ) -> dict[str, dict[str, float]]:
     """Time every row of ``cfg.table`` that has FINISHED runs, side by side, and log the figures to its runs.
@@ -138,35 +139,17 @@ def measure(
     if runs.empty:
         log.warning("Latency: no finished runs of table '%s'", table.name)
         return {}
-    device = torch.device(
-        "cuda"
-        if torch.cuda.is_available() and opts.device == "auto"
-        else "cpu"
-        if opts.device == "auto"
-        else opts.device
-    )
+    device = timing_device(str(opts.device))
     torch.set_num_threads(int(opts.threads))
-    order = [spec["row"] for spec in table.rows] or sorted(runs["row"].unique())
-    forwards, figures, checkpoints = {}, {}, {}
     if only_if_missing and "latency_ms" in runs and runs["latency_ms"].notna().all():
         log.info("Latency: every row of '%s' is timed already", table.name)
         return {}
     if not table.rows:
         log.warning("Latency: table '%s' names no rows (an ad-hoc sweep); time an experiment's table", table.name)
         return {}
-    for row in [r for r in order if r in set(runs["row"])]:
-        first = runs[runs["row"] == row].sort_values("seed").iloc[0]
-        rcfg = compose(list(overrides) + [f"row={row}", f"seed={first['seed']}"])
-        ckpt = row_checkpoint(tracker, retry(tracker.client.get_run, first["run_id"]))
-        model = row_model(rcfg, ckpt).to(device).eval()
-        sample = {k: v.to(device) for k, v in first_test_sample(rcfg).items()}
-        log.info("Latency: %s from %s", row, ckpt or "initial weights (no checkpoint here)")
-        checkpoints[row] = str(ckpt or "none")
-        figures[row] = {
-            "params_m": sum(p.numel() for p in model.parameters()) / 1e6,
-            "macs_g": macs(model, sample) / 1e9,
-        }
-        forwards[row] = (lambda m, s: lambda: m(s))(model, sample)
+    order = [spec["row"] for spec in table.rows]
+    rows = [r for r in order if r in set(runs["row"])]
+    forwards, figures, checkpoints = load_rows(rows, runs, tracker, compose, overrides, device)
     load_start, cores = machine_load()
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     with torch.inference_mode():
@@ -174,23 +157,18 @@ def measure(
     load_end, _ = machine_load()
     for row, ts in times.items():
         q1, med, q3 = quartiles(ts)
+        load = max(load_start, load_end)
         figures[row].update(
-            latency_ms=med,
-            latency_q1_ms=q1,
-            latency_q3_ms=q3,
-            latency_load=max(load_start, load_end),
-            latency_cores=float(cores),
+            latency_ms=med, latency_q1_ms=q1, latency_q3_ms=q3, latency_load=load, latency_cores=float(cores)
         )
+        tags = {
+            "latency_threads": str(opts.threads),
+            "latency_device": str(device),
+            "latency_checkpoint": checkpoints[row],
+        }
         for run_id in runs.loc[runs["row"] == row, "run_id"]:
             tracker.log_metrics(run_id, figures[row])
-            tracker.set_tags(
-                run_id,
-                {
-                    "latency_threads": str(opts.threads),
-                    "latency_device": str(device),
-                    "latency_checkpoint": checkpoints[row],
-                },
-            )
+            tracker.set_tags(run_id, tags)
     if max(load_start, load_end) > cores:
         log.warning(
             "Latency: load average %.1f / %.1f (start / end) exceeds the %d available cores",
@@ -201,6 +179,42 @@ def measure(
     return figures
 
 
+def timing_device(option: str) -> torch.device:
+    """``comp_time.device``: ``auto`` is a GPU where there is one, else the CPU."""
+    if option == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(option)
+
+
+def load_rows(
+    rows: list[str],
+    runs: pd.DataFrame,
+    tracker: Tracker,
+    compose: Callable[[list[str]], DictConfig],
+    overrides: Sequence[str],
+    device: torch.device,
+) -> tuple[dict[str, Callable[[], object]], dict[str, dict[str, float]], dict[str, str]]:
+    """Each row's model (the checkpoint of its lowest seed, else its initial weights) on its first test frame:
+    {row: forward pass}, {row: params and MACs}, {row: the checkpoint it was loaded from}."""
+    forwards: dict[str, Callable[[], object]] = {}
+    figures: dict[str, dict[str, float]] = {}
+    checkpoints: dict[str, str] = {}
+    for row in rows:
+        first = runs[runs["row"] == row].sort_values("seed").iloc[0]
+        rcfg = compose(list(overrides) + [f"row={row}", f"seed={first['seed']}"])
+        ckpt = row_checkpoint(tracker, tracker.get_run(first["run_id"]))
+        model = row_model(rcfg, ckpt).to(device).eval()
+        sample = {k: v.to(device) for k, v in first_test_sample(rcfg).items()}
+        log.info("Latency: %s from %s", row, ckpt or "initial weights (no checkpoint here)")
+        checkpoints[row] = str(ckpt or "none")
+        figures[row] = {
+            "params_m": sum(p.numel() for p in model.parameters()) / 1e6,
+            "macs_g": macs(model, sample) / 1e9,
+        }
+        forwards[row] = (lambda m, s: lambda: m(s))(model, sample)
+    return forwards, figures, checkpoints
+
+
 def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     if not any(a.startswith("experiment=") for a in args):
@@ -208,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     cfg = compose_root(args)
     tracker = Tracker.from_config(cfg)
-    if retry(tracker.client.get_experiment_by_name, cfg.table.name) is None:
+    if tracker.find_experiment(cfg.table.name) is None:
         print(f"error: no runs for table '{cfg.table.name}' in {tracker.uri}", file=sys.stderr)
         return 1
     figures = measure(cfg, tracker, compose_root, args)

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from ablate.store import Tracker, retry
+from ablate.store import Tracker
 from ablate.tables import collect, table_spec
 from ablate.tables.collect import under_condition
 from ablate.tables.significance import prediction_interval
@@ -112,7 +112,7 @@ def reproduce(cfg: DictConfig, overrides: list[str], keep: Path | None = None) -
     given = [o for o in overrides if o.startswith("seed=")]
     seed = int(given[0].split("=", 1)[1]) if given else min(by_seed)
     rest = [o for o in overrides if not o.startswith("seed=")]
-    recorded_tags = [retry(tracker.client.get_run, rid).data.tags for rid in mine["run_id"]]
+    recorded_tags = [tracker.get_run(rid).data.tags for rid in mine["run_id"]]
     with tempfile.TemporaryDirectory(prefix="ablate-reproduce-") as tmp:
         scratch = keep or Path(tmp)
         rerun([*rest, f"seed={seed}"], Path.cwd(), scratch)
@@ -121,7 +121,7 @@ def reproduce(cfg: DictConfig, overrides: list[str], keep: Path | None = None) -
         new = new[(new["row"] == row) & (new["seed"].astype(str) == str(seed))]
         if not len(new):
             raise RuntimeError(f"the rerun of {row} seed {seed} recorded no FINISHED run")
-        now_tags = retry(fresh.client.get_run, new["run_id"].iloc[0]).data.tags
+        now_tags = fresh.get_run(new["run_id"].iloc[0]).data.tags
     values = list(by_seed.values())
     return Reproduction(
         row,

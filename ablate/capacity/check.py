@@ -34,7 +34,7 @@ import tempfile
 import time
 import traceback
 import warnings
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -99,8 +99,8 @@ def check(
     measured: dict[str, Any],
     budget_s: float | None = None,
     overrides: Iterable[str] = (),
-    save=lambda measured: None,
-    echo=print,
+    save: Callable[[dict[str, Any]], None] = lambda measured: None,
+    echo: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Measure what ``entries`` train (:func:`order`) and is not in ``measured`` (or failed there), each in a
     process of its own, until ``budget_s`` seconds have passed; ``measured`` (key -> figures, or {"error": ...})
@@ -134,8 +134,8 @@ def recount(
     measured: dict[str, Any],
     budget_s: float | None = None,
     overrides: Iterable[str] = (),
-    save=lambda measured: None,
-    echo=print,
+    save: Callable[[dict[str, Any]], None] = lambda measured: None,
+    echo: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Count the frozen MACs (:func:`count_macs`) of every stored measurement of a row on frozen experts that has
     no count of them (one made before they were counted), each in a process of its own, until ``budget_s`` seconds

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable
-from typing import Any
+from typing import Any, cast
 
 import lightning as L
 import torch
@@ -57,7 +57,7 @@ def sample_config(
         small.data.batch_size = 1
         small.data.num_workers = 0
         small.data.limit_frames = None
-    return small
+    return cast(DictConfig, small)
 
 
 class SavedTensors:
@@ -109,8 +109,9 @@ class FrozenMacs:
 
     def _enter(self, module: torch.nn.Module, args: Any) -> None:
         if self._depth == 0 and not any(t.requires_grad for t in _tensors(args)):
-            self._counter = FlopCounterMode(display=False)
-            self._counter.__enter__()
+            counter = FlopCounterMode(display=False)
+            counter.__enter__()
+            self._counter = counter
         self._depth += 1
 
     def _exit(self, *_: Any) -> None:

@@ -14,12 +14,14 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterable
-from typing import Any
+from typing import Any, cast
 
 from omegaconf import DictConfig, OmegaConf
 
 from ablate.config import CONF, compose
 from ablate.jobs.experts import expert_config, needed
+from ablate.tables.racing import RacePlan
+from ablate.tables.spec import run_rows
 
 
 def experiments() -> list[str]:
@@ -29,8 +31,7 @@ def experiments() -> list[str]:
 
 def table_rows(experiment: str) -> list[str]:
     """The rows a table runs (its ``table.rows`` but those it only quotes, ``paper_only``)."""
-    cfg = compose([f"experiment={experiment}", "scale=paper"])
-    return [str(r["row"]) for r in cfg.table.rows if not r.get("paper_only")]
+    return run_rows(compose([f"experiment={experiment}", "scale=paper"]).table)
 
 
 def job_config(experiment: str, row: str, overrides: Iterable[str] = ()) -> DictConfig:
@@ -53,10 +54,16 @@ def needed_experts(cfg: DictConfig) -> list[str]:
     return needed(cfg) if cfg.get("experts") and cfg.stage.name != "single" else []
 
 
+def first_seeds(cfg: DictConfig) -> int:
+    """The seeds every row of the table trains (the first look of its race, ``table.seeds``); 1 without a race."""
+    plan = RacePlan.of_table(cfg)
+    return plan.first if plan is not None else 1
+
+
 def measure_key(cfg: DictConfig) -> str:
     """What a measurement depends on: the resolved model, task, modalities, targets, data module (but the frames'
     count and the batch) and the experts' freezing; rows of several tables with the same share a measurement."""
-    data = OmegaConf.to_container(cfg, resolve=True)
+    data = cast("dict[str, Any]", OmegaConf.to_container(cfg, resolve=True))
     datamodule = {k: v for k, v in data["data"].items() if k not in ("batch_size", "num_workers", "data_dir")}
     datamodule["synth"] = {k: v for k, v in (datamodule.get("synth") or {}).items() if k != "frames"}
     experts = data.get("experts") or {}
@@ -108,7 +115,7 @@ def recipe(cfg: DictConfig, train_frames: int | None = None) -> dict[str, Any]:
         "cache_max_bytes": None if cache_gb is None else float(cache_gb) * 2**30,
         "steps": expert_steps if single else own,
         "expert_steps": expert_steps,
-        "seeds": int(cfg.scale.seeds),
+        "seeds": first_seeds(cfg),
         "optimizer": str(cfg.task.optimizer._target_).rsplit(".", 1)[-1],
     }
 
@@ -160,7 +167,10 @@ def describe(pairs: Iterable[tuple[str, str]], overrides: Iterable[str] = ()) ->
 def order(entries: list[dict[str, Any]]) -> list[tuple[str, list]]:
     """Every distinct measurement of ``entries`` (rows and the experts they start from) once, as (key, spec): the
     first row of each task family first, then the others in table order, each row's experts before it."""
-    firsts, rest, seen, families = [], [], set(), set()
+    firsts: list[tuple[str, Any]] = []
+    rest: list[tuple[str, Any]] = []
+    seen: set[str] = set()
+    families: set[str] = set()
     for e in entries:
         items = [(k, e["expert_specs"][m]) for m, k in e["experts"].items()] + [(e["key"], e["spec"])]
         target = firsts if e["family"] not in families else rest

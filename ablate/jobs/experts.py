@@ -18,12 +18,13 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from ablate.jobs.spec import checkpoint_dir
 from ablate.store import Tracker, config_hash, file_lock
 
 log = logging.getLogger(__name__)
@@ -56,7 +57,7 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
             "metrics": None,
             "rows": [],
         }
-    return ecfg
+    return cast(DictConfig, ecfg)
 
 
 #: How stage 1 runs an expert's job: ``run(cfg, kind=..., row=...) -> Outcome`` with ``ckpt_dir`` and ``run_id``
@@ -69,7 +70,7 @@ def ensure_expert(cfg: DictConfig, modality: str, run: RunJob) -> tuple[Path, st
     none."""
     ecfg = expert_config(cfg, modality)
     chash = config_hash(ecfg)
-    with file_lock(Path("checkpoints") / EXPERTS_TABLE / f"{chash}.lock"):
+    with file_lock(checkpoint_dir(EXPERTS_TABLE, chash).with_suffix(".lock")):
         outcome = run(ecfg, kind=KIND_EXPERT, row=f"expert {modality}")
         best = outcome.ckpt_dir / "best.ckpt"
         if not best.exists():  # tracked as FINISHED but the checkpoint is gone: train it again
@@ -214,7 +215,7 @@ class FeatureCache:
 GPU_CACHE_SHARE = 0.5
 
 
-def _map(fn, tree):
+def _map(fn: Callable[[torch.Tensor], torch.Tensor], tree: Any) -> Any:
     """``fn`` applied to every tensor of nested dicts and lists."""
     if torch.is_tensor(tree):
         return fn(tree)
@@ -223,7 +224,7 @@ def _map(fn, tree):
     return [_map(fn, v) for v in tree]
 
 
-def _leaves(tree) -> Iterator[torch.Tensor]:
+def _leaves(tree: Any) -> Iterator[torch.Tensor]:
     """The tensors of nested dicts and lists."""
     if torch.is_tensor(tree):
         yield tree
@@ -232,7 +233,7 @@ def _leaves(tree) -> Iterator[torch.Tensor]:
         yield from _leaves(value)
 
 
-def _stack(trees: list, device: torch.device):
+def _stack(trees: list[Any], device: torch.device) -> Any:
     """Per-frame trees of one structure -> one tree of float32 batches on ``device``."""
     first = trees[0]
     if torch.is_tensor(first):

@@ -30,7 +30,7 @@ import tempfile
 import time
 import warnings
 from collections.abc import Iterator
-from typing import Any
+from typing import Any, cast
 
 import lightning as L
 import torch
@@ -63,7 +63,7 @@ def tiny(cfg: DictConfig, data_dir: str | None = None) -> DictConfig:
         small.data.limit_frames = None
         if "augment" in small.data:
             small.data.augment = None
-    return small
+    return cast(DictConfig, small)
 
 
 def summary(tree: Any) -> list[float]:

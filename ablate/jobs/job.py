@@ -24,7 +24,6 @@ import logging
 import multiprocessing
 import os
 import re
-import shutil
 import socket
 import sys
 import time
@@ -35,40 +34,24 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-import lightning as L
-import torch
-from hydra.core.hydra_config import HydraConfig
-from hydra.utils import instantiate
-from lightning.pytorch.callbacks import Callback, ModelCheckpoint
+from mlflow.entities import Run
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException, ValidationError
 
 from ablate import hardware
-from ablate.jobs import fingerprint
-from ablate.jobs.checkpoint import AtomicCheckpointIO, resume_point
-from ablate.jobs.experts import attach as attach_experts
-from ablate.jobs.experts import feature_cache
-from ablate.jobs.experts import prepare as prepare_experts
-from ablate.jobs.preempt import SETTLE_S, STOP, SaveOnStop, Stopped, exit_status, loky_worker
+from ablate.jobs.preempt import SETTLE_S, STOP, Stopped, exit_status, loky_worker
 from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unreachable
+from ablate.jobs.spec import JobSpec, checkpoint_dir
 from ablate.store import (
     KIND_JOB,
-    SKIPPED_FRAMES,
     AccessDenied,
-    Outbox,
-    RunLogger,
     ServerUnreachable,
+    SweepContext,
     Tracker,
-    config_hash,
     flatten,
-    launch_dir,
-    parent_run_id,
     provenance_tags,
-    record_failure,
-    sweep_dir,
-    swept_keys,
+    row_name,
 )
-from ablate.store.outbox import FILE as OUTBOX_FILE
 
 log = logging.getLogger(__name__)
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
@@ -77,24 +60,6 @@ warnings.filterwarnings("ignore", ".*GPU available but not used.*")
 
 class JobFailed(RuntimeError):
     """A job ended in error; its run is recorded FAILED."""
-
-
-def row_name(cfg: DictConfig) -> str:
-    """The table row a job belongs to: the `row` choice; else, in a sweep, the values of the swept keys
-    (``fusion=sum``); else the job's own overrides; else ``default``."""
-    if not HydraConfig.initialized():
-        return "default"
-    hc = HydraConfig.get()
-    if hc.runtime.choices.get("row"):
-        return str(hc.runtime.choices["row"])
-    swept = swept_keys()
-    skip = ("seed", "scale", "force", "experiment", "hydra", "logger", "trainer.enable_progress_bar")
-    own = []
-    for override in hc.overrides.task:
-        key = override.split("=", 1)[0].lstrip("+~")
-        if (key in swept and key != "seed") if swept is not None else not key.startswith(skip):
-            own.append(override.lstrip("+~"))
-    return " ".join(sorted(own)) or "default"
 
 
 @dataclass
@@ -121,86 +86,114 @@ def check_stage(cfg: DictConfig) -> None:
             )
 
 
-def run(cfg: DictConfig, kind: str = KIND_JOB, row: str | None = None) -> Outcome:
-    """Run one job tracked as an MLflow run of ``cfg.table.name``; raise :class:`JobFailed` after recording a
-    FAILED run, and re-raise an interrupt after recording KILLED. A config whose stage options no model reads
-    fails first (:func:`check_stage`)."""
-    check_stage(cfg)
-    numerics = hardware.resolve(cfg)  # before the hash: the resolved precision is what the hash holds
-    tracker = Tracker.from_config(cfg)
-    exp = tracker.experiment_id(cfg.table.name)
-    chash = config_hash(cfg)
-    row = row or row_name(cfg)
-    ckpt_dir = Path("checkpoints") / cfg.table.name / chash
-    outbox = Outbox(ckpt_dir / OUTBOX_FILE)
-    deliver_earlier(tracker, outbox)
-    done = None if cfg.force else tracker.finished_run(exp, chash)
+def run(spec: JobSpec) -> Outcome:
+    """Run one job tracked as an MLflow run of its table; raise :class:`JobFailed` after recording a FAILED run, and
+    re-raise an interrupt after recording KILLED. A config whose stage options no model reads fails first
+    (:func:`check_stage`). A job whose config hash has a FINISHED run is skipped (``force=true`` reruns it), and one
+    that finished in another table is copied from there."""
+    check_stage(spec.cfg)
+    tracker = Tracker.from_config(spec.cfg, spec.context)
+    exp = tracker.experiment_id(spec.table)
+    deliver_earlier(tracker, spec.outbox)
+    done = already_done(spec, tracker, exp)
     if done is not None:
-        log.info(
-            "Skipping %s (seed %s): run %s with config hash %s is FINISHED (force=true reruns it)",
-            row,
-            cfg.seed,
-            done.info.run_id,
-            chash,
-        )
-        return Outcome("SKIPPED", done.info.run_id, ckpt_dir)
-    parent = parent_run_id() if kind == KIND_JOB else None
+        return done
+    if stale := tracker.close_stale(exp, spec.config_hash):
+        log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, spec.config_hash)
+    run_id = tracker.start(exp, f"{spec.row} seed={spec.seed}", run_tags(spec))
+    log.info("MLflow run %s: %s, seed %s, config %s", run_id, spec.row, spec.seed, spec.config_hash)
+    log.info("Numerics: %s; %s intra-op thread(s)", spec.numerics, spec.cfg.trainer.get("threads") or "all")
+    metrics = train(spec, tracker, run_id)
+    tracker.end(run_id, "FINISHED")
+    described = ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items()))
+    log.info("FINISHED %s seed %s: %s", spec.row, spec.seed, described)
+    return Outcome("FINISHED", run_id, spec.ckpt_dir)
+
+
+def run_tags(spec: JobSpec) -> dict[str, str]:
+    """The tags a job's run starts with: what it is (kind, table, row, seed, config hash, scale), its code, its
+    numerics and machine, the race it belongs to, and its sweep's parent run."""
+    cfg = spec.cfg
     tags = {
-        "kind": kind,
-        "table": cfg.table.name,
-        "row": row,
-        "seed": str(cfg.seed),
-        "config_hash": chash,
-        **provenance_tags(),
+        "kind": spec.kind,
+        "table": spec.table,
+        "row": spec.row,
+        "seed": str(spec.seed),
+        "config_hash": spec.config_hash,
+        **provenance_tags(spec.context.launch_dir),
         "scale": cfg.scale.name,
         **hardware.tags(cfg),
     }
     if cfg.table.get("seeds"):  # the race this run belongs to: its table replays that race (ablate.tables.racing)
         tags["race_plan"] = json.dumps(OmegaConf.to_container(cfg.table.seeds, resolve=True), sort_keys=True)
-    if parent:
-        tags.update({"mlflow.parentRunId": parent, "sweep_id": parent, "job_num": str(HydraConfig.get().job.num)})
-    source = None if cfg.force or kind != KIND_JOB else tracker.finished_elsewhere(chash)
-    if source is not None:
-        run_id = tracker.copy_run(
-            source, exp, {k: v for k, v in tags.items() if k not in ("git_commit", "ablate_version", "launch_commit")}
-        )
+    if spec.parent_run:
+        tags.update({"mlflow.parentRunId": spec.parent_run, "sweep_id": spec.parent_run})
+        tags["job_num"] = str(spec.context.job_num)
+    return tags
+
+
+def already_done(spec: JobSpec, tracker: Tracker, exp: str) -> Outcome | None:
+    """SKIPPED where the store holds a FINISHED run of this config (in this table, or copied from another), else
+    None (``force=true``: always None)."""
+    if spec.cfg.force:
+        return None
+    done = tracker.finished_run(exp, spec.config_hash)
+    if done is not None:
         log.info(
-            "Reusing %s (seed %s): the same config finished as run %s of another table; copied as %s",
-            row,
-            cfg.seed,
-            source.info.run_id,
-            run_id,
+            "Skipping %s (seed %s): run %s with config hash %s is FINISHED (force=true reruns it)",
+            spec.row,
+            spec.seed,
+            done.info.run_id,
+            spec.config_hash,
         )
-        return Outcome("SKIPPED", run_id, Path("checkpoints") / source.data.tags.get("table", "") / chash)
-    if stale := tracker.close_stale(exp, chash):
-        log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, chash)
-    run_id = tracker.start(exp, f"{row} seed={cfg.seed}", tags)
-    log.info("MLflow run %s: %s, seed %s, config %s", run_id, row, cfg.seed, chash)
-    log.info("Numerics: %s; %s intra-op thread(s)", numerics, cfg.trainer.get("threads") or "all")
+        return Outcome("SKIPPED", done.info.run_id, spec.ckpt_dir)
+    source = tracker.finished_elsewhere(spec.config_hash) if spec.kind == KIND_JOB else None
+    return reuse(spec, tracker, exp, source) if source is not None else None
+
+
+def reuse(spec: JobSpec, tracker: Tracker, exp: str, source: Run) -> Outcome:
+    """Copy a FINISHED run of the same config from another table into this one (tables share rows)."""
+    code = ("git_commit", "ablate_version", "launch_commit")
+    run_id = tracker.copy_run(source, exp, {k: v for k, v in run_tags(spec).items() if k not in code})
+    log.info(
+        "Reusing %s (seed %s): the same config finished as run %s of another table; copied as %s",
+        spec.row,
+        spec.seed,
+        source.info.run_id,
+        run_id,
+    )
+    return Outcome("SKIPPED", run_id, checkpoint_dir(source.data.tags.get("table", ""), spec.config_hash))
+
+
+def train(spec: JobSpec, tracker: Tracker, run_id: str) -> dict[str, float]:
+    """Record the job's params, config and fingerprint, then train and test it (:func:`ablate.jobs.train.fit_and_test`);
+    an interrupt ends the run KILLED, an error FAILED (or waits in the outbox where the server is down)."""
+    from ablate.jobs.train import fit_and_test  # torch and Lightning: imported once a job trains
+
+    cfg, outbox = spec.cfg, spec.outbox
     try:
         tracker.log_params(run_id, flatten(OmegaConf.to_container(cfg, resolve=True)))
         tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
         record_fingerprint(cfg, tracker, run_id)
-        metrics = fit_and_test(cfg, tracker, run_id, ckpt_dir, outbox)
+        return fit_and_test(
+            spec, tracker, run_id, lambda ecfg, kind, row: run(JobSpec.of(ecfg, spec.context, kind, row))
+        )
     except Stopped as stop:
-        stop.reason = stopped_reason(stop, ckpt_dir)
+        stop.reason = stopped_reason(stop, spec.ckpt_dir)
         record_end(tracker, run_id, "KILLED", {"killed_by": stop.signame, "kill_reason": stop.reason}, outbox=outbox)
-        log.warning("%s %s (seed %s) KILLED: %s", kind, row, cfg.seed, stop.reason)
+        log.warning("%s %s (seed %s) KILLED: %s", spec.kind, spec.row, spec.seed, stop.reason)
         raise
     except (KeyboardInterrupt, SystemExit) as err:  # Lightning turns Ctrl+C inside fit into sys.exit(1)
         record_end(tracker, run_id, "KILLED", {"killed_by": type(err).__name__}, outbox=outbox)
         raise
     except Exception as err:
         if (down := unreachable(err)) is not None:  # the server is not there to take the end: the outbox keeps it
-            message = f"{down}; {kept_for_later(outbox, run_id, ckpt_dir, str(down))}"
+            message = f"{down}; {kept_for_later(outbox, run_id, spec.ckpt_dir, str(down))}"
         else:
             message = f"{type(err).__name__}: {err}"
             record_end(tracker, run_id, "FAILED", {"error": message[:5000]}, traceback.format_exc(), outbox)
-        log.error("%s %s (seed %s) FAILED: %s", kind, row, cfg.seed, message)
+        log.error("%s %s (seed %s) FAILED: %s", spec.kind, spec.row, spec.seed, message)
         raise JobFailed(message) from err
-    tracker.end(run_id, "FINISHED")
-    log.info("FINISHED %s seed %s: %s", row, cfg.seed, ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items())))
-    return Outcome("FINISHED", run_id, ckpt_dir)
 
 
 def stopped_reason(stop: Stopped, ckpt_dir: Path) -> str:
@@ -217,111 +210,17 @@ def stopped_reason(stop: Stopped, ckpt_dir: Path) -> str:
 
 def record_fingerprint(cfg: DictConfig, tracker: Tracker, run_id: str) -> None:
     """Tag the run with its config's fingerprint (:mod:`ablate.jobs.fingerprint`) and the seconds it took."""
+    from ablate.jobs import fingerprint
+
     numbers, seconds = fingerprint.timed(cfg)
     tracker.set_tags(run_id, {fingerprint.TAG: fingerprint.encode(numbers), "fingerprint_s": f"{seconds:.2f}"})
     log.info("Fingerprint in %.1f s", seconds)
 
 
-def fit_and_test(
-    cfg: DictConfig, tracker: Tracker, run_id: str, ckpt_dir: Path, outbox: Outbox | None = None
-) -> dict[str, float]:
-    """Train with Lightning, test the best checkpoint, and log metrics, checkpoint and figures to ``run_id``.
-    Metrics logged while the tracking server does not answer wait in ``outbox``, and are all delivered before the
-    test's results are logged.
-
-    With ``experts`` set (SMoE §4.3), a fused model first gets its frozen single-modal experts (whose features
-    per frame are computed once and cached for the fit with ``experts.cache_features``), and a single-modal job
-    *is* the expert: it is tested from the expert's checkpoint, never trained twice.
-    """
-    experts = prepare_experts(cfg, run) if cfg.get("experts") else {}
-    if cfg.trainer.get("threads"):
-        torch.set_num_threads(int(cfg.trainer.threads))
-    L.seed_everything(cfg.seed, workers=True)
-    datamodule = instantiate(cfg.data)
-    model = instantiate(cfg.model)
-    task = instantiate(cfg.task, model=model)
-    checkpoint = ModelCheckpoint(
-        dirpath=ckpt_dir, filename="best", monitor=task.monitor, mode="max", save_last=True, save_top_k=1
-    )
-    on_stop = SaveOnStop(ckpt_dir / "last.ckpt")
-    lightning_options = {
-        k: v for k, v in OmegaConf.to_container(cfg.trainer, resolve=True).items() if k not in hardware.OPTIONS
-    }
-    logger = RunLogger(tracker, run_id, outbox)
-    trainer = instantiate(
-        lightning_options,
-        logger=logger,
-        callbacks=[checkpoint, on_stop, DataCount(logger)],
-        plugins=[AtomicCheckpointIO()],
-        default_root_dir=str(ckpt_dir),
-    )
-    best = attach_experts(cfg, model, experts, tracker, run_id) if cfg.get("experts") else None
-    if cfg.trainer.get("channels_last"):  # after the experts' weights are in
-        model.to(memory_format=torch.channels_last)
-    if cfg.trainer.get("compile"):  # in place: the state dict, and so the checkpoints, keep their keys
-        backend = cfg.trainer.compile
-        model.compile(**({"backend": backend} if isinstance(backend, str) else {}))
-    if best is None:
-        if cfg.force and ckpt_dir.exists():  # a forced rerun trains afresh
-            shutil.rmtree(ckpt_dir)
-        start = resume_point(ckpt_dir)
-        if start.path is not None:
-            log.info("Resuming from %s (step %d, epoch %d)", start.path, start.step, start.epoch)
-        tracker.set_tags(run_id, start.tags)
-        task.feature_cache = feature_cache(cfg, model)
-        try:
-            with STOP.training(trainer):
-                trainer.fit(task, datamodule=datamodule, ckpt_path=str(start.path) if start.path else None)
-        except Stopped as stop:
-            if on_stop.saved_step is not None:
-                stop.checkpoint = (on_stop.path, on_stop.saved_step)
-            raise
-        if task.feature_cache is not None:
-            log.info(
-                "Expert feature cache: %d frames, %.0f MiB",
-                len(task.feature_cache.frames),
-                task.feature_cache.nbytes / 2**20,
-            )
-            task.feature_cache = None  # testing runs the whole model, whatever its data
-        best = checkpoint.best_model_path or None
-    with STOP.training(trainer):
-        results = trainer.test(task, datamodule=datamodule, ckpt_path=best, verbose=False)[0]
-    logger.deliver()  # what waits in the outbox first, waiting for the server up to logger.outage_s
-    metrics = {k.split("/", 1)[-1]: float(v) for k, v in results.items() if k.startswith("test/")}
-    sample = next(iter(datamodule.test_dataloader()))
-    metrics["params_m"] = sum(p.numel() for p in task.model.parameters()) / 1e6
-    tracker.log_metrics(run_id, metrics, step=trainer.global_step)
-    tracker.set_tags(
-        run_id, {"device": str(next(task.model.parameters()).device), "threads_used": str(torch.get_num_threads())}
-    )
-    tracker.set_tags(run_id, {"evaluator": task.evaluator} if getattr(task, "evaluator", None) else {})
-    for method, name in (("figure", "predictions.png"), ("gate_figure", "gates.png")):
-        figure = getattr(task, method, lambda _: None)(sample)
-        if figure is not None:
-            tracker.log_figure(run_id, figure, name)
-    if best and cfg.logger.get("log_checkpoint", True) and Path(best).resolve().parent == ckpt_dir.resolve():
-        tracker.log_artifact(run_id, best, "checkpoints")
-    return metrics
-
-
-class DataCount(Callback):
-    """Once the data module is set up, log how many bad frames it left out (``data.on_bad_frame=skip``) as the
-    run's metric ``data/skipped_frames``, through the run's logger (so into its outbox while the server does not
-    answer)."""
-
-    def __init__(self, logger: RunLogger) -> None:
-        self.logger, self.logged = logger, False
-
-    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        count = getattr(trainer.datamodule, "skipped_frames", None)
-        if count is not None and not self.logged:
-            self.logger.log_metrics({SKIPPED_FRAMES: float(count)})
-            self.logged = True
-
-
 @contextmanager
-def in_launch_dir() -> Iterator[Path]:
-    """Run the block in the launch directory (:func:`ablate.store.launch_dir`), then go back.
+def in_launch_dir(target: Path) -> Iterator[Path]:
+    """Run the block in the launch directory ``target`` (:attr:`ablate.store.SweepContext.launch_dir`), then go
+    back.
 
     Workaround for ``hydra/launcher=ray``: a Ray task runs in the directory its cluster was started in, so the
     relative paths of a job (``checkpoints/``, ``data/``, the expert locks, ``mlflow.db``) would land there, beside
@@ -329,7 +228,7 @@ def in_launch_dir() -> Iterator[Path]:
     A launch directory missing on this machine is an error: a sweep over several machines needs it on a shared
     filesystem at the same path (submitit and Hydra's sweep directory need that too).
     """
-    here, target = Path.cwd(), launch_dir()
+    here = Path.cwd()
     if here == target:
         yield target
         return
@@ -354,12 +253,14 @@ def standard_start_method() -> None:
 
 
 def main(cfg: DictConfig) -> str:
-    """Hydra task function, run in the launch directory. In a multirun a failed job is noted for the end-of-sweep
-    summary and the other jobs go on; a failed single run exits with status 1 and one clear line."""
+    """Hydra task function: the job's context is read here, once (:meth:`SweepContext.current`), and the job runs in
+    the launch directory. In a multirun a failed job is noted for the end-of-sweep summary and the other jobs go on;
+    a failed single run exits with status 1 and one clear line."""
     standard_start_method()
+    context = SweepContext.current()
     try:
-        with STOP.installed(), in_launch_dir():
-            return run(cfg).status
+        with STOP.installed(), in_launch_dir(context.launch_dir):
+            return run(JobSpec.of(cfg, context)).status
     except Stopped as stop:
         reason = stop.reason
         if loky_worker():  # a sweep's worker goes with its parent, which is stopping too
@@ -372,8 +273,9 @@ def main(cfg: DictConfig) -> str:
         raise SystemExit(exit_status(stop.signame)) from None
     # a config that does not resolve, or a server that refuses the credentials or does not answer, fails before any run
     except (JobFailed, OmegaConfBaseException, AccessDenied, ServerUnreachable) as err:
-        if sweep_dir() is None:
+        if context.sweep_dir is None:
             print(f"error: {err}", file=sys.stderr)
             raise SystemExit(1) from None
-        record_failure(f"{HydraConfig.get().job.num}_{row_name(cfg).replace(' ', '_').replace('/', '-')}", str(err))
+        row = row_name(context.overrides, context.swept, context.row_choice)
+        context.record_failure(f"{context.job_num}_{row.replace(' ', '_').replace('/', '-')}", str(err))
         return "FAILED"

@@ -1,42 +1,35 @@
 """The store: where runs are recorded, and what identifies them. It imports nothing of the orchestration
 (:mod:`ablate.jobs` and above) or of the tables (:mod:`ablate.tables`).
 
-- :mod:`~ablate.store.tracker`: the MLflow :class:`Tracker`, the store's URI and artifact root, :func:`retry` and
-  :func:`file_lock`; :mod:`~ablate.store.run_logger`: the Lightning :class:`RunLogger` of a job;
-- :mod:`~ablate.store.identity`: the config hash, params, the launch directory and the code's version;
-- :mod:`~ablate.store.sweepdir`: the store and parent run a running multirun recorded in its sweep directory;
-- :mod:`~ablate.store.outage` and :mod:`~ablate.store.outbox`: a tracking server that does not answer (how long a
-  job waits for it, :class:`ServerUnreachable`), and the outbox that keeps a job's metrics meanwhile.
+- :mod:`~ablate.store.tracker`: the MLflow :class:`Tracker`, the only code that calls MLflow;
+  :mod:`~ablate.store.run_logger`: the Lightning :class:`RunLogger` of a job;
+- :mod:`~ablate.store.uris`: the store's URI and artifact root, and links into the MLflow UI;
+- :mod:`~ablate.store.identity`: the config hash, params, the row a job fills, and the code's version;
+- :mod:`~ablate.store.context`: where a job or command runs, and the store and parent run its sweep recorded;
+- :mod:`~ablate.store.retry`, :mod:`~ablate.store.outage`, :mod:`~ablate.store.errors`, :mod:`~ablate.store.locks`
+  and :mod:`~ablate.store.outbox`: waiting for a store that is locked or does not answer, what the store fails as,
+  locks across processes, and the outbox that keeps a job's metrics while the server does not answer.
 """
 
 from typing import TYPE_CHECKING
 
+from ablate.store.context import SweepContext
+from ablate.store.errors import AccessDenied, DiskFull
 from ablate.store.identity import (
     UNHASHED,
     code_version,
     config_hash,
     flatten,
     git_commit,
-    launch_dir,
     provenance_tags,
     resolve_path,
+    row_name,
 )
+from ablate.store.locks import file_lock
 from ablate.store.outage import DEFAULT_OUTAGE_S, ServerUnreachable
 from ablate.store.outbox import Outbox
-from ablate.store.sweepdir import parent_run_id, record_failure, sweep_dir, sweep_store, swept_keys
-from ablate.store.tracker import (
-    KIND_JOB,
-    KIND_SWEEP,
-    SKIPPED_FRAMES,
-    AccessDenied,
-    DiskFull,
-    Tracker,
-    file_lock,
-    is_server,
-    retry,
-    runs_link,
-    tracking_uri,
-)
+from ablate.store.tracker import KIND_JOB, KIND_SWEEP, SKIPPED_FRAMES, Tracker
+from ablate.store.uris import is_server, runs_link, tracking_uri
 
 if TYPE_CHECKING:
     from ablate.store.run_logger import RunLogger
@@ -63,6 +56,7 @@ __all__ = [
     "Outbox",
     "RunLogger",
     "ServerUnreachable",
+    "SweepContext",
     "Tracker",
     "code_version",
     "config_hash",
@@ -70,15 +64,9 @@ __all__ = [
     "flatten",
     "git_commit",
     "is_server",
-    "launch_dir",
-    "parent_run_id",
     "provenance_tags",
-    "record_failure",
     "resolve_path",
-    "retry",
+    "row_name",
     "runs_link",
-    "sweep_dir",
-    "sweep_store",
-    "swept_keys",
     "tracking_uri",
 ]

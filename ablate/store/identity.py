@@ -1,4 +1,4 @@
-"""Who made a run and with what: the config hash, the params, the launch directory, and the code's version.
+"""Who made a run and with what: the config hash, the params, the row a job fills, and the code's version.
 
 A run records the version of the ``ablate`` that ran (:func:`code_version`: the installed version and, where its
 source is a git checkout, that checkout's commit with ``-dirty``), and apart from it the launch directory's own
@@ -12,12 +12,11 @@ import hashlib
 import json
 import os
 import subprocess
+from collections.abc import Iterable
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from hydra.core.hydra_config import HydraConfig
-from hydra.utils import get_original_cwd
 from omegaconf import DictConfig, OmegaConf
 
 from ablate import __version__, hardware
@@ -45,22 +44,36 @@ UNHASHED = (
 )
 
 
-def launch_dir() -> Path:
-    """The directory the command was launched from: Hydra's original working directory
-    (``hydra.utils.get_original_cwd()``, the config's ``hydra.runtime.cwd``), else the current one.
-
-    Hydra sets ``hydra.runtime.cwd`` where it composes a job's config (``ConfigLoaderImpl.load_configuration``):
-    hydra-ray-launcher composes every job in the driver before shipping it, so a Ray job on a cluster started
-    elsewhere still sees the driver's directory; submitit composes in the job, which starts in the submitting
-    directory (SLURM's default working directory is the one ``sbatch`` ran in).
-    """
-    return Path(get_original_cwd() if HydraConfig.initialized() else os.getcwd())
-
-
-def resolve_path(path: str | Path) -> Path:
-    """``path`` with ``~`` expanded, made absolute against :func:`launch_dir` if it is relative."""
+def resolve_path(path: str | Path, base: Path | None = None) -> Path:
+    """``path`` with ``~`` expanded, made absolute against ``base`` (the launch directory; default: the current
+    directory, which is the launch directory once a job has started, :func:`ablate.jobs.job.in_launch_dir`) if it is
+    relative."""
     path = Path(os.path.expanduser(str(path)))
-    return path if path.is_absolute() else launch_dir() / path
+    return path if path.is_absolute() else (base or Path.cwd()) / path
+
+
+#: Overrides that never name a row: the seed, the scale, the table, and options that change no number.
+NOT_A_ROW = ("seed", "scale", "force", "experiment", "hydra", "logger", "trainer.enable_progress_bar")
+
+
+def row_name(overrides: Iterable[str], swept: Iterable[str] | None, choice: str | None = None) -> str:
+    """The table row a job fills, as its run's ``row`` tag; the job (:mod:`ablate.jobs.spec`) and the racing sweeper
+    both name rows with it. ``overrides``: the job's own (``key=value``); ``swept``: the keys the sweep sweeps over
+    (None: not a sweep); ``choice``: the config's ``row`` choice, where a table's rows are configs.
+
+    The ``row`` choice (or a ``row=`` override) is the row; else, in a sweep, the swept overrides but the seed,
+    sorted (``fusion=sum``); else the job's own overrides but :data:`NOT_A_ROW`; else ``default``."""
+    items = [o.lstrip("+~") for o in overrides]
+    keyed = [(item.split("=", 1)[0], item) for item in items]
+    given = [item.split("=", 1)[1] for key, item in keyed if key == "row" and "=" in item]
+    if choice or given:
+        return str(choice or given[-1])
+    if swept is not None:
+        keys = set(swept) - {"seed"}
+        own = [item for key, item in keyed if key in keys]
+    else:
+        own = [item for key, item in keyed if not key.startswith(NOT_A_ROW)]
+    return " ".join(sorted(own)) or "default"
 
 
 def config_hash(cfg: DictConfig) -> str:
@@ -119,12 +132,13 @@ def code_version() -> dict[str, str]:
     return {"version": __version__, "commit": git_commit(SOURCE) if is_checkout else "unknown"}
 
 
-def provenance_tags() -> dict[str, str]:
+def provenance_tags(launch: Path | None = None) -> dict[str, str]:
     """The tags a run records about its code: ``git_commit`` (the ``ablate`` checkout that ran, :func:`code_version`),
-    ``ablate_version``, and ``launch_commit`` (the launch directory's own checkout, where it is one and another)."""
+    ``ablate_version``, and ``launch_commit`` (the launch directory's own checkout, where it is one and another;
+    ``launch`` defaults to the current directory)."""
     code = code_version()
     tags = {"git_commit": code["commit"], "ablate_version": code["version"]}
-    here = git_commit(launch_dir())
+    here = git_commit(launch or Path.cwd())
     if here != "unknown" and here.removesuffix("-dirty") != code["commit"].removesuffix("-dirty"):
         tags["launch_commit"] = here
     return tags

@@ -12,7 +12,8 @@ from lightning.pytorch.utilities import rank_zero_only
 
 from ablate.store.outage import ServerUnreachable, answers, backoff, shown
 from ablate.store.outbox import Outbox, Row
-from ablate.store.tracker import Tracker, is_server, rows
+from ablate.store.tracker import Tracker, rows
+from ablate.store.uris import is_server
 
 log = logging.getLogger(__name__)
 

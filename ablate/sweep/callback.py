@@ -1,7 +1,7 @@
 """A Hydra callback that turns a multirun into one MLflow parent run, and regenerates its table at the end.
 
-It records the sweep's store and parent run in the sweep directory, where every job finds them
-(:mod:`ablate.store.sweepdir`). A job that fails leaves a note in ``<sweep dir>/failures/``; the
+It records the sweep's store, parent run and swept keys in the sweep directory, where every job finds them
+(:class:`ablate.store.SweepContext`). A job that fails leaves a note in ``<sweep dir>/failures/``; the
 callback lists those notes at the end, marks the parent FAILED and exits with status 1 after the other jobs have run.
 """
 
@@ -25,8 +25,8 @@ from ablate.analysis.latency import measure
 from ablate.config import compose
 from ablate.jobs import fingerprint
 from ablate.jobs.preempt import GRACE_S, alive, install_parent
-from ablate.store import KIND_SWEEP, AccessDenied, ServerUnreachable, Tracker, is_server, provenance_tags, sweep_dir
-from ablate.store.sweepdir import FAILURES, PARENT_FILE, STORE_FILE, SWEPT_FILE
+from ablate.store import KIND_SWEEP, AccessDenied, ServerUnreachable, SweepContext, Tracker, is_server, provenance_tags
+from ablate.store.context import PARENT_FILE, STORE_FILE, SWEPT_FILE
 from ablate.sweep import progress
 from ablate.tables import COSTS, table_spec, write_table
 
@@ -107,7 +107,14 @@ def fixed_overrides(config: DictConfig) -> list[str]:
     """The sweep's command-line overrides that are not swept (``experiment=...``, ``scale=smoke``): with a row
     and a seed added, they compose that job's config again."""
     parsed = OverridesParser.create().parse_overrides(list(config.hydra.overrides.task))
-    return [o.input_line for o in parsed if not o.is_sweep_override()]
+    return [str(o.input_line) for o in parsed if not o.is_sweep_override()]
+
+
+def sweep_context(config: DictConfig) -> SweepContext:
+    """The sweep's context, read where the driver's callback starts: its launch and sweep directories from the
+    multirun's config, and what the sweep directory's files hold by now."""
+    launch = Path(str(config.hydra.runtime.cwd))
+    return SweepContext.of_sweep(launch / str(config.hydra.sweep.dir), launch)
 
 
 def _parallel(config: DictConfig) -> int:
@@ -129,12 +136,14 @@ class SweepCallback(Callback):
             raise SystemExit(1) from None
 
     def _start(self, config: DictConfig) -> None:
-        sdir = Path(str(config.hydra.runtime.cwd)) / str(config.hydra.sweep.dir)
+        context = sweep_context(config)
+        sdir = context.sweep_dir
+        assert sdir is not None
         check_launcher(config)
         sdir.mkdir(parents=True, exist_ok=True)
         ray_driver_auth(config)
-        tracker = Tracker.from_config(config)
-        (sdir / STORE_FILE).write_text(json.dumps({"uri": tracker.uri, "artifact_location": tracker.artifact_location}))
+        tracker = Tracker.from_config(config, context)
+        context.record(STORE_FILE, json.dumps({"uri": tracker.uri, "artifact_location": tracker.artifact_location}))
         exp = tracker.experiment_id(config.table.name)
         close_dead_sweeps(tracker, exp)
         overrides = " ".join(config.hydra.overrides.task)
@@ -145,17 +154,18 @@ class SweepCallback(Callback):
                 "kind": KIND_SWEEP,
                 "table": config.table.name,
                 "overrides": overrides,
-                **provenance_tags(),
+                **provenance_tags(context.launch_dir),
                 "sweep_dir": str(sdir),
                 "host": socket.gethostname(),
                 "pid": str(os.getpid()),
             },
         )
-        (sdir / PARENT_FILE).write_text(run_id)
+        context.record(PARENT_FILE, run_id)
         if "joblib" in str(OmegaConf.select(config, "hydra.launcher._target_", default="")):
             install_parent(lambda name, stopped, killed: stop_sweep(tracker, run_id, name, stopped, killed))
         parsed = OverridesParser.create().parse_overrides(list(config.hydra.overrides.task))
-        (sdir / SWEPT_FILE).write_text(" ".join(o.get_key_element() for o in parsed if o.is_sweep_override()))
+        # the command line's swept keys; the racing sweeper records its own over them, its params included
+        context.record(SWEPT_FILE, " ".join(o.get_key_element() for o in parsed if o.is_sweep_override()))
         log.info("MLflow parent run %s in experiment '%s' (%s)", run_id, config.table.name, tracker.uri)
         planned = progress.start(sdir, config)
         log.info("Sweep of %d job(s), %s at a time", planned, _parallel(config))
@@ -165,7 +175,7 @@ class SweepCallback(Callback):
 
     def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
         """Count the job in the sweep's progress and log the sweep's progress line with its ETA."""
-        sdir = sweep_dir()
+        sdir = SweepContext.current().sweep_dir
         if sdir is None or not hasattr(self, "_job_started"):
             return
         status = job_return._return_value if job_return.status.name == "COMPLETED" else "FAILED"
@@ -185,10 +195,10 @@ class SweepCallback(Callback):
             raise SystemExit(1) from None
 
     def _end(self, config: DictConfig) -> None:
-        sdir = Path(str(config.hydra.runtime.cwd)) / str(config.hydra.sweep.dir)
-        tracker = Tracker.from_config(config)
-        parent = (sdir / PARENT_FILE).read_text().strip() if (sdir / PARENT_FILE).exists() else None
-        failures = sorted((sdir / FAILURES).glob("*.txt")) if (sdir / FAILURES).is_dir() else []
+        context = sweep_context(config)
+        tracker = Tracker.from_config(config, context)
+        parent = context.parent_run
+        failures = context.failures()
         if config.get("comp_time", {}).get("after_sweep") and config.table.rows:
             try:
                 measure(config, tracker, compose, fixed_overrides(config), only_if_missing=True)

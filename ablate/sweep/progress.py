@@ -17,6 +17,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
 from ablate.store import file_lock
+from ablate.tables.spec import sweep_params
 
 PLANNED_FILE = ".planned"
 PROGRESS_FILE = ".progress"
@@ -28,7 +29,9 @@ def planned_jobs(config: DictConfig) -> int:
     sweeper splits them; for a table that races its seeds (``table.seeds``), times the seeds of its first look
     (each later look replans, :func:`replan`)."""
     params = OmegaConf.select(config, "hydra.sweeper.params", default=None) or {}
-    lines = [f"{key}={value}" for key, value in params.items()] + list(config.hydra.overrides.task)
+    arguments = list(config.hydra.overrides.task)
+    params = sweep_params(params, arguments, config.table)  # a table's rows (ablate.tables.spec.run_rows)
+    lines = [f"{key}={value}" for key, value in params.items()] + arguments
     overrides = OverridesParser.create().parse_overrides(lines)
     jobs = sum(len(batch) for batch in BasicSweeper.split_arguments(overrides, None))
     looks = OmegaConf.select(config, "table.seeds.looks", default=None)

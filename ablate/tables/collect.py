@@ -5,7 +5,7 @@ from __future__ import annotations
 import pandas as pd
 from omegaconf import DictConfig
 
-from ablate.store import KIND_JOB, SKIPPED_FRAMES, Tracker, retry
+from ablate.store import KIND_JOB, SKIPPED_FRAMES, Tracker
 
 #: The run tags that say where and how a row was computed (ablate.hardware.tags), for the footer.
 MADE = ("cpu", "precision", "threads")
@@ -33,10 +33,10 @@ def at_latest_scale(runs: pd.DataFrame) -> pd.DataFrame:
 
 def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
     """Every FINISHED job run of ``table``, oldest first: one row per run, superseded ones too."""
-    exp = retry(tracker.client.get_experiment_by_name, table)
+    exp = tracker.find_experiment(table)
     if exp is None:
         return pd.DataFrame()
-    runs = tracker.runs(exp.experiment_id, f"attributes.status = 'FINISHED' and tags.kind = '{KIND_JOB}'")
+    runs = tracker.runs(exp, f"attributes.status = 'FINISHED' and tags.kind = '{KIND_JOB}'")
     records = [
         {
             "row": r.data.tags.get("row", "?"),
@@ -77,7 +77,7 @@ def row_seconds(tracker: Tracker, runs: pd.DataFrame) -> dict[str, float]:
     for i, source in runs["reused_from"].items():
         if source:
             try:
-                run = retry(tracker.client.get_run, source)
+                run = tracker.get_run(source)
                 seconds[i] = ((run.info.end_time or run.info.start_time) - run.info.start_time) / 1000.0
             except Exception:  # the source is gone from this store: its time is unknown
                 seconds[i] = float("nan")
@@ -108,10 +108,10 @@ def made_lines(runs: pd.DataFrame) -> list[str]:
 
 def running(tracker: Tracker, table: str) -> int:
     """How many job runs of ``table`` are RUNNING (a sweep writing now, or a killed job not yet closed): never rows."""
-    exp = retry(tracker.client.get_experiment_by_name, table)
+    exp = tracker.find_experiment(table)
     if exp is None:
         return 0
-    return len(tracker.runs(exp.experiment_id, f"attributes.status = 'RUNNING' and tags.kind = '{KIND_JOB}'"))
+    return len(tracker.runs(exp, f"attributes.status = 'RUNNING' and tags.kind = '{KIND_JOB}'"))
 
 
 def state_lines(runs: pd.DataFrame, in_progress: int) -> list[str]:

@@ -31,7 +31,7 @@ import pandas as pd  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
-from ablate.store import Tracker, retry  # noqa: E402
+from ablate.store import Tracker  # noqa: E402
 from ablate.tables.columns import costs, significance  # noqa: E402
 from ablate.tables.provenance import provenance  # noqa: E402
 from ablate.tables.spec import COSTS  # noqa: E402
@@ -255,11 +255,11 @@ def copy_artifacts(tracker: Tracker, runs: pd.DataFrame, table: DictConfig, out:
         sel = runs[runs["row"] == spec["row"]].sort_values("seed") if len(runs) else runs
         if sel.empty:
             continue
-        run = retry(tracker.client.get_run, sel["run_id"].iloc[0])
+        run = tracker.get_run(sel["run_id"].iloc[0])
         source = run.data.tags.get("reused_from", run.info.run_id)
         with tempfile.TemporaryDirectory() as tmp:
             try:
-                path = retry(tracker.client.download_artifacts, source, spec["artifact"], tmp)
+                path = tracker.download_artifact(source, spec["artifact"], tmp)
             except Exception:  # noqa: BLE001 - a run without the artifact (a failed figure) leaves no copy
                 continue
             shutil.copyfile(path, out / spec["as"])

@@ -29,7 +29,7 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from ablate.metrics import EVALUATORS
-from ablate.store import Tracker, retry
+from ablate.store import Tracker
 from ablate.store.fingerprint import decode, differs
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -123,10 +123,10 @@ Recompute = Callable[[DictConfig], dict[str, list[float]]]
 
 def config_of(tracker: Tracker, run_id: str) -> DictConfig:
     """The resolved config a run logged (its ``config.yaml`` artifact; a reused run's is its source's)."""
-    run = retry(tracker.client.get_run, run_id)
+    run = tracker.get_run(run_id)
     source = run.data.tags.get("reused_from", run_id)
     with tempfile.TemporaryDirectory() as tmp:
-        path = retry(tracker.client.download_artifacts, source, "config.yaml", tmp)
+        path = tracker.download_artifact(source, "config.yaml", tmp)
         return cast(DictConfig, OmegaConf.load(path))
 
 

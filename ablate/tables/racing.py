@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from scipy import stats
 
 from ablate.tables.collect import latest, under_condition
@@ -88,6 +88,18 @@ class RacePlan:
             str(seeds.get("correction", "bonferroni")),
             None if budget is None else float(budget),
         )
+
+    @classmethod
+    def of_table(cls, cfg: DictConfig) -> RacePlan | None:
+        """The plan of a composed config's table (``table.seeds``, which experiments take from ``scale.race``): the
+        one source of a table's seeds, for the racing sweeper, the tables, the diagnosis and the capacity plan."""
+        seeds = cfg.table.get("seeds")
+        return cls.from_config(OmegaConf.to_container(seeds, resolve=True) if seeds is not None else None)  # type: ignore[arg-type]
+
+    @property
+    def first(self) -> int:
+        """The seeds every row gets: the first look's."""
+        return self.looks[0]
 
     def levels(self) -> list[float]:
         """The nominal level of each look's test; they add up to ``alpha`` (but for ``none``)."""

@@ -250,6 +250,16 @@ class FusionTask(L.LightningModule):
         """A matplotlib figure of predictions on ``batch`` (fixed test frames), or None."""
         return None
 
+    def gate_figure(self, batch: dict) -> Figure | None:
+        """A figure of the fusion gates' weights on ``batch``, for a model with gated fusion, or None."""
+        return None
+
+    def figures(self, batch: dict) -> dict[str, Figure]:
+        """The figures a job's run keeps, by artifact name: its predictions on ``batch`` and, where the model's
+        fusion is gated, its gates."""
+        made = {"predictions.png": self.figure(batch), "gates.png": self.gate_figure(batch)}
+        return {name: figure for name, figure in made.items() if figure is not None}
+
     @property
     def evaluator(self) -> str | None:
         """The evaluators its metrics follow (their ``evaluator``, e.g. ``kitti_object_devkit_2017``; see

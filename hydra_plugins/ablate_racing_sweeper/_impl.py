@@ -8,15 +8,19 @@ and the race is replayed (:func:`ablate.tables.racing.race`), which says which r
 
 Without a plan (``table.seeds`` null: ad-hoc sweeps) or with ``seed`` given on the command line, it launches every
 combination of the swept values at once, as Hydra's basic sweeper does.
+
+A paper table lists its rows once (``table.rows``): unless the command line names ``row``, the sweeper sweeps
+``row`` over the rows the table runs (:func:`ablate.tables.spec.sweep_params`). Rows are named as the jobs name them
+(:func:`ablate.store.row_name`), from the keys this sweeper records as swept (its ``params`` and the command line's).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -29,29 +33,18 @@ from hydra.plugins.launcher import Launcher
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf
 
-from ablate.store import AccessDenied, ServerUnreachable, Tracker
-from ablate.store.sweepdir import PARENT_FILE, STORE_FILE
+from ablate.store import AccessDenied, ServerUnreachable, SweepContext, Tracker, row_name
+from ablate.store.context import SWEPT_FILE
 from ablate.sweep import progress
 from ablate.tables import table_spec
 from ablate.tables.collect import job_runs, row_seconds
 from ablate.tables.racing import RacePlan, RaceState, race, table_values
-from ablate.tables.spec import LOWER_IS_BETTER
+from ablate.tables.spec import LOWER_IS_BETTER, sweep_params
 
 log = logging.getLogger(__name__)
 
 #: What a job returns (``ablate.jobs.job.main``) when the store already held its run and nothing trained.
 SKIPPED = "SKIPPED"
-
-
-def row_key(combo: list[str], swept: set[str]) -> str:
-    """The ``row`` tag the job of ``combo`` records (:func:`ablate.jobs.job.row_name`): its ``row`` choice, else
-    its swept overrides, sorted."""
-    for item in combo:
-        key, _, value = item.lstrip("+~").partition("=")
-        if key == "row":
-            return value
-    own = sorted(item.lstrip("+~") for item in combo if item.split("=", 1)[0].lstrip("+~") in swept)
-    return " ".join(own) or "default"
 
 
 def look_estimate(elapsed: float, trained: list[float], batch: list[float]) -> float:
@@ -73,6 +66,48 @@ def job_costs(seconds: dict[str, float]) -> Callable[[str], float]:
     return lambda row: seconds[row] if seconds.get(row, 0) > 0 else default
 
 
+@dataclass
+class Race:
+    """A race in progress: the rows' jobs (their overrides but the seed), the seeds each row has, the race's state,
+    the jobs launched and the row of each that trained (not skipped), and why it stopped early, if it did."""
+
+    plan: RacePlan
+    jobs: dict[str, list[str]]
+    reference: str | list[str]
+    higher: bool
+    state: RaceState
+    have: dict[str, int]
+    started: float = field(default_factory=lambda: time.monotonic())
+    launched: int = 0
+    trained: list[str] = field(default_factory=list)
+    returns: list[list[JobReturn]] = field(default_factory=list)
+    stopped: str = ""
+    cost: Callable[[str], float] = field(default_factory=lambda: job_costs({}))
+
+    def next_look(self) -> tuple[int, int, list[list[str]], list[str]]:
+        """The next look's number, its seeds per row, and its jobs' overrides and rows."""
+        look, n = self.state.looks_done + 1, self.plan.looks[self.state.looks_done]
+        rows = [r for r in self.state.racing for _ in range(self.have[r], n)]
+        batch = [self.jobs[r] + [f"seed={s}"] for r in self.state.racing for s in range(self.have[r], n)]
+        return look, n, batch, rows
+
+    def over_budget(self, look: int, rows: list[str]) -> bool:
+        """Whether the next look would end past the wall-time budget (then :attr:`stopped` says so)."""
+        elapsed = time.monotonic() - self.started
+        needed = look_estimate(elapsed, [self.cost(r) for r in self.trained], [self.cost(r) for r in rows])
+        if self.plan.budget_min and elapsed + needed > self.plan.budget_min * 60:
+            self.stopped = (
+                f"the wall-time budget of {self.plan.budget_min:g} min stopped the race before look {look} "
+                f"({elapsed / 60:.1f} min spent, about {needed / 60:.1f} more needed)"
+            )
+            return True
+        return False
+
+    def outcome(self) -> str:
+        open_ = [f"{c.a} vs {c.b}" for c in self.state.undecided()]
+        return self.stopped or (f"left undecided after the last look: {', '.join(open_)}" if open_ else "all decided")
+
+
 class RacingSweeperImpl:
     def __init__(self, params: dict[str, Any] | None, max_batch_size: int | None = None) -> None:
         self.params = dict(params or {})
@@ -87,18 +122,26 @@ class RacingSweeperImpl:
             hydra_context=hydra_context, task_function=task_function, config=config
         )
 
+    def _context(self) -> SweepContext:
+        """The sweep's context: its directories from the multirun's config, its store and parent run from the files
+        the sweep callback wrote there (:class:`ablate.store.SweepContext`)."""
+        assert self.config is not None
+        launch = Path(str(self.config.hydra.runtime.cwd))
+        return SweepContext.of_sweep(launch / str(self.config.hydra.sweep.dir), launch)
+
     def sweep(self, arguments: list[str]) -> list[list[JobReturn]]:
         assert self.config is not None and self.launcher is not None and self.hydra_context is not None
         parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
-        overrides = parser.parse_overrides([f"{k}={v}" for k, v in self.params.items()] + list(arguments))
+        params = sweep_params(self.params, list(arguments), self.config.table)
+        overrides = parser.parse_overrides([f"{k}={v}" for k, v in params.items()] + list(arguments))
         combos = [list(c) for batch in BasicSweeper.split_arguments(overrides, None) for c in batch]
         swept = {o.get_key_element().lstrip("+~") for o in overrides if o.is_sweep_override()}
-        sdir = Path(str(self.config.hydra.runtime.cwd)) / str(self.config.hydra.sweep.dir)
-        sdir.mkdir(parents=True, exist_ok=True)
-        OmegaConf.save(self.config, sdir / "multirun.yaml")
-        seeds = self.config.table.get("seeds")
+        context = self._context()
+        context.record(SWEPT_FILE, " ".join(sorted(swept)))  # the jobs name their rows from these (row_name)
+        assert context.sweep_dir is not None
+        OmegaConf.save(self.config, context.sweep_dir / "multirun.yaml")
         try:
-            plan = RacePlan.from_config(OmegaConf.to_container(seeds, resolve=True) if seeds is not None else None)
+            plan = RacePlan.of_table(self.config)
         except ValueError as err:  # a bad plan is one line naming the option, before any job runs
             print(f"error: {err}", file=sys.stderr)
             raise SystemExit(1) from None
@@ -107,7 +150,7 @@ class RacingSweeperImpl:
             if plan is not None:
                 log.info("seed given on the command line: no racing, every job launched at once")
             return [self._launch(combos, 0)]
-        return self._race(plan, combos, swept, sdir)
+        return self._race(plan, combos, swept, context.sweep_dir)
 
     def _launch(self, batch: list[list[str]], first: int) -> list[JobReturn]:
         """Launch ``batch`` (in chunks of ``max_batch_size``), its jobs numbered from ``first``."""
@@ -121,75 +164,68 @@ class RacingSweeperImpl:
         return results
 
     def _race(self, plan: RacePlan, combos: list[list[str]], swept: set[str], sdir: Path) -> list[list[JobReturn]]:
+        """Launch look after look until every comparison is decided, the looks run out or the budget stops it."""
+        race_ = self._start_race(plan, combos, swept)
+        while not race_.state.over:
+            look, n, batch, rows = race_.next_look()
+            if race_.over_budget(look, rows):
+                break
+            racing = ", ".join(race_.state.racing)
+            log.info("Look %d of %d: %d job(s), seeds up to %d for %s", look, len(plan.looks), len(batch), n, racing)
+            progress.replan(sdir, race_.launched + len(batch))
+            race_.returns.append(self._launch(batch, race_.launched))
+            race_.launched += len(batch)
+            race_.trained += [
+                row_name(r.overrides or [], swept) for r in race_.returns[-1] if r.return_value != SKIPPED
+            ]
+            for r in race_.state.racing:
+                race_.have[r] = n
+            if not self._replay(race_, look):
+                break
+        outcome = race_.outcome()
+        log.info("Race over after %d look(s) and %d job(s): %s", race_.state.looks_done, race_.launched, outcome)
+        tags = {"race_looks": str(race_.state.looks_done), "race_jobs": str(race_.launched), "race": outcome}
+        self._tag_parent(tags)
+        return race_.returns
+
+    def _start_race(self, plan: RacePlan, combos: list[list[str]], swept: set[str]) -> Race:
+        """The race before its first look: every row racing, its reference the table's (or the first row)."""
         assert self.config is not None
-        jobs = {row_key(c, swept): c for c in combos}
+        jobs = {row_name(c, swept): c for c in combos}
         rows = list(jobs)
         table = table_spec(self.config)
         named = table.get("reference")
         candidates = [named] if isinstance(named, str) else list(named or [])
         reference: str | list[str] = [r for r in candidates if r in rows] or rows[0]
         higher = table.primary not in LOWER_IS_BETTER
-        have = dict.fromkeys(rows, 0)
-        state = RaceState(plan, racing=rows)
-        returns: list[list[JobReturn]] = []
-        started, launched, stopped = time.monotonic(), 0, ""
-        trained: list[str] = []  # the row of each job that trained in this command
-        cost = job_costs({})  # each row's job time, read with the values after each look
-        while not state.over:
-            look = state.looks_done + 1
-            n = plan.looks[state.looks_done]
-            batch_rows = [r for r in state.racing for _ in range(have[r], n)]
-            batch = [jobs[r] + [f"seed={s}"] for r in state.racing for s in range(have[r], n)]
-            elapsed = time.monotonic() - started
-            needed = look_estimate(elapsed, [cost(r) for r in trained], [cost(r) for r in batch_rows])
-            if plan.budget_min and elapsed + needed > plan.budget_min * 60:
-                stopped = (
-                    f"the wall-time budget of {plan.budget_min:g} min stopped the race before look {look} "
-                    f"({elapsed / 60:.1f} min spent, about {needed / 60:.1f} more needed)"
-                )
-                break
-            log.info(
-                "Look %d of %d: %d job(s), seeds up to %d for %s",
-                look,
-                len(plan.looks),
-                len(batch),
-                n,
-                ", ".join(state.racing),
-            )
-            progress.replan(sdir, launched + len(batch))
-            returns.append(self._launch(batch, launched))
-            launched += len(batch)
-            trained += [row_key(list(r.overrides), swept) for r in returns[-1] if r.return_value != SKIPPED]
-            for r in state.racing:
-                have[r] = n
-            try:
-                tracker = self._tracker(sdir)
-                runs = job_runs(tracker, str(table.name))
-            except (ServerUnreachable, AccessDenied) as err:
-                print(f"error: {err}; the race stopped after look {look}: the same command resumes it", file=sys.stderr)
-                raise SystemExit(1) from None
-            values = table_values(runs, table)
-            if trained:
-                cost = self._costs(tracker, runs)
-            state = race(values, rows, reference, plan, higher, stop_after=look)
-            if state.looks_done < look:
-                stopped = f"look {look} gave no values (its jobs failed): the race stopped there"
-                break
-            for c in state.comparisons.values():
-                log.info("  %s vs %s (%s): %s", c.a, c.b, c.why, c.verdict())
-        open_ = [f"{c.a} vs {c.b}" for c in state.undecided()]
-        outcome = stopped or (f"left undecided after the last look: {', '.join(open_)}" if open_ else "all decided")
-        log.info("Race over after %d look(s) and %d job(s): %s", state.looks_done, launched, outcome)
-        self._tag_parent(sdir, {"race_looks": str(state.looks_done), "race_jobs": str(launched), "race": outcome})
-        return returns
+        return Race(plan, jobs, reference, higher, RaceState(plan, racing=rows), dict.fromkeys(rows, 0))
 
-    def _tracker(self, sdir: Path) -> Tracker:
+    def _replay(self, race_: Race, look: int) -> bool:
+        """Read the rows' values back from the store and replay the race after ``look``; False where the look gave
+        nothing to go on (its jobs failed). A store that does not answer ends the sweep in one line."""
         assert self.config is not None
-        path = sdir / STORE_FILE
-        if path.exists():
-            recorded = json.loads(path.read_text())
-            return Tracker(str(recorded["uri"]), recorded["artifact_location"])
-        return Tracker.from_config(self.config)
+        table = table_spec(self.config)
+        try:
+            tracker = self._tracker()
+            runs = job_runs(tracker, str(table.name))
+        except (ServerUnreachable, AccessDenied) as err:
+            print(f"error: {err}; the race stopped after look {look}: the same command resumes it", file=sys.stderr)
+            raise SystemExit(1) from None
+        values = table_values(runs, table)
+        if race_.trained:
+            race_.cost = self._costs(tracker, runs)
+        race_.state = race(values, list(race_.jobs), race_.reference, race_.plan, race_.higher, stop_after=look)
+        if race_.state.looks_done < look:
+            race_.stopped = f"look {look} gave no values (its jobs failed): the race stopped there"
+            return False
+        for c in race_.state.comparisons.values():
+            log.info("  %s vs %s (%s): %s", c.a, c.b, c.why, c.verdict())
+        return True
+
+    def _tracker(self) -> Tracker:
+        """The store the sweep recorded (where its parent run is), else the config's."""
+        assert self.config is not None
+        return Tracker.from_config(self.config, self._context())
 
     @staticmethod
     def _costs(tracker: Tracker, runs: pd.DataFrame) -> Callable[[str], float]:
@@ -199,11 +235,11 @@ class RacingSweeperImpl:
             log.warning("Could not read the rows' job times (every row counted alike): %s", err)
             return job_costs({})
 
-    def _tag_parent(self, sdir: Path, tags: dict[str, str]) -> None:
-        parent = sdir / PARENT_FILE
-        if not parent.exists():
+    def _tag_parent(self, tags: dict[str, str]) -> None:
+        context = self._context()
+        if context.parent_run is None:
             return
         try:
-            self._tracker(sdir).set_tags(parent.read_text().strip(), tags)
+            self._tracker().set_tags(context.parent_run, tags)
         except Exception as err:  # a convenience: never the reason a sweep fails
             log.warning("Could not tag the sweep's run with the race's outcome: %s", err)

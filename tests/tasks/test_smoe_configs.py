@@ -12,6 +12,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from ablate.tables.spec import sweep_params
 from ablate.tasks.instance import InstanceTask
 
 REPO = Path(__file__).resolve().parents[2]
@@ -48,7 +49,7 @@ def compose_row(table: str, row: str, *extra: str):
 @pytest.mark.parametrize("table", TABLES)
 def test_sweep_runs_the_table_rows_in_order(table):
     exp = OmegaConf.load(CONF / "experiment" / f"{table}.yaml")
-    assert exp.hydra.sweeper.params.row.split(",") == table_rows(table)
+    assert sweep_params({}, [], exp.table)["row"].split(",") == table_rows(table)  # the sweep, from the rows
     assert exp.table.primary == "map"
     assert {"map", "map_50", "map_75", "map_clear", "map_night", "map_rain", "map_glare"} <= set(exp.table.metrics)
     assert all((CONF / "row" / f"{r}.yaml").is_file() for r in table_rows(table))
