@@ -196,7 +196,6 @@ def gpu_section(gpu: list[dict[str, Any]]) -> list[str]:
 
 def table_section(experiment: str, entries: list[dict], measured: dict[str, Any]) -> list[str]:
     """One table's section of :func:`report`: its GPU-hours, a line per row, and the notes."""
-    gib = 2**30
     hours, missing = table_hours(entries, measured)
     others = "; ".join(f"{table_hours(entries, measured, g)[0]:,.1f} on an {g.name}" for g in OTHER_GPUS)
     note = f" (not counted, not measured: {', '.join(missing)})" if missing else ""
@@ -209,28 +208,35 @@ def table_section(experiment: str, entries: list[dict], measured: dict[str, Any]
         "| act. b1 (GiB) | batch | GPU mem (GiB) | steps | GPU-h | measured as |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
-    blank = " |" * 12
-    for e in entries:
-        m = measured.get(e["key"])
-        if m is None:
-            out.append(
-                f"| {e['row']} | not run here: the check's time budget on this CPU was spent before this row |{blank}"
-            )
-            continue
-        if "error" in m:
-            error = m["error"].replace("|", "\\|").replace("\n", " ")[:300]
-            out.append(f"| {e['row']} | **FAILED**: {error} |{blank[:-2]} {m['where']} |")
-            continue
-        got = split(e, measured)
-        frozen = "—" if not e["frozen"] else "not counted" if got is None else f"{got[1] / 1e9:.1f}"
-        row_h = row_hours(e, measured)
-        out.append(
-            f"| {e['row']} | {m['params'] / 1e6:.1f} | {m['trainable'] / 1e6:.1f} | {m['macs'] / 1e9:.1f} | {frozen} | "
-            f"{m['train_s']:.1f} | {m['test_s']:.1f} | {m['peak_rss'] / gib:.1f} | {m['activations'] / gib:.2f} | "
-            f"{e['batch']} | {gpu_memory(m, e['batch']) / gib:.1f} | {e['steps']:,} | "
-            f"{'—' if row_h is None else f'{row_h:,.1f}'} | {m['where']} |"
-        )
+    out += [_row_line(e, measured) for e in entries]
     out.append("")
+    return out + _unused_notes(entries, measured) + _feature_cache_note(entries, measured)
+
+
+def _row_line(e: dict, measured: dict[str, Any]) -> str:
+    """A row's line of :func:`table_section`: its measurement and estimates, or why there are none."""
+    gib = 2**30
+    blank = " |" * 12
+    m = measured.get(e["key"])
+    if m is None:
+        return f"| {e['row']} | not run here: the check's time budget on this CPU was spent before this row |{blank}"
+    if "error" in m:
+        error = m["error"].replace("|", "\\|").replace("\n", " ")[:300]
+        return f"| {e['row']} | **FAILED**: {error} |{blank[:-2]} {m['where']} |"
+    got = split(e, measured)
+    frozen = "—" if not e["frozen"] else "not counted" if got is None else f"{got[1] / 1e9:.1f}"
+    row_h = row_hours(e, measured)
+    return (
+        f"| {e['row']} | {m['params'] / 1e6:.1f} | {m['trainable'] / 1e6:.1f} | {m['macs'] / 1e9:.1f} | {frozen} | "
+        f"{m['train_s']:.1f} | {m['test_s']:.1f} | {m['peak_rss'] / gib:.1f} | {m['activations'] / gib:.2f} | "
+        f"{e['batch']} | {gpu_memory(m, e['batch']) / gib:.1f} | {e['steps']:,} | "
+        f"{'—' if row_h is None else f'{row_h:,.1f}'} | {m['where']} |"
+    )
+
+
+def _unused_notes(entries: list[dict], measured: dict[str, Any]) -> list[str]:
+    """A note per row with trainable parameters that get no gradient (DDP must be told to find them)."""
+    out: list[str] = []
     for e in entries:
         if unused := (measured.get(e["key"]) or {}).get("unused"):
             out += [
@@ -239,6 +245,12 @@ def table_section(experiment: str, entries: list[dict], measured: dict[str, Any]
                 "trainer=ddp_gpu / ddp_cpu find them (`find_unused_parameters`).",
                 "",
             ]
+    return out
+
+
+def _feature_cache_note(entries: list[dict], measured: dict[str, Any]) -> list[str]:
+    """The frozen experts' feature cache of the rows that have one: its size against the GPU memory it may use."""
+    gib = 2**30
     caches: dict[str, list[str]] = {}
     for e in entries:
         m = measured.get(e["key"]) or {}
@@ -253,16 +265,16 @@ def table_section(experiment: str, entries: list[dict], measured: dict[str, Any]
             caches.setdefault(f"{figures}: {state}", []).append(e["row"])
         if e["frozen"] and m.get("count_error"):
             caches.setdefault(f"frozen MACs not counted ({m['count_error'][:200]})", []).append(e["row"])
-    if caches:
-        out += [
-            f"Frozen experts' feature cache (ablate.jobs.experts.FeatureCache) on an {GPU.name}, the features of the "
-            f"{entries[0]['fit_frames']:,} training and validation frames against {GPU_CACHE_SHARE:.0%} of the "
-            "memory free at the first batch: "
-            + "; ".join(f"{', '.join(rows)}: {what}" for what, rows in caches.items())
-            + ".",
-            "",
-        ]
-    return out
+    if not caches:
+        return []
+    return [
+        f"Frozen experts' feature cache (ablate.jobs.experts.FeatureCache) on an {GPU.name}, the features of the "
+        f"{entries[0]['fit_frames']:,} training and validation frames against {GPU_CACHE_SHARE:.0%} of the "
+        "memory free at the first batch: "
+        + "; ".join(f"{', '.join(rows)}: {what}" for what, rows in caches.items())
+        + ".",
+        "",
+    ]
 
 
 def failed(entries: list[dict], measured: dict) -> list[str]:

@@ -10,7 +10,6 @@ import os
 import uuid
 import zlib
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -20,9 +19,26 @@ import torch
 from torch.utils.data import Dataset
 
 from ablate.data import DataError, kitti, lidar, masks
-from ablate.data.augment import Augment, View, flip_box, flip_calibration, mirror_points, warp
+from ablate.data.augment import Augment, View, flip_calibration, mirror_points, warp
 from ablate.data.conditions import apply_condition, apply_corruption
 from ablate.data.lidar_weather import LIDAR_WEATHER, apply_lidar_weather
+from ablate.data.targets import BOX_LABELS, CLASSES, calib_array, calibration, image_targets, mirrored, road_bev
+
+#: The targets' label ids and the calibration and road helpers (ablate.data.targets) are importable from here too.
+__all__ = [
+    "BOX_LABELS",
+    "CLASSES",
+    "GEOMETRY",
+    "LIDAR_DERIVED",
+    "MODALITIES",
+    "NO_MASKS",
+    "TARGETS",
+    "KittiDataset",
+    "calib_array",
+    "calibration",
+    "road_bev",
+    "spread",
+]
 
 MODALITIES = {"rgb": 3, "intensity": 1, "sparse_depth": 1, "dense_depth": 1, "ddm_jet": 3, "dhi": 3, "bev": 6}
 #: Per-frame geometry for the space transforms (ablate.fusion.geometry), asked for like targets: calibration
@@ -39,10 +55,6 @@ TARGETS = (
     "road_bev_valid",
     *GEOMETRY,
 )
-CLASSES = ("Car", "Pedestrian", "Cyclist")  # label ids 0, 1, 2
-#: ``boxes2d`` label ids: the classes, then the KITTI types its evaluation ignores (ablate.metrics.kitti.LABEL_NAMES):
-#: Van (neighbour of Car), Person_sitting (of Pedestrian) and DontCare regions.
-BOX_LABELS = (*CLASSES, "Van", "Person_sitting", "DontCare")
 LIDAR_DERIVED = {"sparse_depth", "dense_depth", "ddm_jet", "dhi", "bev"}
 NO_MASKS = "no instance masks: no instance_2/ folder, nor velodyne/ and label_2/ to derive them from"
 
@@ -320,10 +332,29 @@ class KittiDataset(Dataset):
         return sample
 
     def _targets(self, paths: dict[str, Path], shape: tuple[int, int], flip: bool = False) -> dict[str, Any]:
-        out: dict[str, Any] = {}
+        """The targets asked for, of the frame at ``paths`` (``flip``: of its mirrored image)."""
         if not self.targets:
-            return out
-        h, w = shape
+            return {}
+        labels, road_gt, inst = self._ground_truth(paths, shape)
+        if flip:  # the image-space labels of the flipped image (ablate.data.augment)
+            labels, road_gt, inst = mirrored(labels, road_gt, inst, shape[1])
+        road = road_gt[0] if road_gt is not None else None
+        if (
+            any(t in self.targets for t in ("free_space", "semantic", "road_bev", "road_valid", "road_bev_valid"))
+            and road is None
+        ):
+            raise DataError(f"{paths['image']}: road ground truth {paths.get('road_gt')} is missing")
+        if any(t in self.targets for t in ("road_objects", "semantic", "instances")) and inst is None:
+            raise DataError(f"{paths['image']}: instance masks {paths['instance']} are missing")
+        out = image_targets(self.targets, labels, road, inst, shape)
+        out.update(self._road(paths, shape, road_gt, flip))
+        return out
+
+    def _ground_truth(
+        self, paths: dict[str, Path], shape: tuple[int, int]
+    ) -> tuple[list[kitti.Object3D], tuple[np.ndarray, ...] | None, np.ndarray | None]:
+        """The frame's labels, road ground truth and instance map (derived from LiDAR where the folder has no
+        instance_2/ and an instance target is asked for); None where there is none."""
         labels = kitti.read_labels(paths["label"]) if paths["label"].is_file() else []
         road_gt: tuple[np.ndarray, ...] | None = (
             kitti.read_road_gt(paths["road_gt"]) if "road_gt" in paths and paths["road_gt"].is_file() else None
@@ -336,53 +367,7 @@ class KittiDataset(Dataset):
             and any(t in self.targets for t in ("road_objects", "semantic", "instances"))
         ):
             inst = self.lidar_instances(paths["image"].stem, labels, shape)
-        if flip:  # the image-space labels of the flipped image (ablate.data.augment)
-            labels = [replace(o, bbox=flip_box(o.bbox, w)) for o in labels]
-            road_gt = tuple(np.ascontiguousarray(a[:, ::-1]) for a in road_gt) if road_gt is not None else None
-            inst = np.ascontiguousarray(inst[:, ::-1]) if inst is not None else None
-        road = road_gt[0] if road_gt is not None else None
-        if (
-            any(t in self.targets for t in ("free_space", "semantic", "road_bev", "road_valid", "road_bev_valid"))
-            and road is None
-        ):
-            raise DataError(f"{paths['image']}: road ground truth {paths.get('road_gt')} is missing")
-        if any(t in self.targets for t in ("road_objects", "semantic", "instances")) and inst is None:
-            raise DataError(f"{paths['image']}: instance masks {paths['instance']} are missing")
-        if "free_space" in self.targets:
-            assert road is not None  # checked above
-            out["free_space"] = torch.from_numpy(road[None].astype(np.float32))
-        if "road_objects" in self.targets:
-            assert inst is not None  # checked above
-            out["road_objects"] = torch.from_numpy((inst > 0)[None].astype(np.float32))
-        if "semantic" in self.targets:
-            assert inst is not None and road is not None  # checked above
-            out["semantic"] = torch.from_numpy(np.where(inst > 0, 2, road.astype(np.int64)).astype(np.int64))
-        if "instances" in self.targets:
-            assert inst is not None  # checked above
-            present = set(np.unique(inst).tolist())  # a labelled object with no mask pixel is left out
-            ids = [k + 1 for k, o in enumerate(labels) if o.type in CLASSES[:2] and k + 1 in present]
-            out["instances"] = {
-                "masks": torch.from_numpy(np.stack([inst == k for k in ids]) if ids else np.zeros((0, h, w), bool)),
-                "labels": torch.tensor([CLASSES.index(labels[k - 1].type) for k in ids], dtype=torch.int64),
-                "boxes": torch.tensor([labels[k - 1].bbox for k in ids], dtype=torch.float32).reshape(-1, 4),
-            }
-        if "boxes2d" in self.targets:
-            objs = [o for o in labels if o.type in BOX_LABELS]
-            scale = h / 375.0  # KITTI's difficulty heights are for 375-row images
-            out["boxes2d"] = {
-                "boxes": torch.tensor([o.bbox for o in objs], dtype=torch.float32).reshape(-1, 4),
-                "labels": torch.tensor([BOX_LABELS.index(o.type) for o in objs], dtype=torch.int64),
-                "difficulty": torch.tensor([o.difficulty_at(scale) for o in objs], dtype=torch.int64),
-            }
-        if "instances" in self.targets or "boxes2d" in self.targets:
-            ignore = np.zeros((h, w), bool)
-            for o in labels:
-                if o.type == "DontCare":
-                    x0, y0, x1, y1 = (int(round(v)) for v in o.bbox)
-                    ignore[max(y0, 0) : y1 + 1, max(x0, 0) : x1 + 1] = True
-            out["ignore"] = torch.from_numpy(ignore)
-        out.update(self._road(paths, shape, road_gt, flip))
-        return out
+        return labels, road_gt, inst
 
     def _road(
         self, paths: dict[str, Path], shape: tuple[int, int], road_gt: tuple[np.ndarray, ...] | None, flip: bool = False
@@ -412,48 +397,3 @@ class KittiDataset(Dataset):
             value = self.lidar(paths["image"].stem, name, shape, flip)
             out[name] = torch.from_numpy(np.ascontiguousarray(value if name == "lidar_points" else value[None]))
         return out
-
-
-def calib_array(calib: kitti.Calibration) -> np.ndarray:
-    """(4,3,4) float64: P2, R0_rect (in [:3,:3]), Tr_velo_to_cam, Tr_cam_to_road (NaN when the file has none)."""
-    out = np.full((4, 3, 4), np.nan)
-    out[0], out[2] = calib.P2, calib.Tr_velo_to_cam
-    out[1] = 0.0
-    out[1, :, :3] = calib.R0_rect
-    if calib.Tr_cam_to_road is not None:
-        out[3] = calib.Tr_cam_to_road
-    return out
-
-
-def calibration(array: np.ndarray | torch.Tensor) -> kitti.Calibration:
-    """The :class:`~ablate.data.kitti.Calibration` of a :func:`calib_array` (numpy or a CPU/GPU tensor)."""
-    a = np.asarray(array.detach().cpu() if isinstance(array, torch.Tensor) else array, np.float64)
-    road = None if np.isnan(a[3]).any() else a[3]
-    return kitti.Calibration(P2=a[0], R0_rect=a[1, :, :3], Tr_velo_to_cam=a[2], Tr_cam_to_road=road)
-
-
-def road_bev(
-    road: np.ndarray,
-    calib: kitti.Calibration,
-    x_range: tuple[float, float] = (6.0, 46.0),
-    y_range: tuple[float, float] = (-10.0, 10.0),
-    cell: float = 0.5,
-) -> np.ndarray:
-    """Road mask in the BEV grid of :func:`ablate.data.lidar.bev_image`: each cell centre is dropped onto the road
-    plane (Tr_cam_to_road) and looked up in the image road mask; cells outside the image are 0."""
-    if calib.Tr_cam_to_road is None:
-        raise DataError(f"{calib.path}: road_bev needs Tr_cam_to_road in the calibration")
-    hb, wb = lidar.bev_grid(x_range, y_range, cell)
-    xs = x_range[1] - (np.arange(hb) + 0.5) * cell
-    ys = y_range[1] - (np.arange(wb) + 0.5) * cell
-    x, y = np.meshgrid(xs, ys, indexing="ij")
-    # velodyne -> road frame is affine; solve for the z that puts the point on the road plane (road Y = 0).
-    a = calib.Tr_cam_to_road[1] @ calib.velo_to_rect_matrix  # road Y as a function of (x, y, z, 1)
-    z = -(a[0] * x + a[1] * y + a[3]) / a[2]
-    uv, depth = calib.velo_to_image(np.stack([x.ravel(), y.ravel(), z.ravel()], 1))
-    u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
-    h, w = road.shape
-    ok = (depth > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    out = np.zeros(hb * wb, np.float32)
-    out[ok] = road[v[ok].astype(np.int64), u[ok].astype(np.int64)]
-    return out.reshape(hb, wb)

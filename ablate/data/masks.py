@@ -20,12 +20,16 @@ from ablate.data.kitti import Calibration, Object3D
 from ablate.data.lidar import dense_depth, project_points, sparse_depth
 
 if TYPE_CHECKING:
+    from matplotlib.axes import Axes
     from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
 MARGIN = 0.2
 """Metres each 3D box is enlarged by on every side except its bottom (label noise, the LiDAR's range noise)."""
 GROUND = 0.1
 """Metres above the box's bottom face below which nothing counts: the road under and beside a car."""
+Window = tuple[int, int, int, int]
+"""An object's 2D box as a pixel window (x0, y0, x1, y1), x1 and y1 excluded, clipped to the image."""
 
 
 def _back_project(calib: Calibration, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -87,37 +91,71 @@ def from_lidar(
     distance: dict[int, float] = {}
     for k in boxed:
         o = objects[k]
-        seeds = lin[o.contains(seed_rect, MARGIN, GROUND)]
-        x0, y0 = max(int(np.floor(o.bbox[0])), 0), max(int(np.floor(o.bbox[1])), 0)
-        x1, y1 = min(int(np.ceil(o.bbox[2])) + 1, w), min(int(np.ceil(o.bbox[3])) + 1, h)
-        sv, su = np.divmod(seeds, w)
-        inside = (su >= x0) & (su < x1) & (sv >= y0) & (sv < y1)
-        if not inside.any() or x1 <= x0 or y1 <= y0:
+        found = _seeds(o, lin[o.contains(seed_rect, MARGIN, GROUND)], shape)
+        if found is None:
             continue
-        v, u = np.mgrid[y0:y1, x0:x1]
-        rect = _back_project(calib, u.ravel().astype(float), v.ravel().astype(float), dense[y0:y1, x0:x1].ravel())
-        cand = o.contains(rect, MARGIN, GROUND).reshape(v.shape)
-        cand[sv[inside] - y0, su[inside] - x0] = True
-        _, comp = cv2.connectedComponents(cand.view(np.uint8), connectivity=8)
-        keep = np.zeros(comp.max() + 1, bool)
-        keep[comp[sv[inside] - y0, su[inside] - x0]] = True
-        keep[0] = False
-        mask = keep[comp]
+        window, sv, su = found
+        x0, y0, x1, y1 = window
+        mask = _grow(o, calib, dense, window, sv, su)
         cores[k, y0:y1, x0:x1] = mask
-        # step 3: each column upward from its top pixel, inside the projected box, while nothing nearer occludes it
-        corners = o.corners()
-        ok = _hull(calib, corners, (x0, y0), mask.shape) & (dense[y0:y1, x0:x1] >= corners[:, 2].min() - MARGIN)
-        above = np.arange(len(mask))[:, None] < np.where(mask.any(0), mask.argmax(0), 0)
-        mask |= np.logical_and.accumulate((ok | ~above)[::-1], 0)[::-1] & above
-        masks[k, y0:y1, x0:x1] = ndimage.binary_fill_holes(mask)
-        distance[k] = float(np.linalg.norm(corners.mean(0)))
+        masks[k, y0:y1, x0:x1], distance[k] = _complete(o, calib, dense, window, mask)
+    _resolve_overlaps(masks, cores, distance)
+    return masks
+
+
+def _seeds(o: Object3D, seeds: np.ndarray, shape: tuple[int, int]) -> tuple[Window, np.ndarray, np.ndarray] | None:
+    """Step 1 of :func:`from_lidar`: the window of ``o``'s 2D box and the rows and columns of the seeds (flat
+    indices ``seeds``) inside it; None when the window is empty or holds no seed."""
+    h, w = shape
+    x0, y0 = max(int(np.floor(o.bbox[0])), 0), max(int(np.floor(o.bbox[1])), 0)
+    x1, y1 = min(int(np.ceil(o.bbox[2])) + 1, w), min(int(np.ceil(o.bbox[3])) + 1, h)
+    sv, su = np.divmod(seeds, w)
+    inside = (su >= x0) & (su < x1) & (sv >= y0) & (sv < y1)
+    if not inside.any() or x1 <= x0 or y1 <= y0:
+        return None
+    return (x0, y0, x1, y1), sv[inside], su[inside]
+
+
+def _grow(
+    o: Object3D, calib: Calibration, dense: np.ndarray, window: Window, sv: np.ndarray, su: np.ndarray
+) -> np.ndarray:
+    """Step 2 of :func:`from_lidar`: the window's pixels whose dense depth back-projects inside ``o``'s enlarged
+    box, 8-connected to a seed (rows ``sv``, columns ``su``): the LiDAR-confirmed mask, cropped to the window."""
+    x0, y0, x1, y1 = window
+    v, u = np.mgrid[y0:y1, x0:x1]
+    rect = _back_project(calib, u.ravel().astype(float), v.ravel().astype(float), dense[y0:y1, x0:x1].ravel())
+    cand = o.contains(rect, MARGIN, GROUND).reshape(v.shape)
+    cand[sv - y0, su - x0] = True
+    _, comp = cv2.connectedComponents(cand.view(np.uint8), connectivity=8)
+    keep = np.zeros(comp.max() + 1, bool)
+    keep[comp[sv - y0, su - x0]] = True
+    keep[0] = False
+    return keep[comp]
+
+
+def _complete(
+    o: Object3D, calib: Calibration, dense: np.ndarray, window: Window, core: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """Step 3 of :func:`from_lidar`: ``core`` grown up each column from its top pixel, inside the projected box,
+    while nothing nearer occludes the pixel, with its holes filled; and the distance of the box centre."""
+    x0, y0, x1, y1 = window
+    corners = o.corners()
+    ok = _hull(calib, corners, (x0, y0), core.shape) & (dense[y0:y1, x0:x1] >= corners[:, 2].min() - MARGIN)
+    above = np.arange(len(core))[:, None] < np.where(core.any(0), core.argmax(0), 0)
+    mask = core | np.logical_and.accumulate((ok | ~above)[::-1], 0)[::-1] & above
+    return ndimage.binary_fill_holes(mask), float(np.linalg.norm(corners.mean(0)))
+
+
+def _resolve_overlaps(masks: np.ndarray, cores: np.ndarray, distance: dict[int, float]) -> None:
+    """Step 4 of :func:`from_lidar`, in place: each pixel to one object, a confirmed pixel beating another
+    object's completed one, the nearest object winning otherwise."""
+    h, w = masks.shape[1:]
     owner = np.full((h, w), -1)
     for stack in (masks, cores):  # far to near, the filled parts first: the nearest paints last and wins, and a
         for k in sorted(distance, key=distance.__getitem__, reverse=True):  # confirmed pixel beats another's filled one
             owner[stack[k]] = k
     for k in distance:
         masks[k] &= owner == k
-    return masks
 
 
 def instance_map(masks: np.ndarray) -> np.ndarray:
@@ -133,7 +171,6 @@ def figure(split_dir: str | Path, frame: str, out: str | Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from PIL import Image
 
     from ablate.data import kitti
 
@@ -148,9 +185,7 @@ def figure(split_dir: str | Path, frame: str, out: str | Path) -> None:
     for mask, colour in zip(masks, colours):
         shown[mask] = 0.4 * shown[mask] + 0.6 * colour
     h, w = image.shape[:2]
-    boxes = np.array([o.bbox for o in objects]).reshape(-1, 4)
-    x0, y0 = np.maximum(boxes[:, :2].min(0, initial=np.inf) - 20, 0) if len(boxes) else (0, 0)
-    x1, y1 = np.minimum(boxes[:, 2:].max(0, initial=-np.inf) + 20, (w, h)) if len(boxes) else (w, h)
+    x0, y0, x1, y1 = _objects_region(objects, w, h)
     zoom_w = min(2 * (x1 - x0), w)
     fig = plt.figure(figsize=(w / 100, (h + zoom_w * (y1 - y0) / (x1 - x0)) / 100 + 0.3), dpi=80)
     top, bottom = fig.subplots(2, 1, height_ratios=[h, zoom_w * (y1 - y0) / (x1 - x0)])
@@ -159,27 +194,52 @@ def figure(split_dir: str | Path, frame: str, out: str | Path) -> None:
         ax.set_xlim(left, right)
         ax.set_ylim(down, up)
         ax.set_axis_off()
-        for o, mask, colour in zip(objects, masks, colours):
-            bx0, by0, bx1, by1 = o.bbox
-            dontcare = o.type == "DontCare"
-            ax.add_patch(
-                plt.Rectangle(
-                    (bx0, by0),
-                    bx1 - bx0,
-                    by1 - by0,
-                    fill=False,
-                    lw=1,
-                    ls="--" if dontcare else "-",
-                    ec="white" if dontcare else colour,
-                )
-            )
-            if ax is bottom and not dontcare:
-                ax.text(bx0, by0 - 1, f"{o.type} {int(mask.sum())} px", color=colour, fontsize=8)
+        _draw_boxes(ax, objects, masks, colours, counts=ax is bottom)
     top.set_title(
         f"KITTI object {frame}: instance masks from LiDAR + 3D boxes (ablate.data.masks.from_lidar), "
         "label_2 2D boxes (DontCare dashed); below, the objects enlarged",
         fontsize=9,
     )
+    _save_png(fig, out)
+
+
+def _objects_region(objects: list[Object3D], w: int, h: int) -> tuple[float, float, float, float]:
+    """(x0, y0, x1, y1) around all the labelled 2D boxes with a 20-pixel margin, inside the image (all of it
+    without a box)."""
+    boxes = np.array([o.bbox for o in objects]).reshape(-1, 4)
+    x0, y0 = np.maximum(boxes[:, :2].min(0, initial=np.inf) - 20, 0) if len(boxes) else (0, 0)
+    x1, y1 = np.minimum(boxes[:, 2:].max(0, initial=-np.inf) + 20, (w, h)) if len(boxes) else (w, h)
+    return x0, y0, x1, y1
+
+
+def _draw_boxes(ax: Axes, objects: list[Object3D], masks: np.ndarray, colours: np.ndarray, counts: bool) -> None:
+    """Each object's 2D box in its mask's colour (DontCare dashed, white); ``counts``: with its type and mask
+    pixels."""
+    import matplotlib.pyplot as plt
+
+    for o, mask, colour in zip(objects, masks, colours):
+        bx0, by0, bx1, by1 = o.bbox
+        dontcare = o.type == "DontCare"
+        ax.add_patch(
+            plt.Rectangle(
+                (bx0, by0),
+                bx1 - bx0,
+                by1 - by0,
+                fill=False,
+                lw=1,
+                ls="--" if dontcare else "-",
+                ec="white" if dontcare else colour,
+            )
+        )
+        if counts and not dontcare:
+            ax.text(bx0, by0 - 1, f"{o.type} {int(mask.sum())} px", color=colour, fontsize=8)
+
+
+def _save_png(fig: Figure, out: str | Path) -> None:
+    """Save ``fig`` as a 128-colour PNG at ``out`` (its folder made) and close it."""
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
     fig.tight_layout(pad=0.2)
     fig.canvas.draw()
     Path(out).parent.mkdir(parents=True, exist_ok=True)

@@ -92,10 +92,25 @@ class _Boxes:
 
 def sample_scene(rng: np.random.Generator) -> dict[str, Any]:
     """Road layout, border mode, palette, sun, buildings, cars and pedestrians of one frame."""
+    s = _road_layout(rng)
+    _border(rng, s)
+    boxes = _Boxes()
+    for sign in (-1, 1):  # buildings / walls or open land on each side
+        if rng.random() < 0.25:
+            continue
+        _buildings(rng, s, boxes, sign)
+    objects = _road_users(rng, s, boxes)
+    boxes.into(s)
+    s["objects"] = objects
+    return s
+
+
+def _road_layout(rng: np.random.Generator) -> dict[str, Any]:
+    """The road (offset, curvature, width, sidewalk, kerb), its colour and reflectance, exposure and the sun."""
     road_grey = rng.uniform(0.25, 0.45)
     mode = rng.choice(["kerb_distinct", "kerb_camouflaged", "flat_distinct"])
     elevation, azimuth = np.deg2rad(rng.uniform(25, 65)), rng.uniform(-np.pi, np.pi)
-    s = {
+    return {
         "offset": rng.uniform(-1.5, 1.5),
         "curvature": rng.uniform(-1, 1) / 250.0,
         "road_half_width": rng.uniform(3.0, 7.0),
@@ -110,36 +125,46 @@ def sample_scene(rng: np.random.Generator) -> dict[str, Any]:
         # unit vector towards the sun (y down, so its y is negative)
         "sun": np.array([np.cos(elevation) * np.sin(azimuth), -np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]),
     }
-    if mode == "kerb_camouflaged":
+
+
+def _border(rng: np.random.Generator, s: dict[str, Any]) -> None:
+    """The border's colour and reflectance: the road's where camouflaged (the LiDAR-only cue), else a palette's."""
+    if s["mode"] == "kerb_camouflaged":
         s["border_rgb"], s["border_refl"] = s["road_rgb"] * rng.uniform(0.97, 1.03), s["road_refl"]
     else:
         palette = [(0.25, 0.45, 0.15), (0.5, 0.42, 0.3), (0.6, 0.6, 0.58), (0.35, 0.3, 0.25)]
         s["border_rgb"] = np.array(palette[rng.integers(len(palette))]) * rng.uniform(0.8, 1.2)
-        s["border_refl"] = s["road_refl"] if mode == "flat_distinct" else rng.uniform(0.05, 0.6)
-    boxes = _Boxes()
+        s["border_refl"] = s["road_refl"] if s["mode"] == "flat_distinct" else rng.uniform(0.05, 0.6)
+
+
+def _buildings(rng: np.random.Generator, s: dict[str, Any], boxes: _Boxes, sign: int) -> None:
+    """A row of buildings or walls along one side of the road (``sign``: -1 left, 1 right), up to 90 m."""
     half, side = s["road_half_width"], s["sidewalk"]
-    for sign in (-1, 1):  # buildings / walls or open land on each side
-        if rng.random() < 0.25:
-            continue
-        z = rng.uniform(-5, 5)
-        while z < 90:
-            length = rng.uniform(6, 25)
-            zc = z + length / 2
-            lateral = sign * (half + side + rng.uniform(0.3, 4.0))
-            height = rng.uniform(2.5, 14.0) if rng.random() < 0.8 else rng.uniform(1.0, 2.5)
-            depth = rng.uniform(4, 12)
-            xc = road_centre(s, zc) + lateral + sign * depth / 2
-            yaw = np.pi / 2 + np.arctan(s["curvature"] * zc)
-            colour = np.array(FACADES[rng.integers(len(FACADES))]) * rng.uniform(0.85, 1.15, 3)
-            boxes.add(
-                (xc, CAMERA_HEIGHT - s["curb"], zc, length / 2, height / 2, depth / 2, yaw),
-                -1,
-                BUILDING,
-                FACADE,
-                colour,
-                rng.uniform(0.1, 0.6),
-            )
-            z += length + rng.uniform(0, 8)
+    z = rng.uniform(-5, 5)
+    while z < 90:
+        length = rng.uniform(6, 25)
+        zc = z + length / 2
+        lateral = sign * (half + side + rng.uniform(0.3, 4.0))
+        height = rng.uniform(2.5, 14.0) if rng.random() < 0.8 else rng.uniform(1.0, 2.5)
+        depth = rng.uniform(4, 12)
+        xc = road_centre(s, zc) + lateral + sign * depth / 2
+        yaw = np.pi / 2 + np.arctan(s["curvature"] * zc)
+        colour = np.array(FACADES[rng.integers(len(FACADES))]) * rng.uniform(0.85, 1.15, 3)
+        boxes.add(
+            (xc, CAMERA_HEIGHT - s["curb"], zc, length / 2, height / 2, depth / 2, yaw),
+            -1,
+            BUILDING,
+            FACADE,
+            colour,
+            rng.uniform(0.1, 0.6),
+        )
+        z += length + rng.uniform(0, 8)
+
+
+def _road_users(rng: np.random.Generator, s: dict[str, Any], boxes: _Boxes) -> list[tuple]:
+    """Parked and moving cars and pedestrians on sidewalks and crossing, none overlapping another; returns their
+    (class, x, bottom y, z, l, h, w, yaw) in the camera frame."""
+    half, side = s["road_half_width"], s["sidewalk"]
     placed: list[tuple[float, float, float]] = []
     objects: list[tuple] = []  # (class, x, bottom y, z, l, h, w, yaw) in the camera frame
     for _ in range(int(rng.integers(2, 12))):
@@ -166,9 +191,7 @@ def sample_scene(rng: np.random.Generator) -> dict[str, Any]:
         camo = (s["border_rgb"] if base < CAMERA_HEIGHT else s["road_rgb"]) if rng.random() < 0.25 else None
         (_car if is_car else _pedestrian)(boxes, len(objects), rng, xc, base, zc, dims, yaw, camo)
         objects.append((CAR if is_car else PEDESTRIAN, xc, base, zc, *dims, yaw))
-    boxes.into(s)
-    s["objects"] = objects
-    return s
+    return objects
 
 
 def _car(

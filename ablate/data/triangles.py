@@ -151,9 +151,34 @@ def _spans(
     off = np.subtract(cum[:-1], cum[0], out=scratch("span.off", len(r0), np.intp))  # first span of each part
     t = _segments(off, ns, "span.part")
     rb = np.subtract(r0, off, out=scratch("span.r0", len(r0)), casting="unsafe")
-    row, xl, xr, at, v0, u = scratch("span.f", (6, ns))
+    f = scratch("span.f", (6, ns))
+    row, _, _, at, v0, _ = f
     _take(rb, t, row)
     row += _arange(ns, np.float64, "arange.f")
+    xl, cnt, u = _span_columns(t, row, il, sl, ir, sr, f)
+    q0 = scratch("span.first", ns + 1, np.intp)
+    q0[0] = 0
+    np.cumsum(cnt, out=q0[1:])
+    npx = int(q0[-1])
+    if npx == 0:
+        return 0
+    start = _span_planes(t, row, xl, q0, a, b, c, w, q_off, at, v0, u)
+    _pixel_blocks(q0, start, at, v0, q_off, out)
+    return npx
+
+
+def _span_columns(
+    t: np.ndarray,
+    row: np.ndarray,
+    il: np.ndarray,
+    sl: np.ndarray,
+    ir: np.ndarray,
+    sr: np.ndarray,
+    f: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """First column and pixel count of each span (between its part's two edges on its row), and the free work row
+    of the span buffer ``f`` (rows row, xl, xr, at, v0, u)."""
+    _, xl, xr, _, _, u = f
     for e, i, s in ((xl, il, sl), (xr, ir, sr)):
         _take(i, t, e)
         e += np.multiply(_take(s, t, u), row, out=u)
@@ -162,30 +187,50 @@ def _spans(
     np.minimum(xl, xr, out=u)  # ceil(x - 1e-9) is monotonic: min/max commute with it
     np.maximum(xl, xr, out=xr)
     xl, u = u, xl
-    cnt = scratch("span.count", ns, np.intp)
+    cnt = scratch("span.count", len(row), np.intp)
     np.copyto(cnt, np.subtract(xr, xl, out=xr), casting="unsafe")
-    q0 = scratch("span.first", ns + 1, np.intp)
-    q0[0] = 0
-    np.cumsum(cnt, out=q0[1:])
-    npx = int(q0[-1])
-    if npx == 0:
-        return 0
+    return xl, cnt, u
+
+
+def _span_planes(
+    t: np.ndarray,
+    row: np.ndarray,
+    xl: np.ndarray,
+    q0: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    c: np.ndarray,
+    w: int,
+    q_off: int,
+    at: np.ndarray,
+    v0: np.ndarray,
+    u: np.ndarray,
+) -> np.ndarray:
+    """Fill ``at`` and ``v0`` (each span's plane slope and value at q = 0, ``u`` a work row); returns the flat
+    index of each span's first pixel, less its first position."""
+    ns = len(row)
     _take(a, t, at)
     np.multiply(at, xl, out=v0)
     v0 += np.multiply(_take(b, t, u), row, out=u)
     v0 += _take(c, t, u)
     v0 -= np.multiply(at, np.add(q0[:ns], q_off, out=u), out=u)
-    start = scratch("span.start", ns, np.intp)  # flat index of the span's first pixel, less its first position
+    start = scratch("span.start", ns, np.intp)
     np.copyto(start, np.add(np.multiply(row, w, out=u), xl, out=u), casting="unsafe")
     start -= q0[:ns]
-    # Pixels, in blocks of at most PIXELS (a span has fewer than KEY pixels).
+    return start
+
+
+def _pixel_blocks(
+    q0: np.ndarray, start: np.ndarray, at: np.ndarray, v0: np.ndarray, q_off: int, out: np.ndarray
+) -> None:
+    """Draw the spans' pixels in blocks of at most PIXELS (a span has fewer than KEY pixels)."""
+    ns = len(start)
     s0 = 0
     while s0 < ns:
         p0 = int(q0[s0])
         s1 = max(int(np.searchsorted(q0, p0 + PIXELS, side="right")) - 1, s0 + 1)
         _pixels(q0[s0 : s1 + 1] - p0, start[s0:s1], at[s0:s1], v0[s0:s1], p0, q_off + p0, out)
         s0 = s1
-    return npx
 
 
 def _pixels(

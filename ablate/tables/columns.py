@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from ablate.tables.racing import RacePlan, decided, race, race_lines, recorded_plan, seed_values
+from ablate.tables.racing import RacePlan, RaceState, decided, race, race_lines, recorded_plan, seed_values
 from ablate.tables.significance import BOOTSTRAP_FROM, COLLAPSE_RATIO, RESAMPLES, difference, disagreeing_seeds
 from ablate.tables.spec import COSTS, LOWER_IS_BETTER
 from ablate.tables.summary import best_of, fmt, per_seed, reference, signed
@@ -30,18 +30,46 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
     ref = reference(summary, table)
     if ref is None:
         return {}, []
-    plan = RacePlan.from_config(recorded_plan(runs) or table.get("seeds"))
-    raced = None
-    if plan is not None:  # the race's own decisions, replayed from the runs (ablate.tables.racing)
-        rows = [str(r) for r in summary["row"] if r in set(runs.get("row", []))]
-        named = table.get("reference")
-        candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
-        if rows:
-            raced = race(seed_values(runs, key), rows, candidates or rows[0], plan, key not in LOWER_IS_BETTER)
-            ref = raced.reference or ref
+    raced = _replayed_race(summary, runs, table, key)
+    if raced is not None:
+        ref = raced.reference or ref
     ref_name = str(summary.loc[summary["row"] == ref, "name"].iloc[0])
+    cis, deltas, tests = _ci_and_delta(summary, runs, key, ref, raced)
+    columns = {f"{label} 95% CI": cis, f"Δ {label} vs {ref_name} [95% CI]": deltas}
+    lines = [
+        f"95% CI: of the mean over seeds, Student's t for n < {BOOTSTRAP_FROM}, a percentile bootstrap over "
+        f"seeds ({RESAMPLES} resamples) from n = {BOOTSTRAP_FROM}. Δ: difference from {ref_name} on {label} "
+        f"({tests_used(tests)}; paired over the seeds two rows share); "
+        + ("*: its 95% CI excludes 0." if raced is None else "*: decided by the race (below).")
+    ]
+    if raced is not None:
+        lines += race_lines(raced, dict(zip(summary["row"], summary["name"])))
+    lines += _top_against_second(summary, runs, key, label, raced)
+    return columns, lines + _disagreeing_seed_lines(summary, runs, table)
+
+
+def _replayed_race(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, key: str) -> RaceState | None:
+    """The race's own decisions, replayed from the runs (ablate.tables.racing); None without a race plan or rows."""
+    plan = RacePlan.from_config(recorded_plan(runs) or table.get("seeds"))
+    if plan is None:
+        return None
+    rows = [str(r) for r in summary["row"] if r in set(runs.get("row", []))]
+    named = table.get("reference")
+    candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
+    if not rows:
+        return None
+    return race(seed_values(runs, key), rows, candidates or rows[0], plan, key not in LOWER_IS_BETTER)
+
+
+def _ci_and_delta(
+    summary: pd.DataFrame, runs: pd.DataFrame, key: str, ref: str, raced: RaceState | None
+) -> tuple[list[str], list[str], set[tuple[str, bool]]]:
+    """Each row's 95 % CI and difference from ``ref`` (starred when significant, or decided by the race), and the
+    (test, bootstrap CI or not) of the differences for :func:`tests_used`."""
     ref_values = per_seed(runs, ref, key)
-    cis, deltas, tests = [], [], set()
+    cis: list[str] = []
+    deltas: list[str] = []
+    tests: set[tuple[str, bool]] = set()
     for row, lo, hi in zip(summary["row"], summary[f"{key}_lo"], summary[f"{key}_hi"]):
         cis.append("—" if np.isnan(lo) else f"[{lo:.2f}, {hi:.2f}]")
         if row == ref:
@@ -54,33 +82,37 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
         tests.add((d.kind, d.ci.method == "bootstrap"))
         star = d.significant if raced is None else decided(raced, row, ref)
         deltas.append(f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}]" + (" *" if star else ""))
-    columns = {f"{label} 95% CI": cis, f"Δ {label} vs {ref_name} [95% CI]": deltas}
-    lines = [
-        f"95% CI: of the mean over seeds, Student's t for n < {BOOTSTRAP_FROM}, a percentile bootstrap over "
-        f"seeds ({RESAMPLES} resamples) from n = {BOOTSTRAP_FROM}. Δ: difference from {ref_name} on {label} "
-        f"({tests_used(tests)}; paired over the seeds two rows share); "
-        + ("*: its 95% CI excludes 0." if raced is None else "*: decided by the race (below).")
-    ]
-    if raced is not None:
-        lines += race_lines(raced, dict(zip(summary["row"], summary["name"])))
+    return cis, deltas, tests
+
+
+def _top_against_second(
+    summary: pd.DataFrame, runs: pd.DataFrame, key: str, label: str, raced: RaceState | None
+) -> list[str]:
+    """The footer line saying whether the top row is ahead of the second beyond seed noise (none under two rows)."""
     ranked = summary.dropna(subset=[f"{key}_mean"]).sort_values(
         f"{key}_mean", ascending=key in LOWER_IS_BETTER, kind="stable"
     )
-    if len(ranked) >= 2:
-        (top, top_name), (second, second_name) = [tuple(r) for r in ranked[["row", "name"]].iloc[:2].to_numpy()]
-        if raced is not None and raced.top:
-            names = dict(zip(summary["row"], summary["name"]))
-            (top, second), (top_name, second_name) = raced.top, (names[raced.top[0]], names[raced.top[1]])
-        d = difference(per_seed(runs, top, key), per_seed(runs, second, key))
-        ahead = d.significant if raced is None else decided(raced, top, second)
-        verdict = (
-            "n/a (too few seeds)"
-            if np.isnan(d.ci.lo)
-            else f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}], {d.test}, p = {d.p:.3f}: "
-            + ("ahead beyond seed noise" if ahead else "not separable from seed noise")
-            + ("" if raced is None else " (the race's decision)")
-        )
-        lines.append(f"Top row {top_name} against the second, {second_name}, on {label}: {verdict}.")
+    if len(ranked) < 2:
+        return []
+    (top, top_name), (second, second_name) = [tuple(r) for r in ranked[["row", "name"]].iloc[:2].to_numpy()]
+    if raced is not None and raced.top:
+        names = dict(zip(summary["row"], summary["name"]))
+        (top, second), (top_name, second_name) = raced.top, (names[raced.top[0]], names[raced.top[1]])
+    d = difference(per_seed(runs, top, key), per_seed(runs, second, key))
+    ahead = d.significant if raced is None else decided(raced, top, second)
+    verdict = (
+        "n/a (too few seeds)"
+        if np.isnan(d.ci.lo)
+        else f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}], {d.test}, p = {d.p:.3f}: "
+        + ("ahead beyond seed noise" if ahead else "not separable from seed noise")
+        + ("" if raced is None else " (the race's decision)")
+    )
+    return [f"Top row {top_name} against the second, {second_name}, on {label}: {verdict}."]
+
+
+def _disagreeing_seed_lines(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> list[str]:
+    """A warning per seed whose metric collapsed against the median of its row's other seeds (a failed seed)."""
+    lines: list[str] = []
     for row, name in zip(summary["row"], summary["name"]):
         for k, lab in table.metrics.items():
             if k in LOWER_IS_BETTER:
@@ -91,7 +123,7 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
                     f"{med:.2f} over its other seeds (below {COLLAPSE_RATIO:.0%} of it); the row's mean "
                     "hides a failed seed."
                 )
-    return columns, lines
+    return lines
 
 
 def costs(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> tuple[dict, list[str]]:
