@@ -1,13 +1,14 @@
 """Latency side by side: every row of a table timed in one process, interleaved, after training.
 
 ``python -m ablate.latency experiment=chinet_table2`` (other ``key=value`` overrides apply, e.g.
-``latency.rounds=50``); a multirun runs it by itself at its end unless ``latency.enabled=false``.
+``comp_time.repeats=50``); a multirun runs it by itself at its end unless ``comp_time.after_sweep=false``.
 
 A latency timed inside each training job measures whatever else the machine did at that moment; rows timed at
 different times are not comparable. Here each row's model (its best checkpoint) is loaded into one process and
-the rows' forward passes are interleaved: ``rounds`` rounds, each timing one forward pass of every row at batch 1
-(the first test frame of the row's own inputs), in an order rotated by one row per round, after ``warmup``
-untimed rounds, with ``threads`` intra-op threads. Load on the machine then slows every row alike, and the median
+the rows' forward passes are interleaved: ``comp_time.repeats`` rounds, each timing one forward pass of every row
+at batch 1 (the first test frame of the row's own inputs), in an order rotated by one row per round, after
+``comp_time.warmup`` untimed rounds, with ``comp_time.threads`` intra-op threads, on ``comp_time.device`` (``auto``:
+CUDA where there is one, else the CPU). Load on the machine then slows every row alike, and the median
 and interquartile range over rounds show what is left. The load average and the available cores are recorded at
 the start and at the end; the table warns when the load exceeded the cores.
 
