@@ -34,7 +34,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch.utils.flop_counter import FlopCounterMode
 
-from ablate import hardware
+from ablate import cli, hardware
 from ablate.config import compose as compose_root
 from ablate.jobs import fingerprint
 from ablate.jobs.experts import expert_config, load_model
@@ -203,10 +203,10 @@ def measure(
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = list(sys.argv[1:] if argv is None else argv)
-    if not any(a.startswith("experiment=") for a in args):
-        print("usage: python -m ablate.latency experiment=<table> [key=value ...]", file=sys.stderr)
-        return 2
+    """``python -m ablate.latency experiment=<table> [key=value ...]``, its arguments read by
+    :func:`ablate.cli.latency` (``--help`` and a bad option end the process there, status 0 and 2): time the table's
+    rows, log the figures to their runs and rewrite the table; 1 where the store has no runs of the table."""
+    args = cli.latency(__doc__, argv).overrides
     cfg = compose_root(args)
     tracker = Tracker.from_config(cfg)
     if retry(tracker.client.get_experiment_by_name, cfg.table.name) is None:
