@@ -11,11 +11,13 @@ that row's section of ``results/precision_parity.md`` from its fp32 and bf16 run
 from __future__ import annotations
 
 import sys
+from argparse import Namespace
 from pathlib import Path
 
 from hydra.errors import HydraException
 from omegaconf import DictConfig
 
+from ablate import cli
 from ablate.analysis.reproduce import reproduce
 from ablate.config import CONF, compose
 from ablate.store import KIND_SWEEP, AccessDenied, Tracker
@@ -34,20 +36,22 @@ def fingerprint(cfg: DictConfig) -> dict[str, list[float]]:
 
 def main(argv: list[str] | None = None) -> int:
     """Write the tables (and the results summary); a store that refuses this client, or an override that does not
-    compose (``experiment=<unknown>``), is one error and status 1."""
+    compose (``experiment=<unknown>``), is one error and status 1. The arguments are read by
+    :func:`ablate.cli.report`: ``--help`` and a bad option end the process there (status 0 and 2)."""
+    args = cli.report(__doc__, argv)
     try:
-        return _main(argv)
+        return _main(args)
     except (AccessDenied, HydraException) as err:  # a refused store; an override that does not compose
         print(f"error: {err}", file=sys.stderr)
         return 1
 
 
-def _main(argv: list[str] | None) -> int:
-    args = list(sys.argv[1:] if argv is None else argv)
-    if "--reproduce" in args:
-        return _reproduce([a for a in args if a != "--reproduce"])
-    if "--parity" in args:
-        return _parity([a for a in args if a != "--parity"])
+def _main(parsed: Namespace) -> int:
+    args = list(parsed.overrides)
+    if parsed.reproduce:
+        return _reproduce(args)
+    if parsed.parity:
+        return _parity(args)
     named = [a.split("=", 1)[1] for a in args if a.startswith("experiment=")]
     rest = [a for a in args if not a.startswith("experiment=")]
     names = named or ["ablate"] + sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
@@ -77,10 +81,8 @@ def _main(argv: list[str] | None) -> int:
 
 
 def _reproduce(args: list[str]) -> int:
-    """Rerun one seed of a row and print whether it lies in the row's prediction interval; 0 inside, 2 outside."""
-    if not any(a.startswith("experiment=") for a in args):
-        print("error: --reproduce needs experiment=<table> and row=<row>", file=sys.stderr)
-        return 1
+    """Rerun one seed of a row and print whether it lies in the row's prediction interval; 0 inside, 2 outside
+    (the verdict on stdout; a bad option, also 2, is an ``error:`` line on stderr instead)."""
     cfg = compose([a for a in args if not a.startswith(("row=", "seed="))])
     try:
         outcome = reproduce(cfg, args)
@@ -94,9 +96,6 @@ def _reproduce(args: list[str]) -> int:
 def _parity(args: list[str]) -> int:
     """Write one row's bf16-against-fp32 section from the store's runs; a row without both is one error line."""
     rows = [a.split("=", 1)[1] for a in args if a.startswith("row=")]
-    if not any(a.startswith("experiment=") for a in args) or len(rows) != 1:
-        print("error: --parity needs experiment=<table> and one row=<row>", file=sys.stderr)
-        return 1
     cfg = compose([a for a in args if not a.startswith("row=")])
     try:
         found = parity(Tracker.from_config(cfg), table_spec(cfg), rows[0])

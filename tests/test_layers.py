@@ -13,9 +13,11 @@ ROOT = Path(__file__).resolve().parent.parent / "ablate"
 #: sibling of its layer. Above the tasks: the store (MLflow), the tables (runs in, tables out), running one job
 #: (``jobs``), what is read from trained runs afterwards (``analysis``: latency, the reproduction check, the
 #: diagnosis), then the sweep (its callback and progress) and the capacity planning for the paper scale, side by
-#: side, and the commands on top. The root package (``ablate/__init__.py``: the version, the config resolvers) is beside them.
+#: side, and the commands on top. The commands' argument parsing (``ablate.cli``: argparse only) is at the bottom,
+#: for the commands and for the functions under them that do their work. The root package (``ablate/__init__.py``:
+#: the version, the config resolvers) is beside them.
 LAYERS = [
-    ["ablate.hardware", "ablate.config"],
+    ["ablate.hardware", "ablate.config", "ablate.cli"],
     ["ablate.data"],
     ["ablate.nn", "ablate.metrics"],
     ["ablate.fusion"],

@@ -48,6 +48,7 @@ from hydra.utils import instantiate  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from ablate import cli  # noqa: E402
 from ablate.config import compose  # noqa: E402
 from ablate.jobs.experts import EXPERTS_TABLE, expert_config, load_model  # noqa: E402
 from ablate.jobs.spec import CHECKPOINTS, best_checkpoint  # noqa: E402
@@ -166,14 +167,13 @@ class Found:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = list(sys.argv[1:] if argv is None else argv)
-    if not any(a.startswith("experiment=") for a in args):
-        args.append("experiment=smoe_table1")
-    only = [a for a in args if a.startswith("experts_only=")]
-    args = [a for a in args if a not in only]
-    experts_only = bool(only) and only[-1].split("=", 1)[1].lower() in ("true", "1", "yes")
+    """``python -m ablate.diagnose [experiment=<table>] [experts_only=true] [key=value ...]``, its arguments read by
+    :func:`ablate.cli.diagnose` (``--help`` and a bad option end the process there, status 0 and 2): write the
+    diagnosis and its figures; 1 where the table cannot be diagnosed here (a missing checkpoint)."""
+    parsed = cli.diagnose(__doc__, argv)
+    experts_only = parsed.experts_only
     try:
-        result = diagnose(args, experts_only)
+        result = diagnose(parsed.overrides, experts_only)
     except (MissingCheckpoint, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1

@@ -1,13 +1,14 @@
 """Latency side by side: every row of a table timed in one process, interleaved, after training.
 
 ``python -m ablate.latency experiment=chinet_table2`` (other ``key=value`` overrides apply, e.g.
-``latency.rounds=50``); a multirun runs it by itself at its end unless ``latency.enabled=false``.
+``comp_time.repeats=50``); a multirun runs it by itself at its end unless ``comp_time.after_sweep=false``.
 
 A latency timed inside each training job measures whatever else the machine did at that moment; rows timed at
 different times are not comparable. Here each row's model (its best checkpoint) is loaded into one process and
-the rows' forward passes are interleaved: ``rounds`` rounds, each timing one forward pass of every row at batch 1
-(the first test frame of the row's own inputs), in an order rotated by one row per round, after ``warmup``
-untimed rounds, with ``threads`` intra-op threads. Load on the machine then slows every row alike, and the median
+the rows' forward passes are interleaved: ``comp_time.repeats`` rounds, each timing one forward pass of every row
+at batch 1 (the first test frame of the row's own inputs), in an order rotated by one row per round, after
+``comp_time.warmup`` untimed rounds, with ``comp_time.threads`` intra-op threads, on ``comp_time.device`` (``auto``:
+CUDA where there is one, else the CPU). Load on the machine then slows every row alike, and the median
 and interquartile range over rounds show what is left. The load average and the available cores are recorded at
 the start and at the end; the table warns when the load exceeded the cores.
 
@@ -35,7 +36,7 @@ from mlflow.entities import Run
 from omegaconf import DictConfig
 from torch.utils.flop_counter import FlopCounterMode
 
-from ablate import hardware
+from ablate import cli, hardware
 from ablate.config import compose as compose_root
 from ablate.jobs import fingerprint
 from ablate.jobs.experts import expert_config, load_model
@@ -216,10 +217,10 @@ def load_rows(
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = list(sys.argv[1:] if argv is None else argv)
-    if not any(a.startswith("experiment=") for a in args):
-        print("usage: python -m ablate.latency experiment=<table> [key=value ...]", file=sys.stderr)
-        return 2
+    """``python -m ablate.latency experiment=<table> [key=value ...]``, its arguments read by
+    :func:`ablate.cli.latency` (``--help`` and a bad option end the process there, status 0 and 2): time the table's
+    rows, log the figures to their runs and rewrite the table; 1 where the store has no runs of the table."""
+    args = cli.latency(__doc__, argv).overrides
     cfg = compose_root(args)
     tracker = Tracker.from_config(cfg)
     if tracker.find_experiment(cfg.table.name) is None:

@@ -38,7 +38,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-from ablate import hardware
+from ablate import cli, hardware
 from ablate.capacity.measure import count_macs, measure, sample_config
 from ablate.capacity.report import failed, line, report
 from ablate.capacity.rows import describe, experiments, measured_config, order, plan, recipe
@@ -172,10 +172,6 @@ def recount(
     return measured
 
 
-def _true(value: str | None) -> bool:
-    return (value or "false").lower() in ("true", "1", "yes")
-
-
 def _read(path: Path, empty: Any) -> Any:
     """The JSON in ``path`` (``empty`` where there is no file); ValueError naming the file where it is not JSON."""
     if not path.is_file():
@@ -186,24 +182,16 @@ def _read(path: Path, empty: Any) -> Any:
         raise ValueError(f"{path} is not valid JSON ({exc}); fix or remove it") from None
 
 
-def main(argv: list[str]) -> int:
+def main(argv: list[str] | None = None) -> int:
     """``python -m ablate.check_paper [experiment=a,b] [row=x,y] [budget_min=N] [force=true] [reuse=true]
     [key=value ...]``: measure the chosen rows (all by default) not measured yet (``force=true``: again), keep the
     figures in ``results/paper_scale.json``, write ``results/paper_scale.md`` for every row of every table; exit 1
     when a row fails. ``reuse=true``: time no step; count the frozen MACs of the stored measurements that lack them
     (:func:`recount`; ``force=true``: of all of the chosen rows) and rewrite the markdown from the stored figures
-    and today's configs."""
-    options, overrides = {}, []
-    for arg in argv:
-        key, _, value = arg.partition("=")
-        if key in ("experiment", "row", "budget_min", "force", "reuse"):
-            options[key] = value
-        else:
-            overrides.append(arg)
-    chosen = [x for x in (options.get("experiment") or "").split(",") if x]
-    if unknown := set(chosen) - set(experiments()):
-        print(f"error: no experiment {', '.join(sorted(unknown))}; have {', '.join(experiments())}")
-        return 2
+    and today's configs. The arguments are read by :func:`ablate.cli.check_paper`: ``--help``, a bad option and an
+    unknown experiment end the process there (status 0, 2 and 2)."""
+    args = cli.check_paper(__doc__, argv, tables=experiments())
+    chosen, overrides = args.experiment, args.overrides
     # the figures files first: a bad one is one line before every table's configs are composed (seconds)
     store, gpu_store = RESULTS / "paper_scale.json", RESULTS / "paper_scale_gpu.json"  # gpu: bench_paper_gpu --json
     try:
@@ -211,7 +199,7 @@ def main(argv: list[str]) -> int:
     except ValueError as exc:
         print(f"error: {exc}")
         return 2
-    rows = [x for x in (options.get("row") or "").split(",") if x]
+    rows = args.row
     everything = describe(plan(), overrides)
     entries = [e for e in everything if (not chosen or e["table"] in chosen) and (not rows or e["row"] in rows)]
     if not entries:
@@ -219,8 +207,8 @@ def main(argv: list[str]) -> int:
         return 2
     keys = {k for e in everything for k in (e["key"], *e["experts"].values())}
     measured = {k: v for k, v in record.get("measured", {}).items() if k in keys}  # those of today's configs
-    reuse = _true(options.get("reuse"))
-    if _true(options.get("force")):
+    reuse = args.reuse
+    if args.force:
         for e in entries:
             for k in (e["key"], *e["experts"].values()):
                 if reuse and k in measured:
@@ -233,7 +221,7 @@ def main(argv: list[str]) -> int:
         text = json.dumps({"written_on": cpu_name(), "measured": measured}, indent=1, sort_keys=True)
         store.write_text(text + "\n")
 
-    budget = float(options["budget_min"]) * 60 if "budget_min" in options else None
+    budget = args.budget_min * 60 if args.budget_min is not None else None
     (recount if reuse else check)(entries, measured, budget, overrides, save)
     save(measured)
     path = RESULTS / "paper_scale.md"
