@@ -20,7 +20,7 @@ from omegaconf import DictConfig
 from ablate import cli
 from ablate.analysis.reproduce import reproduce
 from ablate.config import CONF, compose
-from ablate.store import KIND_SWEEP, AccessDenied, Tracker
+from ablate.store import KIND_SWEEP, AccessDenied, ServerUnreachable, Tracker
 from ablate.tables import table_spec, write_table
 from ablate.tables.index import write_index
 from ablate.tables.parity import parity, write_parity
@@ -35,13 +35,13 @@ def fingerprint(cfg: DictConfig) -> dict[str, list[float]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Write the tables (and the results summary); a store that refuses this client, or an override that does not
-    compose (``experiment=<unknown>``), is one error and status 1. The arguments are read by
+    """Write the tables (and the results summary); a store that refuses this client or does not answer within
+    ``logger.outage_s``, or an override that does not compose (``experiment=<unknown>``), is one error and status 1. The arguments are read by
     :func:`ablate.cli.report`: ``--help`` and a bad option end the process there (status 0 and 2)."""
     args = cli.report(__doc__, argv)
     try:
         return _main(args)
-    except (AccessDenied, HydraException) as err:  # a refused store; an override that does not compose
+    except (AccessDenied, ServerUnreachable, HydraException) as err:  # a store refusing or silent; a bad override
         print(f"error: {err}", file=sys.stderr)
         return 1
 

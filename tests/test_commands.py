@@ -5,6 +5,7 @@ a process of their own; the Hydra app calls itself ``ablate``."""
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -117,3 +118,31 @@ def test_main_called_from_python_ends_a_bad_option_like_the_command(capsys: pyte
     with pytest.raises(SystemExit) as ended:
         main(["--parity", "row=unet"])
     assert ended.value.code == 2 and capsys.readouterr().err.startswith("error: --parity needs experiment=")
+
+
+def test_a_report_against_a_server_that_does_not_answer_fails_within_its_budget_naming_it(tmp_path: Path) -> None:
+    # nothing listens on the port: the store (not the report) waits logger.outage_s, then one line names the server
+    from tests.scaleout import free_port
+
+    uri = f"http://127.0.0.1:{free_port()}"
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    started = time.monotonic()
+    out = subprocess.run(
+        [sys.executable, "-m", "ablate.report", "experiment=chinet_table2", f"logger.tracking_uri={uri}",
+         "logger.outage_s=3"],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path, env={**env, "PYTHONPATH": str(REPO)},
+    )  # fmt: skip
+    waited = time.monotonic() - started
+    assert out.returncode == 1, out.stderr
+    errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]  # beside the waiting notice
+    assert len(errors) == 1 and uri.split("//")[1] in errors[0] and "Traceback" not in out.stderr, out.stderr
+    assert waited < 60, f"waited {waited:.0f} s for a server that does not answer, with logger.outage_s=3"
+
+
+def test_the_seeds_come_from_the_race_alone_and_scale_seeds_is_refused(tmp_path: Path) -> None:
+    # a table's seeds are its race plan (table.seeds, from scale.race): an option nothing reads is refused, naming it
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    args = [sys.executable, "-m", "ablate", "-m", "experiment=chinet_table2", "scale=smoke", "scale.seeds=2"]
+    out = subprocess.run(args, capture_output=True, text=True, timeout=120, cwd=tmp_path, env=env)
+    assert out.returncode != 0 and "scale.seeds" in out.stderr and "Traceback" not in out.stderr, out.stderr
+    assert not (tmp_path / "mlflow.db").exists()  # refused before any job or store
