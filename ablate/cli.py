@@ -143,13 +143,15 @@ def own(parser: Parser, args: argparse.Namespace, keys: dict[str, Callable[[str]
 
 
 def report(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Namespace:
-    """``python -m ablate.report [--reproduce | --parity] [key=value ...]``: ``reproduce`` and ``parity`` (bools),
+    """``python -m ablate.report [--publish | --reproduce | --parity] [key=value ...]``: ``publish``, ``reproduce``
+    and ``parity`` (bools),
     ``overrides``. ``--reproduce`` needs ``experiment=`` and ``row=``, ``--parity`` ``experiment=`` and one
     ``row=``."""
     parser = command(
         "python -m ablate.report",
         doc,
-        usage="%(prog)s [-h] [key=value ...]\n"
+        usage="%(prog)s [-h] [experiment=<table>] [key=value ...]\n"
+        "%(prog)s --publish [experiment=<table>] [key=value ...]\n"
         "%(prog)s --reproduce experiment=<table> row=<row> [seed=N] [key=value ...]\n"
         "%(prog)s --parity experiment=<table> row=<row> [key=value ...]",
         epilog="exit status:\n"
@@ -160,6 +162,12 @@ def report(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Names
         "interval, its verdict on stdout and no error: line",
     )
     mode = parser.add_mutually_exclusive_group()
+    mode.add_argument(
+        "--publish",
+        action="store_true",
+        help="publish from the store: write each table's run records (results/runs/<table>.csv) from the store's "
+        "runs, then the table from them; without it the tables are rendered from the committed records alone",
+    )
     mode.add_argument(
         "--reproduce",
         action="store_true",

@@ -1,19 +1,26 @@
-"""``python -m ablate.report``: regenerate every table that has runs under ``results/``; ``python -m ablate.report
-experiment=chinet_table2`` just one (other ``key=value`` overrides, e.g. ``logger.tracking_uri=...``, apply too).
-A multirun writes its table at the end by itself. The tables are built by :mod:`ablate.tables`. Last, the results
-summary (one line per paper table, :mod:`ablate.tables.index`) is rewritten in ``results/README.md`` and in
-``README.md`` where they hold its markers, from the tables there, whether or not this store had their runs.
+"""``python -m ablate.report``: render every published table under ``results/`` from its run records
+(``results/runs/<table>.csv``, :mod:`ablate.tables.records`) alone, with no store; ``python -m ablate.report
+experiment=chinet_table2`` just one. A table without records is left as it is, with one line saying so. Last, the
+results summary (one line per paper table, :mod:`ablate.tables.index`) is rewritten in ``results/README.md`` and in
+``README.md`` where they hold its markers.
+
+``python -m ablate.report --publish [experiment=<table>]`` publishes from the store (``logger.tracking_uri=...`` and
+other ``key=value`` overrides apply): each table's records are written from the store's runs, then the table from
+them. Nothing else writes under ``results/``: a sweep writes its table into its own folder.
 
 ``python -m ablate.report --reproduce experiment=<table> row=<row> [seed=N]`` reruns one seed of a row here and says
-whether it holds (:mod:`ablate.analysis.reproduce`). ``python -m ablate.report --parity experiment=<table> row=<row>`` writes
-that row's section of ``results/precision_parity.md`` from its fp32 and bf16 runs (:mod:`ablate.tables.parity`)."""
+whether it holds (:mod:`ablate.analysis.reproduce`). ``python -m ablate.report --parity experiment=<table> row=<row>``
+writes that row's section of ``results/precision_parity.md`` from its fp32 and bf16 runs
+(:mod:`ablate.tables.parity`)."""
 
 from __future__ import annotations
 
 import sys
 from argparse import Namespace
+from collections.abc import Callable
 from pathlib import Path
 
+import pandas as pd
 from hydra.errors import HydraException
 from omegaconf import DictConfig
 
@@ -21,9 +28,13 @@ from ablate import cli
 from ablate.analysis.reproduce import reproduce
 from ablate.config import CONF, compose
 from ablate.store import KIND_SWEEP, AccessDenied, ServerUnreachable, Tracker
-from ablate.tables import table_spec, write_table
+from ablate.tables import render_records, table_spec, write_table
 from ablate.tables.index import write_index
 from ablate.tables.parity import parity, write_parity
+from ablate.tables.records import records_path
+
+#: Where published tables and their records live.
+RESULTS = Path("results")
 
 
 def fingerprint(cfg: DictConfig) -> dict[str, list[float]]:
@@ -54,6 +65,44 @@ def _main(parsed: Namespace) -> int:
         return _parity(args)
     named = [a.split("=", 1)[1] for a in args if a.startswith("experiment=")]
     rest = [a for a in args if not a.startswith("experiment=")]
+    experiments = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
+    code = _publish(named, rest) if parsed.publish else _from_records(named or experiments, rest)
+    if code:
+        return code
+    for path in write_index(
+        [table_spec(compose(rest + [f"experiment={n}"])) for n in experiments], RESULTS, "README.md"
+    ):
+        print(path)
+    return 0
+
+
+def _from_records(names: list[str], rest: list[str]) -> int:
+    """Render each table from its run records; one line for each table that has none."""
+    for name in names:
+        base = rest + [f"experiment={name}"]
+        paths = render_records(compose(base), RESULTS, fingerprint, lambda runs: recorded_config(runs, base))
+        if paths is None:
+            print(f"{name}: no run records yet ({records_path(RESULTS, name)}); its table is left as it is")
+            continue
+        for path in paths:
+            print(path)
+    return 0
+
+
+def recorded_config(runs: pd.DataFrame, base: list[str]) -> Callable[[str], DictConfig]:
+    """The config of a recorded run, composed today from its table, row, seed and scale (records keep no config:
+    a row whose config changed since has another config hash, which the footer's fingerprint check then sees)."""
+    by_id = runs.set_index("run_id")
+
+    def config(run_id: str) -> DictConfig:
+        run = by_id.loc[run_id]
+        return compose(base + [f"row={run['row']}", f"seed={run['seed']}", f"scale={run['scale']}"])
+
+    return config
+
+
+def _publish(named: list[str], rest: list[str]) -> int:
+    """Publish from the store: each table's records, then the table from them (the ad-hoc table too, unnamed)."""
     names = named or ["ablate"] + sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
     written = 0
     for name in names:
@@ -67,16 +116,11 @@ def _main(parsed: Namespace) -> int:
             continue
         sweeps = tracker.runs(exp, f"tags.kind = '{KIND_SWEEP}'")
         parent = max(sweeps, key=lambda r: r.info.start_time).info.run_id if sweeps else None
-        for path in write_table(cfg, tracker, parent_run=parent, fingerprint=fingerprint):
+        for path in write_table(cfg, tracker, parent, RESULTS, fingerprint, publish=name != "ablate"):
             print(path)
         written += 1
     if not written:
         print(f"No tables written: no runs in {Tracker.from_config(compose(rest)).uri}", file=sys.stderr)
-    experiments = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
-    for path in write_index(
-        [table_spec(compose(rest + [f"experiment={n}"])) for n in experiments], "results", "README.md"
-    ):
-        print(path)
     return 0
 
 

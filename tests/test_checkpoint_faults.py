@@ -244,7 +244,7 @@ def test_skipped_bad_frames_are_counted_in_the_run_and_the_table_footer(store):
     _, jobs = runs(store, "chinet_table2")
     job = next(r for r in jobs if r.data.tags["row"] == "chinet")
     assert job.data.metrics["data/skipped_frames"] == 1
-    report = ablate(store, "experiment=chinet_table2", module="ablate.report")
+    report = ablate(store, "--publish", "experiment=chinet_table2", module="ablate.report")
     assert report.returncode == 0, report.stderr[-3000:]
     text = (store / "results" / "chinet_table2.md").read_text()
     assert "1 bad frame(s) skipped (data.on_bad_frame=skip) in 1 run(s)" in text

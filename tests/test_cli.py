@@ -66,7 +66,7 @@ def test_running_a_table_again_trains_nothing_and_rewrites_the_same_table(table2
     _, jobs = runs(cwd, "chinet_table2")
     assert len(jobs) == 3
     assert (cwd / "results" / "chinet_table2.md").read_bytes() == before
-    report = ablate(cwd, "experiment=chinet_table2", module="ablate.report")
+    report = ablate(cwd, "--publish", "experiment=chinet_table2", module="ablate.report")
     assert report.returncode == 0, report.stderr[-3000:]
     assert (cwd / "results" / "chinet_table2.md").read_bytes() == before
 

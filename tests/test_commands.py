@@ -128,7 +128,7 @@ def test_a_report_against_a_server_that_does_not_answer_fails_within_its_budget_
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     started = time.monotonic()
     out = subprocess.run(
-        [sys.executable, "-m", "ablate.report", "experiment=chinet_table2", f"logger.tracking_uri={uri}",
+        [sys.executable, "-m", "ablate.report", "--publish", "experiment=chinet_table2", f"logger.tracking_uri={uri}",
          "logger.outage_s=3"],
         capture_output=True, text=True, timeout=120, cwd=tmp_path, env={**env, "PYTHONPATH": str(REPO)},
     )  # fmt: skip

@@ -73,7 +73,7 @@ def test_table1_is_written_with_conditions_as_rows(tables):
     for name in ("dgfn_table1.png", "dgfn_table1_robustness.png", "dgfn_table1_gates.png"):
         assert (cwd / "results" / name).stat().st_size > 0, name
     before = (cwd / "results" / "dgfn_table1.md").read_bytes()
-    report = ablate(cwd, "experiment=dgfn_table1", module="ablate.report")
+    report = ablate(cwd, "--publish", "experiment=dgfn_table1", module="ablate.report")
     assert report.returncode == 0, report.stderr[-3000:]
     assert (cwd / "results" / "dgfn_table1.md").read_bytes() == before
 

@@ -134,7 +134,7 @@ def report_while_paused(cwd: Path, proc: subprocess.Popen) -> str:
     job: the job's run stays RUNNING for the whole report, however slow the machine."""
     proc.send_signal(signal.SIGSTOP)
     try:
-        report = ablate(cwd, "experiment=chinet_table2", module="ablate.report")
+        report = ablate(cwd, "--publish", "experiment=chinet_table2", module="ablate.report")
     finally:
         proc.send_signal(signal.SIGCONT)
     assert report.returncode == 0, report.stderr[-3000:]

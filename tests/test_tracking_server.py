@@ -275,7 +275,9 @@ def test_against_the_server_a_rerun_skips_a_shared_row_is_reused_and_a_killed_jo
 def test_the_report_reads_the_server(sweep, tmp_path):
     uri, _, _, first = sweep
     assert first.returncode == 0, output(first)
-    report = ablate(tmp_path, "experiment=chinet_table2", module="ablate.report", env={"MLFLOW_TRACKING_URI": uri})
+    report = ablate(
+        tmp_path, "--publish", "experiment=chinet_table2", module="ablate.report", env={"MLFLOW_TRACKING_URI": uri}
+    )
     assert report.returncode == 0, output(report)
     text = (tmp_path / "results" / "chinet_table2.md").read_text()
     assert "ChiNet" in text and "U-Net" in text

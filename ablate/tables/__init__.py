@@ -14,20 +14,23 @@ model x metric, from runs tested under ``task.eval_conditions``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
+import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.store import Tracker
 from ablate.tables.collect import collect, made_lines, running, state_lines
 from ablate.tables.conditions import write_conditions
 from ablate.tables.provenance import Recompute, config_of, provenance
+from ablate.tables.records import read_records, records_path, write_records
 from ablate.tables.rows import write_rows
 from ablate.tables.spec import COSTS, table_spec
 
 LAYOUTS = {"rows": write_rows, "conditions": write_conditions}
 
-__all__ = ["COSTS", "LAYOUTS", "collect", "table_spec", "write_table"]
+__all__ = ["COSTS", "LAYOUTS", "collect", "render_records", "table_spec", "write_table"]
 
 
 def write_table(
@@ -36,16 +39,61 @@ def write_table(
     parent_run: str | None = None,
     results_dir: str | Path = "results",
     fingerprint: Recompute | None = None,
+    publish: bool = False,
 ) -> list[Path]:
     """Write ``cfg``'s table and its figures under ``results_dir`` from the store's runs; log them to
     ``parent_run`` if given. Returns the paths written. ``fingerprint`` recomputes a run's fingerprint from its
     config (:func:`ablate.jobs.fingerprint.compute`, passed in by the caller) for the provenance footer; without it
-    the footer names changed files."""
+    the footer names changed files. ``publish``: write the table's run records first
+    (:func:`~ablate.tables.records.write_records`) and render from them, the one path from runs to a published
+    table."""
     table = table_spec(cfg)
+    runs = collect(tracker, table.name)
+    written: list[Path] = []
+    if publish and len(runs):
+        written.append(write_records(runs, str(table.name), results_dir))
+        runs = read_records(written[-1])
+    config = lambda run_id: config_of(tracker, run_id)  # noqa: E731
+    footer = footer_lines(runs, fingerprint, config, running(tracker, table.name))
+    return written + render(cfg, table, runs, results_dir, footer, tracker, parent_run)
+
+
+def render_records(
+    cfg: DictConfig,
+    results_dir: str | Path = "results",
+    fingerprint: Recompute | None = None,
+    config: Callable[[pd.DataFrame], Callable[[str], DictConfig]] | None = None,
+) -> list[Path] | None:
+    """Write ``cfg``'s table and its figures under ``results_dir`` from its run records
+    (:func:`~ablate.tables.records.records_path`) alone, with no store; None where the table has no records.
+    ``config(runs)`` gives the function that composes a recorded run's config today, for the provenance footer."""
+    table = table_spec(cfg)
+    path = records_path(results_dir, str(table.name))
+    if not path.exists():
+        return None
+    runs = read_records(path)
+    footer = footer_lines(runs, fingerprint, config(runs) if config is not None else None, 0)
+    return render(cfg, table, runs, results_dir, footer, None, None)
+
+
+def footer_lines(
+    runs: pd.DataFrame, fingerprint: Recompute | None, config: Callable[[str], DictConfig] | None, in_progress: int
+) -> list[str]:
+    """The footer under a table: how its rows were made, its provenance, and what it leaves out."""
+    return made_lines(runs) + provenance(runs, fingerprint, config) + state_lines(runs, in_progress)
+
+
+def render(
+    cfg: DictConfig,
+    table: DictConfig,
+    runs: pd.DataFrame,
+    results_dir: str | Path,
+    footer: list[str],
+    tracker: Tracker | None,
+    parent_run: str | None,
+) -> list[Path]:
+    """The table in its layout (``table.layout``) from its runs."""
     layout = table.get("layout", "rows")
     if layout not in LAYOUTS:
         raise ValueError(f"table.layout: {layout!r} is not one of {', '.join(LAYOUTS)}")
-    runs = collect(tracker, table.name)
-    footer = made_lines(runs) + provenance(runs, fingerprint, lambda run_id: config_of(tracker, run_id))
-    footer += state_lines(runs, running(tracker, table.name))
     return LAYOUTS[layout](cfg, table, runs, tracker, parent_run, results_dir, footer)

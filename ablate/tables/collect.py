@@ -50,6 +50,7 @@ def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
             "job_num": int(r.data.tags.get("job_num", "0") or 0),
             "targets": " ".join(sorted({v for k, v in r.data.params.items() if k.endswith("_target_")})),
             **{f"made_{k}": r.data.tags.get(k, "?") for k in MADE},
+            "cpu_isa": r.data.tags.get("cpu_isa", "?"),
             "sweep_id": r.data.tags.get("sweep_id", ""),
             "race_plan": r.data.tags.get("race_plan", ""),
             "reused_from": r.data.tags.get("reused_from", ""),

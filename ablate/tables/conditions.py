@@ -271,7 +271,7 @@ def write_conditions(
     cfg: DictConfig,
     table: DictConfig,
     runs: pd.DataFrame,
-    tracker: Tracker,
+    tracker: Tracker | None,
     parent_run: str | None,
     results_dir: str | Path,
     footer: list[str] | None = None,
@@ -294,7 +294,7 @@ def write_conditions(
         written.append(out / f"{table.name}_robustness.png")
     for path, fig in figures.items():
         fig.savefig(path, dpi=100, metadata={"Software": None})
-        if parent_run:
+        if parent_run and tracker is not None:
             tracker.log_figure(parent_run, fig, path.name)
         plt.close(fig)
     for extra in table.get("also") or []:
@@ -316,8 +316,9 @@ def write_conditions(
         path = out / f"{extra['name']}.md"
         path.write_text(to_markdown(summarise(runs, sub_flat), runs, sub, sub_flat, per_model=False, footer=footer))
         written.append(path)
-    written += copy_artifacts(tracker, runs, table, out)
-    if parent_run:
+    if tracker is not None:  # from records: the copies already beside the table stay as they are
+        written += copy_artifacts(tracker, runs, table, out)
+    if parent_run and tracker is not None:
         for path in written:
             if path.suffix == ".md":
                 tracker.log_artifact(parent_run, path)

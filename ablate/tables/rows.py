@@ -126,7 +126,7 @@ def write_rows(
     cfg: DictConfig,
     table: DictConfig,
     runs: pd.DataFrame,
-    tracker: Tracker,
+    tracker: Tracker | None,
     parent_run: str | None,
     results_dir: str | Path,
     footer: list[str] | None = None,
@@ -140,7 +140,7 @@ def write_rows(
     md.write_text(to_markdown(summary, runs, table, footer))
     fig = plot(summary, table)
     fig.savefig(png, dpi=100, metadata={"Software": None})
-    if parent_run:
+    if parent_run and tracker is not None:
         tracker.log_figure(parent_run, fig, f"{table.name}.png")
         tracker.log_artifact(parent_run, md)
     plt.close(fig)

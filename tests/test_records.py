@@ -1,0 +1,106 @@
+"""Run records: a published table's runs as a CSV beside it, from which the table renders again with no store, byte
+for byte; a table without records is left as it is."""
+
+from __future__ import annotations
+
+import filecmp
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+from omegaconf import OmegaConf
+
+from ablate.store.tracker import KIND_JOB, Tracker
+from ablate.tables import render_records, write_table
+from ablate.tables.records import read_records, records_path, to_records
+from tests.scaleout import REPO
+
+CFG = OmegaConf.create(
+    {
+        "table": {
+            "name": "t2",
+            "title": "Table II",
+            "primary": "det_rate",
+            "reference": "unet",
+            "seeds": {"looks": [3], "alpha": 0.05, "correction": "bonferroni", "budget_min": None},
+            "metrics": {"det_rate": "Det. Rate %", "latency_ms": "Comp Time (ms)"},
+            "rows": [
+                {"row": "chinet", "name": "ChiNet", "paper": {"det_rate": 97.35, "latency_ms": 192}},
+                {"row": "unet", "name": "U-Net", "paper": {"det_rate": 94.2, "latency_ms": 82}},
+            ],
+        }
+    }
+)
+
+
+def store(tmp_path: Path) -> Tracker:
+    """A store with a table's runs: two rows, three seeds, a missing metric, and the tags a job records."""
+    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    exp = tracker.experiment_id("t2")
+    for row, base in (("chinet", 96.0), ("unet", 94.0)):
+        for seed in range(3):
+            tags = {"kind": KIND_JOB, "row": row, "seed": str(seed), "scale": "cpu", "config_hash": f"{row}{seed}"}
+            tags |= {"cpu": "AMD EPYC", "cpu_isa": "avx2", "precision": "32-true", "threads": "1", "sweep_id": "s"}
+            run = tracker.start(exp, row, tags)
+            metrics = {"det_rate": base + 0.1 * seed + 1 / 3, "val/det_rate": 1.0, "test/det_rate": base}
+            if not (row == "unet" and seed == 2):  # the side-by-side latency of the row, on all but one run
+                ms = 12.5 + seed
+                metrics |= {"latency_ms": ms, "latency_q1_ms": ms - 1, "latency_q3_ms": ms + 1}
+                metrics |= {"latency_load": 0.5, "latency_cores": 2.0, "params_m": 1.25, "macs_g": 0.5}
+            tracker.log_metrics(run, metrics)
+            tracker.end(run, "FINISHED")
+    return tracker
+
+
+def test_records_keep_every_run_the_table_uses_and_read_back_as_they_were(tmp_path: Path) -> None:
+    tracker = store(tmp_path)
+    written = write_table(CFG, tracker, results_dir=tmp_path / "a", publish=True)
+    path = records_path(tmp_path / "a", "t2")
+    assert written[0] == path and path.exists()
+    records = read_records(path)
+    assert len(records) == 6 and set(records["row"]) == {"chinet", "unet"}
+    assert records["seed"].dtype != "int64" and records["det_rate"].dtype == float  # tags stay text
+    assert {"table", "status", "config_hash", "git_commit", "made_cpu", "cpu_isa", "seconds"} <= set(records.columns)
+    assert not any(c.startswith(("val/", "test/")) for c in records.columns)  # no history, no second names
+    unet2 = records[(records["row"] == "unet") & (records["seed"] == "2")]
+    assert math.isnan(unet2["latency_ms"].iloc[0])  # a missing metric reads back as missing
+    chinet0 = records[(records["row"] == "chinet") & (records["seed"] == "0")]
+    assert chinet0["det_rate"].iloc[0] == 96.0 + 1 / 3  # the float, exactly
+    again = to_records(records, "t2")
+    pd.testing.assert_frame_equal(again.reset_index(drop=True), records)
+
+
+def test_a_table_renders_from_its_records_with_no_store_byte_for_byte(tmp_path: Path) -> None:
+    tracker = store(tmp_path)
+    from_store = write_table(CFG, tracker, results_dir=tmp_path / "a", publish=True)
+    shutil.copytree(tmp_path / "a" / "runs", tmp_path / "b" / "runs")  # a fresh clone: the records alone
+    from_records = render_records(CFG, tmp_path / "b")
+    assert from_records is not None and [p.name for p in from_records] == [p.name for p in from_store[1:]]
+    for a, b in zip(from_store[1:], from_records):
+        assert filecmp.cmp(a, b, shallow=False), f"{b.name} differs from the table rendered from the store"
+    assert render_records(CFG, tmp_path / "c") is None  # no records: nothing rendered
+
+
+def test_the_report_leaves_tables_without_records_as_they_are(tmp_path: Path) -> None:
+    # as on a fresh clone: the published tables and summaries, no store, and (today) no records for this table
+    shutil.copytree(REPO / "results", tmp_path / "results", ignore=shutil.ignore_patterns("runs"))
+    shutil.copy(REPO / "README.md", tmp_path / "README.md")
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    out = subprocess.run(
+        [sys.executable, "-m", "ablate.report", "experiment=chinet_table2"],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "chinet_table2: no run records yet" in out.stdout
+    assert not (tmp_path / "mlflow.db").exists()  # no store was made or read
+    changed = [
+        str(p.relative_to(tmp_path))
+        for p in [tmp_path / "README.md", *(tmp_path / "results").rglob("*")]
+        if p.is_file() and not filecmp.cmp(p, REPO / p.relative_to(tmp_path), shallow=False)
+    ]
+    assert changed == [], changed
