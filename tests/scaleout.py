@@ -15,7 +15,15 @@ from mlflow.tracking import MlflowClient
 from tests.stores import seed_store
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = ["scale=smoke", "data.synth.frames=20", "trainer.enable_progress_bar=false", "comp_time.repeats=2"]
+# publish=true: these sweeps' tables are read under results/, as a publishing sweep writes them (a sweep that does not
+# publish leaves results/ alone: tests/test_publish.py)
+TINY = [
+    "scale=smoke",
+    "data.synth.frames=20",
+    "trainer.enable_progress_bar=false",
+    "comp_time.repeats=2",
+    "publish=true",
+]
 # a sweep whose parallelism is not what a test is about runs its jobs in its own process: a parallel sweep's two
 # worker processes would import torch and Lightning again (seconds each) for tiny jobs
 SERIAL = "hydra/launcher=basic"

@@ -10,7 +10,13 @@ from pathlib import Path
 from mlflow.tracking import MlflowClient
 
 REPO = Path(__file__).resolve().parent.parent
-TINY = ["scale=smoke", "data.synth.frames=20", "trainer.enable_progress_bar=false", "trainer.max_epochs=1"]
+TINY = [
+    "scale=smoke",
+    "data.synth.frames=20",
+    "trainer.enable_progress_bar=false",
+    "trainer.max_epochs=1",
+    "publish=true",
+]
 
 
 def test_a_users_operator_sweeps_beside_a_built_in_one(tmp_path):

@@ -29,6 +29,7 @@ SOURCE = Path(__file__).resolve().parents[2]
 #: cache of frozen experts, ablate.jobs.experts.FeatureCache, changes the speed only).
 UNHASHED = (
     "force",
+    "publish",
     "logger",
     "hydra",
     "table",

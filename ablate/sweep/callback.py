@@ -11,6 +11,7 @@ import importlib.util
 import json
 import logging
 import os
+import shutil
 import socket
 import sys
 import time
@@ -21,14 +22,17 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from ablate.analysis.compare import against_published
 from ablate.analysis.latency import measure
-from ablate.config import compose
+from ablate.config import CONF, compose
 from ablate.jobs import fingerprint
 from ablate.jobs.preempt import GRACE_S, alive, install_parent
 from ablate.store import KIND_SWEEP, AccessDenied, ServerUnreachable, SweepContext, Tracker, is_server, provenance_tags
 from ablate.store.context import PARENT_FILE, STORE_FILE, SWEPT_FILE
 from ablate.sweep import progress
 from ablate.tables import COSTS, table_spec, write_table
+from ablate.tables.index import write_index
+from ablate.tables.records import read_records, records_path
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +112,38 @@ def fixed_overrides(config: DictConfig) -> list[str]:
     and a seed added, they compose that job's config again."""
     parsed = OverridesParser.create().parse_overrides(list(config.hydra.overrides.task))
     return [str(o.input_line) for o in parsed if not o.is_sweep_override()]
+
+
+#: Where published tables live, under the launch directory; a sweep writes its own table into its sweep folder.
+RESULTS = "results"
+
+
+def publish(paths: list[Path], source: Path, results: Path, config: DictConfig) -> list[Path]:
+    """Copy a sweep's table, its records and its figures (``paths``, under ``source``) to ``results`` (``publish=true``),
+    and rewrite the results summary there and in the README beside it (:mod:`ablate.tables.index`); the copies."""
+    copies = []
+    for path in paths:
+        target = results / path.relative_to(source)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(path, target)
+        copies.append(target)
+    experiments = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
+    fixed = [o for o in fixed_overrides(config) if not o.startswith("experiment=")]
+    specs = [table_spec(compose([*fixed, f"experiment={name}"])) for name in experiments]
+    return copies + write_index(specs, RESULTS, "README.md")  # the driver runs in the launch directory
+
+
+def beside_published(config: DictConfig, sweep_dir: Path, results: Path) -> None:
+    """Log the sweep's rows beside the published records of its table (:mod:`ablate.analysis.compare`), and keep the
+    comparison as ``<table>_vs_published.md`` in the sweep's folder."""
+    table = table_spec(config)
+    mine = records_path(sweep_dir, str(table.name))
+    text = against_published(read_records(mine), table, results) if mine.exists() else None
+    if text is None:
+        log.info("No published records of %s to compare with (%s)", table.name, records_path(results, table.name))
+        return
+    (sweep_dir / f"{table.name}_vs_published.md").write_text(text)
+    log.info("Your rows beside the published ones:\n%s", text)
 
 
 def sweep_context(config: DictConfig) -> SweepContext:
@@ -205,8 +241,14 @@ class SweepCallback(Callback):
             except Exception as err:  # the table is written all the same, its latency column empty
                 log.error("Could not time the rows side by side (python -m ablate.latency): %s", err)
         try:
-            paths = write_table(config, tracker, parent_run=parent, fingerprint=fingerprint.compute)
+            assert context.sweep_dir is not None
+            paths = write_table(config, tracker, parent, context.sweep_dir, fingerprint.compute, publish=True)
             log.info("Table written: %s", ", ".join(str(p) for p in paths))
+            if config.get("publish"):
+                published = publish(paths, context.sweep_dir, context.launch_dir / RESULTS, config)
+                log.info("Published: %s", ", ".join(str(p) for p in published))
+            elif config.table.rows:
+                beside_published(config, context.sweep_dir, context.launch_dir / RESULTS)
         except Exception as err:  # a table that cannot be written must not hide the jobs' own outcome
             log.error("Could not write the table '%s': %s", config.table.name, err)
             failures.append(Path("report"))

@@ -1,0 +1,69 @@
+"""Trying never overwrites what is published: a sweep writes its table, records and figure into its own folder and
+onto its parent run; only ``publish=true`` (or ``python -m ablate.report``, from the records) writes under
+``results/`` and the README's summary."""
+
+from __future__ import annotations
+
+import filecmp
+import shutil
+from pathlib import Path
+
+from tests.scaleout import REPO, SERIAL, ablate, output, runs
+
+#: TINY without publish=true: as a user tries things
+TRY = ["scale=smoke", "data.synth.frames=20", "trainer.enable_progress_bar=false", "comp_time.repeats=2"]
+
+
+def published(where: Path) -> dict[str, bytes]:
+    """The published files under ``where``: results/ and the README."""
+    files = [where / "README.md", *sorted((where / "results").rglob("*"))]
+    return {str(p.relative_to(where)): p.read_bytes() for p in files if p.is_file()}
+
+
+def test_a_smoke_sweep_and_an_ad_hoc_sweep_on_other_data_leave_the_published_results_alone(tmp_path: Path) -> None:
+    shutil.copytree(REPO / "results", tmp_path / "results")  # a clone's published tables
+    shutil.copy(REPO / "README.md", tmp_path / "README.md")
+    before = published(tmp_path)
+    paper = ablate(tmp_path, "-m", "experiment=chinet_table2", *TRY, SERIAL)
+    assert paper.returncode == 0, output(paper)
+    adhoc = ablate(tmp_path, "-m", "task=semantic", "model=unet,fusenet", "data.synth.seed=7", *TRY, SERIAL)
+    assert adhoc.returncode == 0, output(adhoc)
+    assert published(tmp_path) == before  # not a byte of results/ or the README changed
+    sweeps = sorted((tmp_path / "multirun").glob("*/*"))
+    assert len(sweeps) == 2
+    for sweep, table in zip(sweeps, ("chinet_table2", "ablate")):
+        assert (sweep / f"{table}.md").is_file() and (sweep / f"{table}.png").is_file()
+        assert (sweep / "runs" / f"{table}.csv").is_file()  # the sweep's own records
+    client, parents = runs(f"sqlite:///{tmp_path / 'mlflow.db'}", "chinet_table2", kind="sweep")
+    assert "chinet_table2.md" in [a.path for a in client.list_artifacts(parents[0].info.run_id)]
+
+
+def test_publish_true_writes_the_records_and_the_table_under_results(tmp_path: Path) -> None:
+    out = ablate(tmp_path, "-m", "experiment=chinet_table2", "row=unet,fusenet", *TRY, SERIAL, "publish=true")
+    assert out.returncode == 0, output(out)
+    sweep = next((tmp_path / "multirun").glob("*/*"))
+    for name in ("chinet_table2.md", "chinet_table2.png", "runs/chinet_table2.csv"):
+        assert filecmp.cmp(sweep / name, tmp_path / "results" / name, shallow=False), name
+    again = ablate(tmp_path, "-m", "experiment=chinet_table2", "row=unet,fusenet", *TRY, SERIAL)  # as `make run`
+    assert again.returncode == 0, output(again)
+    assert published(tmp_path)["results/chinet_table2.md"] == (tmp_path / "results" / "chinet_table2.md").read_bytes()
+    newest = max((tmp_path / "multirun").glob("*/*"))
+    beside = (newest / "chinet_table2_vs_published.md").read_text()
+    assert "| U-Net |" in beside and "| FuseNet |" in beside and "Your rows beside the published" in output(again)
+
+
+def test_your_seeds_are_placed_in_the_published_rows_prediction_interval() -> None:
+    from omegaconf import OmegaConf
+
+    from ablate.analysis.compare import compare
+
+    table = OmegaConf.create({"primary": "det_rate", "rows": [{"row": "unet", "name": "U-Net"}]})
+    shared = {"row": "unet", "made_cpu": "AMD EPYC", "made_precision": "32-true", "made_threads": "1"}
+    import pandas as pd
+
+    ours = pd.DataFrame([{**shared, "cpu_isa": "avx2", "det_rate": v} for v in (95.0, 99.5)])
+    theirs = pd.DataFrame([{**shared, "cpu_isa": "avx512f", "det_rate": v} for v in (94.0, 95.0, 96.0)])
+    line = compare(ours, theirs, table).splitlines()[-1]
+    # published: mean 95, s = 1, n = 3: 95 ± 4.30 · 1 · sqrt(4/3) = [90.03, 99.97]
+    assert line.startswith("| U-Net | 97.25 (2) | 95.00 (3) | [90.03, 99.97] | 2 of 2 |"), line
+    assert "ISA: avx512f -> avx2" in line and "CPU" not in line
