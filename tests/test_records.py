@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import pandas as pd
+import pytest
 from omegaconf import OmegaConf
 
 from ablate.store.tracker import KIND_JOB, Tracker
@@ -104,3 +105,19 @@ def test_the_report_leaves_tables_without_records_as_they_are(tmp_path: Path) ->
         if p.is_file() and not filecmp.cmp(p, REPO / p.relative_to(tmp_path), shallow=False)
     ]
     assert changed == [], changed
+
+
+def test_the_tables_numbers_are_a_csv_and_a_booktabs_latex_table_equal_to_its_markdown(tmp_path: Path) -> None:
+    write_table(CFG, store(tmp_path), results_dir=tmp_path / "a", publish=True)
+    numbers = pd.read_csv(tmp_path / "a" / "t2.csv").set_index("row")
+    chinet = [96.0 + 0.1 * s + 1 / 3 for s in range(3)]
+    assert numbers.loc["chinet", "det_rate_mean"] == pytest.approx(sum(chinet) / 3, abs=1e-12)
+    assert numbers.loc["chinet", "n"] == 3 and numbers.loc["chinet", "det_rate_paper"] == 97.35
+    assert numbers.loc["chinet", "reference"] == "unet" and numbers.loc["chinet", "delta"] == pytest.approx(2.0)
+    assert numbers.loc["chinet", "verdict"] in ("decided", "undecided") and math.isnan(numbers.loc["unet", "delta"])
+    markdown = (tmp_path / "a" / "t2.md").read_text()
+    for row, values in numbers.iterrows():  # the CSV's numbers are the markdown's, unrounded
+        assert f"{values['det_rate_mean']:.2f} ± {values['det_rate_std']:.2f}" in markdown, row
+    tex = (tmp_path / "a" / "t2.tex").read_text()
+    assert "\\toprule" in tex and "\\bottomrule" in tex and "Det. Rate \\%" in tex
+    assert "ChiNet & \\bfseries 96.43 $\\pm$ 0.10" in tex  # the best of its column in bold

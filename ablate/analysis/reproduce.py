@@ -8,8 +8,11 @@ being the same files), and says:
   s · sqrt(1 + 1/n)`` over the recorded seeds (:func:`ablate.tables.significance.prediction_interval`): the range a
   single new run should fall in, wider than the CI of the mean;
 * how far it is from the recorded run of the same seed;
-* where this machine, the precision or the thread count differ from the recorded runs' own (their tags): the
-  numerics are a source of variation of their own (Bouthillier et al. 2021).
+* where this machine, the precision or the thread count differ from the recorded runs' own: the numerics are a
+  source of variation of their own (Bouthillier et al. 2021).
+
+The recorded runs are the table's published records (``results/runs/<table>.csv``, :mod:`ablate.tables.records`)
+where it has them, so the check works on a fresh clone; else the runs of the store the config names.
 """
 
 from __future__ import annotations
@@ -22,15 +25,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.store import Tracker
 from ablate.tables import collect, table_spec
 from ablate.tables.collect import under_condition
+from ablate.tables.records import read_records, records_path
 from ablate.tables.significance import prediction_interval
 
-#: The run tags that say how a number was computed, beside the config: compared between the recorded runs and now.
-NUMERICS = ("cpu", "cpu_isa", "precision", "threads")
+#: How a number was computed, beside the config (a run's tags, its record's columns): compared between the recorded
+#: runs and now, by the name a line gives it.
+NUMERICS = {"cpu": "made_cpu", "cpu_isa": "cpu_isa", "precision": "made_precision", "threads": "made_threads"}
 
 
 @dataclass
@@ -69,8 +75,9 @@ class Reproduction:
         return out
 
 
-def numerics(tags: dict[str, str]) -> dict[str, str]:
-    return {k: tags.get(k, "?") for k in NUMERICS}
+def numerics(run: pd.Series) -> dict[str, str]:
+    """The numerics of one run (a row of a table's runs or records)."""
+    return {name: str(run.get(column, "?")) for name, column in NUMERICS.items()}
 
 
 def differences(recorded: list[dict[str, str]], now: dict[str, str]) -> list[str]:
@@ -96,23 +103,33 @@ def rerun(overrides: list[str], launch: Path, scratch: Path) -> None:
         raise RuntimeError(f"the rerun failed (exit {code}); its log is under {scratch / 'outputs'}")
 
 
-def reproduce(cfg: DictConfig, overrides: list[str], keep: Path | None = None) -> Reproduction:
-    """Rerun one seed of ``cfg``'s row (``row=`` among ``overrides``) and compare it with the recorded runs of the
-    store ``cfg`` names."""
+def recorded_runs(cfg: DictConfig, table: DictConfig, results: Path) -> tuple[pd.DataFrame, str]:
+    """The runs a row's rerun is compared with, and where they come from: the published records of the table
+    (``results/runs/<table>.csv``, so the check works on a fresh clone), else the runs of the store ``cfg`` names."""
+    path = records_path(results, str(table.name))
+    if path.exists():
+        return under_condition(read_records(path), table), str(path)
+    tracker = Tracker.from_config(cfg)
+    return under_condition(collect(tracker, str(table.name)), table), tracker.uri
+
+
+def reproduce(
+    cfg: DictConfig, overrides: list[str], keep: Path | None = None, results: Path = Path("results")
+) -> Reproduction:
+    """Rerun one seed of ``cfg``'s row (``row=`` among ``overrides``) and compare it with the row's published
+    records (:func:`recorded_runs`)."""
     table = table_spec(cfg)
     row = next((o.split("=", 1)[1] for o in overrides if o.startswith("row=")), None)
     if row is None:
         raise ValueError("--reproduce needs row=<row> (one of the table's rows)")
-    tracker = Tracker.from_config(cfg)
-    runs = under_condition(collect(tracker, str(table.name)), table)
+    runs, source = recorded_runs(cfg, table, results)
     mine = runs[runs["row"] == row] if len(runs) else runs
     if not len(mine) or table.primary not in mine:
-        raise ValueError(f"no FINISHED runs of row '{row}' of {table.name} in {tracker.uri}")
+        raise ValueError(f"no FINISHED runs of row '{row}' of {table.name} in {source}")
     by_seed = {int(s): float(v) for s, v in zip(mine["seed"], mine[table.primary]) if str(s).isdigit()}
     given = [o for o in overrides if o.startswith("seed=")]
     seed = int(given[0].split("=", 1)[1]) if given else min(by_seed)
     rest = [o for o in overrides if not o.startswith("seed=")]
-    recorded_tags = [tracker.get_run(rid).data.tags for rid in mine["run_id"]]
     with tempfile.TemporaryDirectory(prefix="ablate-reproduce-") as tmp:
         scratch = keep or Path(tmp)
         rerun([*rest, f"seed={seed}"], Path.cwd(), scratch)
@@ -121,7 +138,6 @@ def reproduce(cfg: DictConfig, overrides: list[str], keep: Path | None = None) -
         new = new[(new["row"] == row) & (new["seed"].astype(str) == str(seed))]
         if not len(new):
             raise RuntimeError(f"the rerun of {row} seed {seed} recorded no FINISHED run")
-        now_tags = fresh.get_run(new["run_id"].iloc[0]).data.tags
     values = list(by_seed.values())
     return Reproduction(
         row,
@@ -131,5 +147,5 @@ def reproduce(cfg: DictConfig, overrides: list[str], keep: Path | None = None) -
         by_seed.get(seed),
         values,
         prediction_interval(values),
-        differences([numerics(t) for t in recorded_tags], numerics(now_tags)),
+        differences([numerics(r) for _, r in mine.iterrows()], numerics(new.iloc[0])),
     )

@@ -30,7 +30,7 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
     ref = reference(summary, table)
     if ref is None:
         return {}, []
-    raced = _replayed_race(summary, runs, table, key)
+    raced = replayed_race(summary, runs, table, key)
     if raced is not None:
         ref = raced.reference or ref
     ref_name = str(summary.loc[summary["row"] == ref, "name"].iloc[0])
@@ -48,7 +48,7 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
     return columns, lines + _disagreeing_seed_lines(summary, runs, table)
 
 
-def _replayed_race(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, key: str) -> RaceState | None:
+def replayed_race(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, key: str) -> RaceState | None:
     """The race's own decisions, replayed from the runs (ablate.tables.racing); None without a race plan or rows."""
     plan = RacePlan.from_config(recorded_plan(runs) or table.get("seeds"))
     if plan is None:

@@ -21,6 +21,7 @@ from omegaconf import DictConfig  # noqa: E402
 from ablate.store import Tracker  # noqa: E402
 from ablate.tables.collect import under_condition  # noqa: E402
 from ablate.tables.columns import costs, significance  # noqa: E402
+from ablate.tables.export import write_numbers  # noqa: E402
 from ablate.tables.provenance import provenance  # noqa: E402
 from ablate.tables.spec import COSTS  # noqa: E402
 from ablate.tables.summary import best_of, fmt, kendall, summarise  # noqa: E402
@@ -131,17 +132,19 @@ def write_rows(
     results_dir: str | Path,
     footer: list[str] | None = None,
 ) -> list[Path]:
-    """Write ``results/<table>.md`` and ``.png`` from the runs; log both to ``parent_run`` if given."""
+    """Write ``results/<table>.md`` and ``.png``, and its numbers as ``.csv`` and ``.tex``
+    (:mod:`ablate.tables.export`), from the runs; log the markdown and the figure to ``parent_run`` if given."""
     runs = under_condition(runs, table)
     summary = summarise(runs, table)
     out = Path(results_dir)
     out.mkdir(parents=True, exist_ok=True)
     md, png = out / f"{table.name}.md", out / f"{table.name}.png"
     md.write_text(to_markdown(summary, runs, table, footer))
+    numbers = write_numbers(summary, runs, table, out)
     fig = plot(summary, table)
     fig.savefig(png, dpi=100, metadata={"Software": None})
     if parent_run and tracker is not None:
         tracker.log_figure(parent_run, fig, f"{table.name}.png")
         tracker.log_artifact(parent_run, md)
     plt.close(fig)
-    return [md, png]
+    return [md, png, *numbers]
