@@ -27,8 +27,8 @@ from omegaconf import DictConfig
 from ablate import cli
 from ablate.analysis.reproduce import reproduce
 from ablate.config import CONF, compose
-from ablate.store import KIND_SWEEP, AccessDenied, ServerUnreachable, Tracker
-from ablate.tables import render_records, table_spec, write_table
+from ablate.store import AccessDenied, ServerUnreachable, Tracker
+from ablate.tables import collect, render_records, table_spec, write_table
 from ablate.tables.index import write_index
 from ablate.tables.parity import parity, write_parity
 from ablate.tables.records import records_path
@@ -101,6 +101,13 @@ def recorded_config(runs: pd.DataFrame, base: list[str]) -> Callable[[str], Dict
     return config
 
 
+def source_sweep(tracker: Tracker, cfg: DictConfig) -> str | None:
+    """The sweep's run a published table is attached to: the one sweep all its rows came from, else none (a table
+    whose rows came from several sweeps belongs to none of them)."""
+    sweeps = set(collect(tracker, str(cfg.table.name)).get("sweep_id", pd.Series(dtype=str)).fillna(""))
+    return sweeps.pop() or None if len(sweeps) == 1 else None
+
+
 def _publish(named: list[str], rest: list[str]) -> int:
     """Publish from the store: each table's records, then the table from them (the ad-hoc table too, unnamed)."""
     names = named or ["ablate"] + sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
@@ -114,9 +121,9 @@ def _publish(named: list[str], rest: list[str]) -> int:
                 print(f"error: no runs for experiment '{name}' in {tracker.uri}", file=sys.stderr)
                 return 1
             continue
-        sweeps = tracker.runs(exp, f"tags.kind = '{KIND_SWEEP}'")
-        parent = max(sweeps, key=lambda r: r.info.start_time).info.run_id if sweeps else None
-        for path in write_table(cfg, tracker, parent, RESULTS, fingerprint, publish=name != "ablate"):
+        for path in write_table(
+            cfg, tracker, source_sweep(tracker, cfg), RESULTS, fingerprint, publish=name != "ablate"
+        ):
             print(path)
         written += 1
     if not written:

@@ -35,7 +35,10 @@ def test_a_smoke_sweep_and_an_ad_hoc_sweep_on_other_data_leave_the_published_res
         assert (sweep / f"{table}.md").is_file() and (sweep / f"{table}.png").is_file()
         assert (sweep / "runs" / f"{table}.csv").is_file()  # the sweep's own records
     client, parents = runs(f"sqlite:///{tmp_path / 'mlflow.db'}", "chinet_table2", kind="sweep")
-    assert "chinet_table2.md" in [a.path for a in client.list_artifacts(parents[0].info.run_id)]
+    parent = parents[0]  # worth opening: named after its table, carrying it and each row's mean
+    assert {"chinet_table2.md", "chinet_table2.csv"} <= {a.path for a in client.list_artifacts(parent.info.run_id)}
+    assert parent.info.run_name.startswith("chinet_table2 scale=smoke")
+    assert {"det_rate/chinet", "det_rate/unet", "det_rate/fusenet"} <= set(parent.data.metrics)
 
 
 def test_publish_true_writes_the_records_and_the_table_under_results(tmp_path: Path) -> None:

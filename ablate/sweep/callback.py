@@ -11,6 +11,7 @@ import importlib.util
 import json
 import logging
 import os
+import re
 import shutil
 import socket
 import sys
@@ -146,6 +147,31 @@ def beside_published(config: DictConfig, sweep_dir: Path, results: Path) -> None
     log.info("Your rows beside the published ones:\n%s", text)
 
 
+def parent_name(config: DictConfig) -> str:
+    """The sweep's run name in the MLflow UI: its table, its scale and the overrides it was launched with."""
+    overrides = [o for o in fixed_overrides(config) if not o.startswith(("experiment=", "scale="))]
+    swept = [o for o in config.hydra.overrides.task if o not in fixed_overrides(config)]
+    return " ".join([str(config.table.name), f"scale={config.scale.name}", *overrides, *swept])
+
+
+#: What an MLflow metric name may not hold.
+NOT_IN_A_NAME = re.compile(r"[^\w\-. :/]")
+
+
+def row_means(tracker: Tracker, parent: str, config: DictConfig, records: Path) -> None:
+    """Each row's mean of the table's primary metric as a metric of the sweep's run (``<metric>/<row>``), so that
+    its collapsed row in the MLflow UI shows the table's outcome."""
+    table = table_spec(config)
+    if not records.exists() or not table.primary:
+        return
+    runs = read_records(records)
+    if str(table.primary) not in runs:
+        return
+    means = runs.groupby("row")[str(table.primary)].mean().dropna()
+    named = {f"{table.primary}/{NOT_IN_A_NAME.sub(':', str(row))}": float(v) for row, v in means.items()}
+    tracker.log_metrics(parent, named)  # MLflow's names take no `=`: `model=unet` is `model:unet`
+
+
 def sweep_context(config: DictConfig) -> SweepContext:
     """The sweep's context, read where the driver's callback starts: its launch and sweep directories from the
     multirun's config, and what the sweep directory's files hold by now."""
@@ -185,7 +211,7 @@ class SweepCallback(Callback):
         overrides = " ".join(config.hydra.overrides.task)
         run_id = tracker.start(
             exp,
-            f"sweep {time.strftime('%Y-%m-%d %H:%M:%S')}",
+            parent_name(config),
             {
                 "kind": KIND_SWEEP,
                 "table": config.table.name,
@@ -244,6 +270,11 @@ class SweepCallback(Callback):
             assert context.sweep_dir is not None
             paths = write_table(config, tracker, parent, context.sweep_dir, fingerprint.compute, publish=True)
             log.info("Table written: %s", ", ".join(str(p) for p in paths))
+            if parent:
+                try:
+                    row_means(tracker, parent, config, records_path(context.sweep_dir, str(config.table.name)))
+                except Exception as err:  # a convenience: never the reason a sweep fails
+                    log.warning("Could not log the rows' means on the sweep's run: %s", err)
             if config.get("publish"):
                 published = publish(paths, context.sweep_dir, context.launch_dir / RESULTS, config)
                 log.info("Published: %s", ", ".join(str(p) for p in published))

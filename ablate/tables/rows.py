@@ -133,7 +133,7 @@ def write_rows(
     footer: list[str] | None = None,
 ) -> list[Path]:
     """Write ``results/<table>.md`` and ``.png``, and its numbers as ``.csv`` and ``.tex``
-    (:mod:`ablate.tables.export`), from the runs; log the markdown and the figure to ``parent_run`` if given."""
+    (:mod:`ablate.tables.export`), from the runs; log them to ``parent_run`` if given."""
     runs = under_condition(runs, table)
     summary = summarise(runs, table)
     out = Path(results_dir)
@@ -145,6 +145,7 @@ def write_rows(
     fig.savefig(png, dpi=100, metadata={"Software": None})
     if parent_run and tracker is not None:
         tracker.log_figure(parent_run, fig, f"{table.name}.png")
-        tracker.log_artifact(parent_run, md)
+        for path in (md, *numbers):
+            tracker.log_artifact(parent_run, path)
     plt.close(fig)
     return [md, png, *numbers]
