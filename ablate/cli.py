@@ -143,8 +143,8 @@ def own(parser: Parser, args: argparse.Namespace, keys: dict[str, Callable[[str]
 
 
 def report(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Namespace:
-    """``python -m ablate.report [--publish | --reproduce | --parity] [key=value ...]``: ``publish``, ``reproduce``
-    and ``parity`` (bools),
+    """``python -m ablate.report [--publish | --load | --reproduce | --parity] [key=value ...]``: ``publish``,
+    ``load``, ``reproduce`` and ``parity`` (bools),
     ``overrides``. ``--reproduce`` needs ``experiment=`` and ``row=``, ``--parity`` ``experiment=`` and one
     ``row=``."""
     parser = command(
@@ -152,6 +152,7 @@ def report(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Names
         doc,
         usage="%(prog)s [-h] [experiment=<table>] [key=value ...]\n"
         "%(prog)s --publish [experiment=<table>] [key=value ...]\n"
+        "%(prog)s --load [experiment=<table>] [key=value ...]\n"
         "%(prog)s --reproduce experiment=<table> row=<row> [seed=N] [key=value ...]\n"
         "%(prog)s --parity experiment=<table> row=<row> [key=value ...]",
         epilog="exit status:\n"
@@ -167,6 +168,12 @@ def report(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Names
         action="store_true",
         help="publish from the store: write each table's run records (results/runs/<table>.csv) from the store's "
         "runs, then the table from them; without it the tables are rendered from the committed records alone",
+    )
+    mode.add_argument(
+        "--load",
+        action="store_true",
+        help="load the published run records into your store (mlflow.db unless logger.tracking_uri or "
+        "MLFLOW_TRACKING_URI says otherwise), marked as imported, so that `mlflow ui` shows the runs behind the tables",
     )
     mode.add_argument(
         "--reproduce",

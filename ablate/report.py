@@ -6,7 +6,9 @@ results summary (one line per paper table, :mod:`ablate.tables.index`) is rewrit
 
 ``python -m ablate.report --publish [experiment=<table>]`` publishes from the store (``logger.tracking_uri=...`` and
 other ``key=value`` overrides apply): each table's records are written from the store's runs, then the table from
-them. Nothing else writes under ``results/``: a sweep writes its table into its own folder.
+them. Nothing else writes under ``results/``: a sweep writes its table into its own folder (``publish=true``
+publishes it too). ``python -m ablate.report --load [experiment=<table>]`` loads the published records into your
+store, marked as imported, so that ``mlflow ui`` shows the runs behind the published tables.
 
 ``python -m ablate.report --reproduce experiment=<table> row=<row> [seed=N]`` reruns one seed of a row here and says
 whether it holds (:mod:`ablate.analysis.reproduce`). ``python -m ablate.report --parity experiment=<table> row=<row>``
@@ -31,7 +33,7 @@ from ablate.store import AccessDenied, ServerUnreachable, Tracker
 from ablate.tables import collect, render_records, table_spec, write_table
 from ablate.tables.index import write_index
 from ablate.tables.parity import parity, write_parity
-from ablate.tables.records import records_path
+from ablate.tables.records import load_records, records_path
 
 #: Where published tables and their records live.
 RESULTS = Path("results")
@@ -66,6 +68,8 @@ def _main(parsed: Namespace) -> int:
     named = [a.split("=", 1)[1] for a in args if a.startswith("experiment=")]
     rest = [a for a in args if not a.startswith("experiment=")]
     experiments = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
+    if parsed.load:
+        return _load(named or experiments, rest)
     code = _publish(named, rest) if parsed.publish else _from_records(named or experiments, rest)
     if code:
         return code
@@ -86,6 +90,19 @@ def _from_records(names: list[str], rest: list[str]) -> int:
             continue
         for path in paths:
             print(path)
+    return 0
+
+
+def _load(names: list[str], rest: list[str]) -> int:
+    """Load each table's published records into the configured store (:func:`ablate.tables.records.load_records`)."""
+    tracker = Tracker.from_config(compose(rest))
+    for name in names:
+        path = records_path(RESULTS, name)
+        if not path.exists():
+            print(f"{name}: no run records yet ({path})")
+            continue
+        print(f"{name}: {load_records(tracker, path)} run(s) loaded from {path} into {tracker.uri}")
+    print("`mlflow ui` here shows them (kind: imported)")
     return 0
 
 

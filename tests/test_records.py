@@ -121,3 +121,21 @@ def test_the_tables_numbers_are_a_csv_and_a_booktabs_latex_table_equal_to_its_ma
     tex = (tmp_path / "a" / "t2.tex").read_text()
     assert "\\toprule" in tex and "\\bottomrule" in tex and "Det. Rate \\%" in tex
     assert "ChiNet & \\bfseries 96.43 $\\pm$ 0.10" in tex  # the best of its column in bold
+
+
+def test_the_published_runs_load_into_a_local_store_once_marked_as_imported(tmp_path: Path) -> None:
+    from ablate.tables import collect
+    from ablate.tables.records import IMPORTED, load_records
+
+    write_table(CFG, store(tmp_path), results_dir=tmp_path / "a", publish=True)
+    local = Tracker(f"sqlite:///{tmp_path / 'local.db'}", str(tmp_path / "local-artifacts"))
+    path = records_path(tmp_path / "a", "t2")
+    assert load_records(local, path) == 6 and load_records(local, path) == 0  # once
+    loaded = local.runs(str(local.find_experiment("t2")))
+    assert len(loaded) == 6 and all(r.info.status == "FINISHED" for r in loaded)
+    chinet0 = next(r for r in loaded if r.data.tags["row"] == "chinet" and r.data.tags["seed"] == "0")
+    assert chinet0.data.metrics["det_rate"] == 96.0 + 1 / 3 and chinet0.data.tags["cpu_isa"] == "avx2"
+    assert chinet0.data.tags["kind"] == "imported" and chinet0.data.tags[IMPORTED].endswith(
+        "t2.csv#" + chinet0.data.tags["recorded_run_id"]
+    )
+    assert collect(local, "t2").empty  # not this store's jobs: no table here counts them, no job skips on them

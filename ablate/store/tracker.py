@@ -212,6 +212,15 @@ class Tracker:
         run = self.call(self._client.create_run, experiment_id, tags=tags, run_name=name)
         return run.info.run_id
 
+    def import_run(
+        self, experiment_id: str, name: str, tags: dict[str, str], metrics: dict[str, float], start: int, end: int
+    ) -> str:
+        """A FINISHED run made elsewhere (a published record), with its own start and end (ms) and final metrics."""
+        run = self.call(self._client.create_run, experiment_id, start_time=start, tags=tags, run_name=name)
+        self.log_rows(run.info.run_id, [(k, float(v), end, 0) for k, v in sorted(metrics.items())])
+        self.call(self._client.set_terminated, run.info.run_id, "FINISHED", end_time=end)
+        return str(run.info.run_id)
+
     def end(self, run_id: str, status: str) -> None:
         self.call(self._client.set_terminated, run_id, status)
 

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from ablate.store import Tracker
+
 #: Where records live under a results folder.
 RUNS_DIR = "runs"
 #: The text columns of a record (a run's tags): read back as text, never as numbers.
@@ -89,3 +91,43 @@ def read_records(path: str | Path) -> pd.DataFrame:
         if column not in WHOLE:
             frame[column] = frame[column].astype(float)
     return frame
+
+
+#: The tag an imported run carries: the record it was made from (``<records file>#<run id>``).
+IMPORTED = "imported_from"
+#: The kind of an imported run: never a job of this store, so no job skips on it and no table here counts it.
+KIND_IMPORTED = "imported"
+#: Record columns that become tags of another name (the rest of :data:`TEXT` keep theirs, but ``status``): the
+#: config hash and run id are the recorded run's, kept apart from this store's own.
+TAG_NAMES = {
+    "made_cpu": "cpu",
+    "made_precision": "precision",
+    "made_threads": "threads",
+    "config_hash": "recorded_config_hash",
+    "run_id": "recorded_run_id",
+}
+
+
+def load_records(tracker: Tracker, path: Path) -> int:
+    """Load a table's records into ``tracker``'s store as FINISHED runs of its experiment, of kind
+    :data:`KIND_IMPORTED` and tagged :data:`IMPORTED` (the record they come from), with the recorded tags, final
+    metrics and times, so that ``mlflow ui`` shows the runs behind a published table. They are not this store's
+    jobs: none is skipped or reused on them, and no table rendered from this store counts them. A record already
+    loaded is not loaded again; how many were."""
+    records = read_records(path)
+    if not len(records):
+        return 0
+    exp = tracker.experiment_id(str(records["table"].iloc[0]))
+    done = {r.data.tags.get(IMPORTED) for r in tracker.runs(exp, f"tags.{IMPORTED} != ''")}
+    loaded = 0
+    for _, record in records.iterrows():
+        origin = f"{path.as_posix()}#{record['run_id']}"
+        if origin in done:
+            continue
+        shown = [c for c in TEXT if c != "status" and c in record and str(record[c]) != ""]
+        tags = {TAG_NAMES.get(c, c): str(record[c]) for c in shown} | {"kind": KIND_IMPORTED, IMPORTED: origin}
+        metrics = {c: float(record[c]) for c in records.columns if c not in (*TEXT, *WHOLE) and pd.notna(record[c])}
+        name = f"{record['row']} seed={record['seed']} (imported)"
+        tracker.import_run(exp, name, tags, metrics, int(record["started"]), int(record["ended"]))
+        loaded += 1
+    return loaded
