@@ -73,7 +73,7 @@ def test_kendall_tau_against_the_paper(tracker):
 
 
 def test_markdown_has_rows_paper_column_bold_best_and_is_reproducible(tracker, tmp_path):
-    md, png = write_table(TABLE, tracker, results_dir=tmp_path / "r1")
+    md, png, *_ = write_table(TABLE, tracker, results_dir=tmp_path / "r1")
     text = md.read_text()
     main, rest = text.split("All metrics:")
     lines = [line for line in main.splitlines() if line.startswith("|")]
@@ -82,7 +82,7 @@ def test_markdown_has_rows_paper_column_bold_best_and_is_reproducible(tracker, t
     assert "**90.00**" in text and "**97.35**" in text  # best det rate, ours and paper
     assert "**11.00 ± 1.41**" in text and "**82.00**" in text  # lowest comp time is best
     assert "Kendall τ" in text and "1.00 over 3 rows" in text
-    md2, png2 = write_table(TABLE, tracker, results_dir=tmp_path / "r2")
+    md2, png2, *_ = write_table(TABLE, tracker, results_dir=tmp_path / "r2")
     assert md2.read_bytes() == md.read_bytes()
     assert png2.read_bytes() == png.read_bytes()
 
@@ -93,7 +93,7 @@ def test_rows_without_finished_runs_are_listed_not_tabled(tmp_path):
     run = tracker.start(exp, "u", {"kind": KIND_JOB, "row": "unet", "seed": "0", "config_hash": "x"})
     tracker.log_metrics(run, {"det_rate": 50.0, "comp_time_ms": 5.0})
     tracker.end(run, "FINISHED")
-    md, _ = write_table(TABLE, tracker, results_dir=tmp_path)
+    md, *_ = write_table(TABLE, tracker, results_dir=tmp_path)
     text = md.read_text()
     assert len([line for line in text.split("All metrics:")[0].splitlines() if line.startswith("|")]) == 3
     assert "Rows without a finished run: ChiNet, FuseNet." in text
@@ -135,7 +135,7 @@ def test_footer_says_when_the_metric_changed_since_the_runs(tmp_path, task, eval
         tracker.log_params(run, {"task._target_": task})
         tracker.log_metrics(run, {"det_rate": 50.0 + seed, "comp_time_ms": 5.0})
         tracker.end(run, "FINISHED")
-    md, _ = write_table(TABLE, tracker, results_dir=tmp_path)
+    md, *_ = write_table(TABLE, tracker, results_dir=tmp_path)
     footer = md.read_text().splitlines()[-1]
     if expected is None:
         assert "Metric changed" not in footer

@@ -105,7 +105,7 @@ def test_rows_are_conditions_columns_model_by_metric_with_the_paper_and_tau(trac
     assert "Per model, on Moderate (Full):" in text and "Δ Moderate (Full) vs Baseline [95% CI]" in text
     assert "+10.00" in text  # Proposed - Baseline on Moderate (Full), paired over the two seeds
     assert "Latency (ms): not measured yet" in text
-    assert sorted(p.name for p in paths) == ["t1.md", "t1.png", "t1_gates.md", "t1_robustness.png"]
+    assert sorted(p.name for p in paths) == ["t1.csv", "t1.md", "t1.png", "t1.tex", "t1_gates.md", "t1_robustness.png"]
     gates = rows_of((tmp_path / "r" / "t1_gates.md").read_text())
     assert gates[0] == ["Test input", "Proposed: w_C (ours)", "Baseline: w_C (ours)"]
     assert gates[1] == ["Full", "0.50 ± 0.00", "1.00 ± 0.00"] and len(gates) == 1 + 4  # no paper: no τ row
@@ -161,7 +161,7 @@ TABLE2 = OmegaConf.create(
 
 
 def test_a_model_table_reads_one_condition_and_lists_paper_only_rows(tracker, tmp_path):
-    md, _ = write_table(TABLE2, tracker, results_dir=tmp_path)
+    md, *_ = write_table(TABLE2, tracker, results_dir=tmp_path)
     text = md.read_text()
     table = rows_of(text)
     header, body = table[0], table[1:]

@@ -33,6 +33,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from ablate.store import Tracker  # noqa: E402
 from ablate.tables.columns import costs, significance  # noqa: E402
+from ablate.tables.export import write_numbers  # noqa: E402
 from ablate.tables.provenance import provenance  # noqa: E402
 from ablate.tables.spec import COSTS  # noqa: E402
 from ablate.tables.summary import fmt, kendall, summarise  # noqa: E402
@@ -283,7 +284,7 @@ def write_conditions(
     summary = summarise(runs, flat)
     md, png = out / f"{table.name}.md", out / f"{table.name}.png"
     md.write_text(to_markdown(summary, runs, table, flat, footer=footer))
-    written = [md, png]
+    written = [md, png, *write_numbers(summary, runs, flat, out)]  # per model, a column per condition and metric
     figures = {png: plot(summary, table)}
     specs = (
         cast(dict, OmegaConf.to_container(cfg.task.get("eval_conditions") or {}, resolve=True)) if "task" in cfg else {}
