@@ -39,6 +39,14 @@ def test_a_smoke_sweep_and_an_ad_hoc_sweep_on_other_data_leave_the_published_res
     assert {"chinet_table2.md", "chinet_table2.csv"} <= {a.path for a in client.list_artifacts(parent.info.run_id)}
     assert parent.info.run_name.startswith("chinet_table2 scale=smoke")
     assert {"det_rate/chinet", "det_rate/unet", "det_rate/fusenet"} <= set(parent.data.metrics)
+    _, jobs = runs(f"sqlite:///{tmp_path / 'mlflow.db'}", "chinet_table2")
+    job = jobs[0]  # MLflow's conventions: its UI's Source, Version and User; the rate per step; the log; clean params
+    assert {"mlflow.source.name", "mlflow.source.git.commit", "mlflow.user"} <= set(job.data.tags)
+    assert "lr-Adam" in job.data.metrics and "det_rate" in job.data.metrics and "test/det_rate" not in job.data.metrics
+    assert {"logs/ablate.log", "logs/overrides.yaml"} <= {
+        a.path for a in client.list_artifacts(job.info.run_id, "logs")
+    }
+    assert len(job.data.params) <= 60 and not any(k.startswith(("table.", "logger.")) for k in job.data.params)
 
 
 def test_publish_true_writes_the_records_and_the_table_under_results(tmp_path: Path) -> None:

@@ -44,6 +44,7 @@ from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unre
 from ablate.jobs.spec import JobSpec, checkpoint_dir
 from ablate.store import (
     KIND_JOB,
+    UNHASHED,
     AccessDenied,
     ServerUnreachable,
     SweepContext,
@@ -56,6 +57,24 @@ from ablate.store import (
 log = logging.getLogger(__name__)
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
 warnings.filterwarnings("ignore", ".*GPU available but not used.*")
+
+
+#: Config keys that are not a job's params (the run's ``config.yaml`` artifact keeps the whole config): the table it
+#: fills (its title, rows and the paper's numbers), the options that change no number (ablate.store.UNHASHED), the
+#: metrics' labels, the scale's knobs and the task's modalities and targets (each already in the model's and the data's
+#: own params, which they resolve into), and the side-by-side timing's options.
+NOT_PARAMS = (*UNHASHED, "metrics", "primary", "modalities", "targets", "comp_time", "recipe")
+#: Config keys of Hydra's instantiation or of display alone, in any group: not params either.
+DISPLAY = ("._partial_", "trainer.enable_model_summary", "task.figure_frames")
+
+
+def params_of(cfg: DictConfig) -> dict[str, str]:
+    """A job's MLflow params: its resolved config, flattened, but :data:`NOT_PARAMS` (``scale.name`` kept) and
+    :data:`DISPLAY`."""
+    flat = flatten(OmegaConf.to_container(cfg, resolve=True))
+    dropped = tuple(f"{k}." for k in NOT_PARAMS) + ("scale.",)
+    kept = {k: v for k, v in flat.items() if k == "scale.name" or not (k + ".").startswith(dropped)}
+    return {k: v for k, v in kept.items() if not k.endswith(DISPLAY)}
 
 
 class JobFailed(RuntimeError):
@@ -104,6 +123,7 @@ def run(spec: JobSpec) -> Outcome:
     log.info("MLflow run %s: %s, seed %s, config %s", run_id, spec.row, spec.seed, spec.config_hash)
     log.info("Numerics: %s; %s intra-op thread(s)", spec.numerics, spec.cfg.trainer.get("threads") or "all")
     metrics = train(spec, tracker, run_id)
+    attach_logs(spec, tracker, run_id)
     tracker.end(run_id, "FINISHED")
     described = ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items()))
     log.info("FINISHED %s seed %s: %s", spec.row, spec.seed, described)
@@ -172,7 +192,7 @@ def train(spec: JobSpec, tracker: Tracker, run_id: str) -> dict[str, float]:
 
     cfg, outbox = spec.cfg, spec.outbox
     try:
-        tracker.log_params(run_id, flatten(OmegaConf.to_container(cfg, resolve=True)))
+        tracker.log_params(run_id, params_of(cfg))
         tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
         record_fingerprint(cfg, tracker, run_id)
         return fit_and_test(
@@ -194,6 +214,25 @@ def train(spec: JobSpec, tracker: Tracker, run_id: str) -> dict[str, float]:
             record_end(tracker, run_id, "FAILED", {"error": message[:5000]}, traceback.format_exc(), outbox)
         log.error("%s %s (seed %s) FAILED: %s", spec.kind, spec.row, spec.seed, message)
         raise JobFailed(message) from err
+
+
+#: What of a job's output folder its run keeps: its log (``hydra.job.name`` is ``ablate``) and its overrides.
+LOGS = ("ablate.log", ".hydra/overrides.yaml")
+
+
+def attach_logs(spec: JobSpec, tracker: Tracker, run_id: str) -> None:
+    """Attach the job's log and Hydra's ``overrides.yaml`` to its run (under ``logs/``), where the job has an output
+    folder; a file that cannot be attached is one warning, never the job's failure."""
+    folder = spec.context.output_dir
+    if folder is None:
+        return
+    for name in LOGS:
+        path = folder / name
+        if path.is_file():
+            try:
+                tracker.log_artifact(run_id, path, "logs")
+            except Exception as err:  # a convenience: the run's numbers are what matters
+                log.warning("Could not attach %s to run %s: %s", path, run_id, err)
 
 
 def stopped_reason(stop: Stopped, ckpt_dir: Path) -> str:

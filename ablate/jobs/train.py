@@ -17,7 +17,7 @@ from typing import Any, cast
 import lightning as L
 import torch
 from hydra.utils import instantiate
-from lightning.pytorch.callbacks import Callback, ModelCheckpoint
+from lightning.pytorch.callbacks import Callback, LearningRateMonitor, ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
 from ablate import hardware
@@ -55,7 +55,8 @@ def fit_and_test(spec: JobSpec, tracker: Tracker, run_id: str, run: RunJob) -> d
     )
     on_stop = SaveOnStop(spec.ckpt_dir / "last.ckpt")
     logger = RunLogger(tracker, run_id, spec.outbox)
-    trainer = build_trainer(cfg, logger, [checkpoint, on_stop, DataCount(logger)], spec.ckpt_dir)
+    rate = LearningRateMonitor(logging_interval="step")  # the learning rate per step, as a metric of the run
+    trainer = build_trainer(cfg, logger, [checkpoint, on_stop, DataCount(logger), rate], spec.ckpt_dir)
     best = attach_experts(cfg, model, experts, tracker, run_id) if cfg.get("experts") else None
     prepare_model(cfg, model)
     if best is None:

@@ -12,6 +12,7 @@ its parent's store even where its own environment names no store (a Ray worker d
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +32,7 @@ class SweepContext:
     ``job_num``: the job's number in its sweep. ``overrides``: the job's own command-line overrides. ``row_choice``:
     the config's ``row`` choice. ``store``: the store the sweep recorded (``uri``, ``artifact_location``).
     ``parent_run``: the sweep's MLflow run. ``swept``: the keys the sweep sweeps over (None: not recorded).
+    ``output_dir``: the job's own output folder (its log, Hydra's ``.hydra/``), None outside a Hydra job.
     """
 
     launch_dir: Path
@@ -41,6 +43,7 @@ class SweepContext:
     store: dict[str, str | None] | None = None
     parent_run: str | None = None
     swept: tuple[str, ...] | None = None
+    output_dir: Path | None = None
 
     @classmethod
     def current(cls) -> SweepContext:
@@ -60,11 +63,9 @@ class SweepContext:
             num: int | None = int(hc.job.num)
         except MissingMandatoryValue:  # a single run has no job number
             num = None
-        return cls.of_sweep(sdir, launch).with_job(
-            num,
-            tuple(str(o) for o in hc.overrides.task),
-            str(choice) if choice else None,
-        )
+        job = cls.of_sweep(sdir, launch).with_job(num, tuple(str(o) for o in hc.overrides.task), str(choice) or None)
+        output = getattr(hc.runtime, "output_dir", None)
+        return dataclasses.replace(job, output_dir=Path(str(output)) if output else None)
 
     @classmethod
     def of_sweep(cls, sweep_dir: Path | None, launch_dir: Path) -> SweepContext:

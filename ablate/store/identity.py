@@ -8,6 +8,7 @@ git repository, with ``ablate`` installed from a checkout, so still records the 
 
 from __future__ import annotations
 
+import getpass
 import hashlib
 import json
 import os
@@ -133,12 +134,21 @@ def code_version() -> dict[str, str]:
     return {"version": __version__, "commit": git_commit(SOURCE) if is_checkout else "unknown"}
 
 
+def mlflow_tags() -> dict[str, str]:
+    """MLflow's standard tags, which its UI shows as a run's Source, Version and User
+    (https://mlflow.org/docs/latest/ml/tracking/tracking-api/#system-tags): the commit of the ``ablate`` that ran
+    (without ``-dirty``; ``git_commit`` keeps that), the command, the user."""
+    commit = code_version()["commit"].removesuffix("-dirty")
+    tags = {"mlflow.source.name": "python -m ablate", "mlflow.source.type": "LOCAL", "mlflow.user": getpass.getuser()}
+    return tags | ({"mlflow.source.git.commit": commit} if commit != "unknown" else {})
+
+
 def provenance_tags(launch: Path | None = None) -> dict[str, str]:
     """The tags a run records about its code: ``git_commit`` (the ``ablate`` checkout that ran, :func:`code_version`),
     ``ablate_version``, and ``launch_commit`` (the launch directory's own checkout, where it is one and another;
     ``launch`` defaults to the current directory)."""
     code = code_version()
-    tags = {"git_commit": code["commit"], "ablate_version": code["version"]}
+    tags = {"git_commit": code["commit"], "ablate_version": code["version"], **mlflow_tags()}
     here = git_commit(launch or Path.cwd())
     if here != "unknown" and here.removesuffix("-dirty") != code["commit"].removesuffix("-dirty"):
         tags["launch_commit"] = here

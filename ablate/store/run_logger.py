@@ -16,6 +16,8 @@ from ablate.store.tracker import Tracker, rows
 from ablate.store.uris import is_server
 
 log = logging.getLogger(__name__)
+#: The prefix of a test epoch's metrics, as the tasks log them.
+TEST_PREFIX = "test/"
 
 
 class RunLogger(Logger):
@@ -56,7 +58,11 @@ class RunLogger(Logger):
 
     @rank_zero_only
     def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
-        self.log_rows(rows(metrics, step or 0))
+        """Log training and validation metrics; the test epoch's (``test/...``) are left to the job, which logs them
+        once, under their plain names, with the model's size (:func:`ablate.jobs.train.test`)."""
+        kept = {k: v for k, v in metrics.items() if not k.startswith(TEST_PREFIX)}
+        if kept:
+            self.log_rows(rows(kept, step or 0))
 
     def log_rows(self, items: list[Row]) -> None:
         """Log metric rows now, or keep them in the outbox while the server does not answer."""
