@@ -195,9 +195,9 @@ def train(spec: JobSpec, tracker: Tracker, run_id: str) -> dict[str, float]:
         tracker.log_params(run_id, params_of(cfg))
         tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
         record_fingerprint(cfg, tracker, run_id)
-        return fit_and_test(
-            spec, tracker, run_id, lambda ecfg, kind, row: run(JobSpec.of(ecfg, spec.context, kind, row))
-        )
+        expert = lambda ecfg, kind, row: run(JobSpec.of(ecfg, spec.context, kind, row))  # noqa: E731
+        with tracker.system_metrics(run_id, bool(cfg.logger.get("system_metrics"))):
+            return fit_and_test(spec, tracker, run_id, expert)
     except Stopped as stop:
         stop.reason = stopped_reason(stop, spec.ckpt_dir)
         record_end(tracker, run_id, "KILLED", {"killed_by": stop.signame, "kill_reason": stop.reason}, outbox=outbox)

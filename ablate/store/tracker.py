@@ -20,8 +20,10 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -266,6 +268,24 @@ class Tracker:
     def log_text(self, run_id: str, text: str, name: str) -> None:
         with naming_full_disk(f"the artifact {name}", lambda: self.artifact_uri(run_id)):
             self.call(self._client.log_text, run_id, text, name)
+
+    @contextmanager
+    def system_metrics(self, run_id: str, on: bool, interval_s: float = 10.0) -> Iterator[None]:
+        """Record the machine's CPU, memory, disk and network (GPU where present) as ``system/*`` metrics of
+        ``run_id`` every ``interval_s`` seconds while the block runs, where ``on`` or MLflow's own switch
+        (``MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING=true``) says so (MLflow's ``SystemMetricsMonitor``; psutil)."""
+        switched = os.environ.get("MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING", "").lower() in ("true", "1")
+        if not (on or switched):
+            yield
+            return
+        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+        monitor = SystemMetricsMonitor(run_id, sampling_interval=interval_s, tracking_uri=self.uri)
+        monitor.start()
+        try:
+            yield
+        finally:
+            monitor.finish()
 
     def share_table_view(self, experiment_id: str, metrics: list[str]) -> str:
         """Store the runs table view of a table's experiment, with the table's ``metrics`` as columns and the
