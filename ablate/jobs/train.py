@@ -9,6 +9,8 @@ checkpoint. The order of these steps is the order of the seeded random draws: it
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import shutil
 from pathlib import Path
@@ -18,6 +20,7 @@ import lightning as L
 import torch
 from hydra.utils import instantiate
 from lightning.pytorch.callbacks import Callback, LearningRateMonitor, ModelCheckpoint
+from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from ablate import hardware
@@ -149,7 +152,7 @@ def test(
 class DataCount(Callback):
     """Once the data module is set up, log how many bad frames it left out (``data.on_bad_frame=skip``) as the
     run's metric ``data/skipped_frames``, through the run's logger (so into its outbox while the server does not
-    answer)."""
+    answer), and the data itself as the run's dataset input (:func:`log_dataset`)."""
 
     def __init__(self, logger: RunLogger) -> None:
         self.logger, self.logged = logger, False
@@ -158,4 +161,20 @@ class DataCount(Callback):
         count = getattr(trainer.datamodule, "skipped_frames", None)
         if count is not None and not self.logged:
             self.logger.log_metrics({SKIPPED_FRAMES: float(count)})
+            log_dataset(self.logger, trainer.datamodule)
             self.logged = True
+
+
+@rank_zero_only
+def log_dataset(logger: RunLogger, datamodule: Any) -> None:
+    """The run's dataset input: the data folder's name (``synth-<hash of the generator's parameters>`` for the
+    generated data), a digest of it and of the frames of each split, its path and the frames per split. A
+    convenience: where the store does not take it, one warning."""
+    split_dir = Path(datamodule.split_dir())
+    frames = {name: list(ds.frames) for name, ds in datamodule.datasets.items()}
+    digest = hashlib.sha1(json.dumps([split_dir.name, frames], sort_keys=True).encode()).hexdigest()[:12]
+    counts = {name: len(ids) for name, ids in frames.items()}
+    try:
+        logger.tracker.log_dataset(logger.run_id, split_dir.name, digest, str(split_dir.resolve()), counts)
+    except Exception as err:
+        log.warning("Could not record the run's dataset: %s", err)

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from matplotlib.figure import Figure
-from mlflow.entities import Metric, Param, Run, RunTag
+from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param, Run, RunTag
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig
@@ -268,6 +268,13 @@ class Tracker:
     def log_text(self, run_id: str, text: str, name: str) -> None:
         with naming_full_disk(f"the artifact {name}", lambda: self.artifact_uri(run_id)):
             self.call(self._client.log_text, run_id, text, name)
+
+    def log_dataset(self, run_id: str, name: str, digest: str, source: str, frames: dict[str, int]) -> None:
+        """Record the data a run trained and was tested on as an MLflow dataset input: its ``name``, a content
+        ``digest``, where it lies (``source``) and its frames per split (the dataset's profile)."""
+        dataset = Dataset(name, digest, "local", json.dumps({"uri": source}), None, json.dumps({"frames": frames}))
+        context = InputTag("mlflow.data.context", "training")
+        self.call(self._client.log_inputs, run_id, datasets=[DatasetInput(dataset, tags=[context])])
 
     @contextmanager
     def system_metrics(self, run_id: str, on: bool, interval_s: float = 10.0) -> Iterator[None]:
