@@ -47,12 +47,16 @@ def store(tmp_path: Path) -> Tracker:
             tags = {"kind": KIND_JOB, "row": row, "seed": str(seed), "scale": "cpu", "config_hash": f"{row}{seed}"}
             tags |= {"cpu": "AMD EPYC", "cpu_isa": "avx2", "precision": "32-true", "threads": "1", "sweep_id": "s"}
             run = tracker.start(exp, row, tags)
-            metrics = {"det_rate": base + 0.1 * seed + 1 / 3, "val/det_rate": 1.0, "test/det_rate": base}
+            metrics = {"det_rate": base + 0.1 * seed + 1 / 3, "test/det_rate": base}
             if not (row == "unet" and seed == 2):  # the side-by-side latency of the row, on all but one run
                 ms = 12.5 + seed
                 metrics |= {"latency_ms": ms, "latency_q1_ms": ms - 1, "latency_q3_ms": ms + 1}
                 metrics |= {"latency_load": 0.5, "latency_cores": 2.0, "params_m": 1.25, "macs_g": 0.5}
             tracker.log_metrics(run, metrics)
+            for epoch in range(3):  # a history: validation once per epoch, the training loss per step
+                tracker.log_metrics(run, {"val/det_rate": base - 3 + epoch + 0.1 * seed}, step=10 * (epoch + 1))
+                for step in range(10 * epoch + 1, 10 * epoch + 11):
+                    tracker.log_metrics(run, {"train/loss": 2.0 - 0.5 * epoch + 0.01 * step}, step=step)
             tracker.end(run, "FINISHED")
     return tracker
 
@@ -80,8 +84,10 @@ def test_a_table_renders_from_its_records_with_no_store_byte_for_byte(tmp_path: 
     from_store = write_table(CFG, tracker, results_dir=tmp_path / "a", publish=True)
     shutil.copytree(tmp_path / "a" / "runs", tmp_path / "b" / "runs")  # a fresh clone: the records alone
     from_records = render_records(CFG, tmp_path / "b")
-    assert from_records is not None and [p.name for p in from_records] == [p.name for p in from_store[1:]]
-    for a, b in zip(from_store[1:], from_records):
+    rendered = [p for p in from_store if p.parent.name != "runs"]
+    assert from_records is not None and [p.name for p in from_records] == [p.name for p in rendered]
+    assert "t2_curves.png" in [p.name for p in from_records]  # the learning curves, from the curves kept beside
+    for a, b in zip(rendered, from_records):
         assert filecmp.cmp(a, b, shallow=False), f"{b.name} differs from the table rendered from the store"
     assert render_records(CFG, tmp_path / "c") is None  # no records: nothing rendered
 
@@ -139,3 +145,17 @@ def test_the_published_runs_load_into_a_local_store_once_marked_as_imported(tmp_
         "t2.csv#" + chinet0.data.tags["recorded_run_id"]
     )
     assert collect(local, "t2").empty  # not this store's jobs: no table here counts them, no job skips on them
+
+
+def test_the_learning_curves_are_kept_per_epoch_beside_the_records(tmp_path: Path) -> None:
+    from ablate.tables.curves import curves_path, read_curves
+
+    write_table(CFG, store(tmp_path), results_dir=tmp_path / "a", publish=True)
+    curves = read_curves(curves_path(tmp_path / "a", "t2"))
+    one = curves[(curves["row"] == "chinet") & (curves["seed"] == "1")]
+    val = one[one["metric"] == "val/det_rate"].set_index("epoch")["value"]
+    loss = one[one["metric"] == "train/loss"].set_index("epoch")["value"]
+    assert list(val.index) == [0, 1, 2] and val[2] == pytest.approx(96.0 - 3 + 2 + 0.1)
+    # epoch 1's steps are 11..20, up to its validation at step 20: the mean of 1.5 + 0.01 * step over them
+    assert list(loss.index) == [0, 1, 2] and loss[1] == pytest.approx(1.5 + 0.01 * 15.5)
+    assert len(curves) == 6 * 2 * 3  # per run, two metrics, three epochs: no per-step history

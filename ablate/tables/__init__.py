@@ -23,6 +23,7 @@ from omegaconf import DictConfig
 from ablate.store import Tracker
 from ablate.tables.collect import collect, made_lines, running, state_lines
 from ablate.tables.conditions import write_conditions
+from ablate.tables.curves import curves_path, from_store, read_curves, write_curves, write_figure
 from ablate.tables.provenance import Recompute, config_of, provenance
 from ablate.tables.records import read_records, records_path, write_records
 from ablate.tables.rows import write_rows
@@ -53,9 +54,11 @@ def write_table(
     if publish and len(runs):
         written.append(write_records(runs, str(table.name), results_dir))
         runs = read_records(written[-1])
+        written.append(write_curves(from_store(tracker, runs, table), results_dir, str(table.name)))
     config = lambda run_id: config_of(tracker, run_id)  # noqa: E731
     footer = footer_lines(runs, fingerprint, config, running(tracker, table.name))
-    return written + render(cfg, table, runs, results_dir, footer, tracker, parent_run)
+    written += render(cfg, table, runs, results_dir, footer, tracker, parent_run)
+    return written + curves_figure(table, results_dir, tracker, parent_run)
 
 
 def render_records(
@@ -73,7 +76,21 @@ def render_records(
         return None
     runs = read_records(path)
     footer = footer_lines(runs, fingerprint, config(runs) if config is not None else None, 0)
-    return render(cfg, table, runs, results_dir, footer, None, None)
+    return render(cfg, table, runs, results_dir, footer, None, None) + curves_figure(table, results_dir, None, None)
+
+
+def curves_figure(
+    table: DictConfig, results_dir: str | Path, tracker: Tracker | None, parent_run: str | None
+) -> list[Path]:
+    """The table's learning curves (:mod:`~ablate.tables.curves`) from the curves kept beside its records, where it
+    has them; logged to ``parent_run`` if given."""
+    path = curves_path(results_dir, str(table.name))
+    figure = write_figure(read_curves(path), table, Path(results_dir)) if path.exists() else None
+    if figure is None:
+        return []
+    if parent_run and tracker is not None:
+        tracker.log_artifact(parent_run, figure)
+    return [figure]
 
 
 def footer_lines(
