@@ -97,6 +97,7 @@ def ensure_synth(data_dir: str | Path, params: dict | None) -> Path:
         with open(out.parent / f"{out.name}.lock", "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             if not (out / "synth.json").is_file():
+                log.info("Generating the default dataset: %d frames in %s", params["frames"], out)
                 generate(
                     out,
                     params["frames"],
@@ -317,7 +318,7 @@ def prepare(
         max_depth=max_depth,
         cache_dir=Path(data_dir) / "cache",
     )
-    for frame in tqdm(ds.frames, desc=f"caching {', '.join(derived)}", unit="frame"):
+    for frame in tqdm(ds.frames, desc=f"caching {', '.join(derived)}", unit="frame", disable=None):  # a terminal's
         shape = kitti.read_image(kitti.frame_paths(split_dir, frame)["image"]).shape[:2]
         for m in derived:
             ds.lidar(frame, m, shape)

@@ -187,7 +187,8 @@ def generate(
     for sub in ("image_2", "velodyne", "calib", "label_2", "instance_2", "gt_image_2", "ImageSets"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     jobs = [(str(out), seed, i, height, width, lidar_fov) for i in range(frames)]
-    bar = tqdm(total=frames, desc=f"generating {out}", disable=not progress, unit="frame")
+    # a bar on a terminal only (tqdm's disable=None): in a log file its refreshes would be most of the log
+    bar = tqdm(total=frames, desc=f"generating {out}", disable=(not progress) or None, unit="frame")
     if workers > 1 and frames > 1:
         with ProcessPoolExecutor(workers) as pool:
             for _ in pool.map(_job, jobs, chunksize=4):

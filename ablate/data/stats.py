@@ -162,7 +162,7 @@ def compute(
     names = kitti.list_frames(split_dir)[:frames]
     rows = [
         r
-        for f in tqdm(names, desc=f"stats {root}", unit="frame", disable=not progress)
+        for f in tqdm(names, desc=f"stats {root}", unit="frame", disable=(not progress) or None)
         for r in frame_objects(split_dir, f, conditions, seed, severity)
     ]
     if not rows:

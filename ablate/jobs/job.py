@@ -201,7 +201,7 @@ def train(spec: JobSpec, tracker: Tracker, run_id: str) -> dict[str, float]:
     except Stopped as stop:
         stop.reason = stopped_reason(stop, spec.ckpt_dir)
         record_end(tracker, run_id, "KILLED", {"killed_by": stop.signame, "kill_reason": stop.reason}, outbox=outbox)
-        log.warning("%s %s (seed %s) KILLED: %s", spec.kind, spec.row, spec.seed, stop.reason)
+        log.warning("%s (seed %s) KILLED: %s", named(spec), spec.seed, stop.reason)
         raise
     except (KeyboardInterrupt, SystemExit) as err:  # Lightning turns Ctrl+C inside fit into sys.exit(1)
         record_end(tracker, run_id, "KILLED", {"killed_by": type(err).__name__}, outbox=outbox)
@@ -212,7 +212,7 @@ def train(spec: JobSpec, tracker: Tracker, run_id: str) -> dict[str, float]:
         else:
             message = f"{type(err).__name__}: {err}"
             record_end(tracker, run_id, "FAILED", {"error": message[:5000]}, traceback.format_exc(), outbox)
-        log.error("%s %s (seed %s) FAILED: %s", spec.kind, spec.row, spec.seed, message)
+        log.error("%s (seed %s) FAILED: %s", named(spec), spec.seed, message)
         raise JobFailed(message) from err
 
 
@@ -233,6 +233,11 @@ def attach_logs(spec: JobSpec, tracker: Tracker, run_id: str) -> None:
                 tracker.log_artifact(run_id, path, "logs")
             except Exception as err:  # a convenience: the run's numbers are what matters
                 log.warning("Could not attach %s to run %s: %s", path, run_id, err)
+
+
+def named(spec: JobSpec) -> str:
+    """A job as its log lines name it: ``job unet``; an expert's row already says it (``expert rgb``)."""
+    return spec.row if spec.row.startswith(spec.kind) else f"{spec.kind} {spec.row}"
 
 
 def stopped_reason(stop: Stopped, ckpt_dir: Path) -> str:

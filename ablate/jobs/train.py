@@ -13,6 +13,7 @@ import hashlib
 import json
 import logging
 import shutil
+import warnings
 from pathlib import Path
 from typing import Any, cast
 
@@ -29,10 +30,14 @@ from ablate.jobs.experts import RunJob, feature_cache
 from ablate.jobs.experts import attach as attach_experts
 from ablate.jobs.experts import prepare as prepare_experts
 from ablate.jobs.preempt import STOP, SaveOnStop, Stopped
+from ablate.jobs.progress_lines import ProgressLines, progress_bar
 from ablate.jobs.spec import JobSpec
 from ablate.store import SKIPPED_FRAMES, RunLogger, Tracker
 
 log = logging.getLogger(__name__)
+# torchmetrics warns when a metric is computed before its first update: a validation epoch whose batches held no
+# object of a class (the tiny smoke scale), where the metric is defined (ablate.metrics) and nothing is to be done
+warnings.filterwarnings("ignore", ".*compute.*method of metric .* was called before the .*update.* method.*")
 
 
 def fit_and_test(spec: JobSpec, tracker: Tracker, run_id: str, run: RunJob) -> dict[str, float]:
@@ -70,9 +75,13 @@ def fit_and_test(spec: JobSpec, tracker: Tracker, run_id: str, run: RunJob) -> d
 
 def build_trainer(cfg: DictConfig, logger: RunLogger, callbacks: list[Callback], ckpt_dir: Path) -> L.Trainer:
     """The Lightning ``Trainer`` of ``cfg.trainer`` (but the options :mod:`ablate.hardware` reads), writing its
-    checkpoints atomically (:class:`~ablate.jobs.checkpoint.AtomicCheckpointIO`)."""
+    checkpoints atomically (:class:`~ablate.jobs.checkpoint.AtomicCheckpointIO`); its progress bar only on a
+    terminal (``enable_progress_bar: auto``), progress lines elsewhere (:mod:`ablate.jobs.progress_lines`)."""
     trainer = cast("dict[str, Any]", OmegaConf.to_container(cfg.trainer, resolve=True))
     options = {k: v for k, v in trainer.items() if k not in hardware.OPTIONS}
+    options["enable_progress_bar"] = progress_bar(options.get("enable_progress_bar", "auto"))
+    if not options["enable_progress_bar"]:  # not a terminal: a line a person can read, every 30 s at most
+        callbacks = [*callbacks, ProgressLines()]
     return instantiate(
         options, logger=logger, callbacks=callbacks, plugins=[AtomicCheckpointIO()], default_root_dir=str(ckpt_dir)
     )

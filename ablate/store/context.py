@@ -63,7 +63,8 @@ class SweepContext:
             num: int | None = int(hc.job.num)
         except MissingMandatoryValue:  # a single run has no job number
             num = None
-        job = cls.of_sweep(sdir, launch).with_job(num, tuple(str(o) for o in hc.overrides.task), str(choice) or None)
+        overrides = tuple(str(o) for o in hc.overrides.task)
+        job = cls.of_sweep(sdir, launch).with_job(num, overrides, str(choice) if choice else None)
         output = getattr(hc.runtime, "output_dir", None)
         return dataclasses.replace(job, output_dir=Path(str(output)) if output else None)
 
