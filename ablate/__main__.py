@@ -1,6 +1,7 @@
 """`python -m ablate [-m] key=value ...`: run one job, or a Hydra multirun sweep of jobs."""
 
 import warnings
+from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
@@ -14,7 +15,12 @@ from omegaconf import DictConfig
 warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/(ray|submitit_local)' is validated against ConfigStore")
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+#: The configs, by absolute path: `python -m ablate` and the `ablate` console script (where Hydra would otherwise look
+#: for a Python package ablate.conf) find them alike, in a checkout and in an installed wheel.
+CONFIGS = str(Path(__file__).resolve().parent / "conf")
+
+
+@hydra.main(version_base="1.3", config_path=CONFIGS, config_name="config")
 def main(cfg: DictConfig) -> str:
     from ablate.jobs.job import main as run_job  # torch and Lightning: imported once a job runs, not for a bad option
 

@@ -16,6 +16,7 @@ from ablate import cli
 
 def main(argv: list[str] | None = None) -> int:
     """Read the arguments (:func:`ablate.cli.check_paper`) before torch is imported, then check the rows."""
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s", datefmt="%H:%M:%S")
     argv = sys.argv[1:] if argv is None else argv
     cli.check_paper(__doc__, argv)
     from ablate.capacity.check import main as run
@@ -24,5 +25,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s", datefmt="%H:%M:%S")
     raise SystemExit(main())

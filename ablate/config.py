@@ -7,7 +7,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-CONF = Path(__file__).resolve().parent.parent / "conf"
+#: The configs: inside the package (a wheel ships them; in a checkout ablate/conf is the project's conf/ folder).
+CONF = Path(__file__).resolve().parent / "conf"
 
 
 def compose(overrides: list[str]) -> DictConfig:

@@ -15,6 +15,7 @@ from ablate import cli
 
 def main(argv: list[str] | None = None) -> int:
     """Read the arguments (:func:`ablate.cli.latency`) before torch is imported, then time the table."""
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s", datefmt="%H:%M:%S")
     argv = sys.argv[1:] if argv is None else argv
     cli.latency(__doc__, argv)
     from ablate.analysis.latency import main as run
@@ -23,5 +24,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s", datefmt="%H:%M:%S")
     raise SystemExit(main())

@@ -1,0 +1,31 @@
+"""`python -m ablate [-m] key=value ...`: run one job, or a Hydra multirun sweep of jobs."""
+
+import warnings
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+# conf/hydra/launcher/ray.yaml and submitit_local.yaml replace the plugins' configs of the same names, holding
+# exactly their keys. Hydra 1.3 still validates a file against a ConfigStore entry of the same name and warns that
+# this "automatic schema matching" is deprecated
+# (https://hydra.cc/docs/1.2/upgrades/1.0_to_1.1/automatic_schema_matching); the files compose the same with or
+# without it, so the warning tells a user nothing. Set here, before Hydra composes, in the launching process and in
+# every submitit job (which imports this module to find its task function).
+warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/(ray|submitit_local)' is validated against ConfigStore")
+
+
+#: The configs, by absolute path: `python -m ablate` and the `ablate` console script (where Hydra would otherwise look
+#: for a Python package ablate.conf) find them alike, in a checkout and in an installed wheel.
+CONFIGS = str(Path(__file__).resolve().parent / "conf")
+
+
+@hydra.main(version_base="1.3", config_path=CONFIGS, config_name="config")
+def main(cfg: DictConfig) -> str:
+    from ablate.jobs.job import main as run_job  # torch and Lightning: imported once a job runs, not for a bad option
+
+    return run_job(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,73 @@
+"""Your runs of a paper table beside the published ones: does your machine give the published numbers?
+
+``make run`` races ChiNet Table II on the user's machine and ends here instead of overwriting the published table:
+for each row, the user's mean of the table's primary metric beside the published mean (from the committed records,
+:mod:`ablate.tables.records`), how many of the user's seeds lie inside the published row's 95 % prediction interval
+for a new seed (:func:`ablate.tables.significance.prediction_interval`: the range one new run should fall in), and
+which of CPU, ISA, precision and threads differ from the published runs'. Results follow the instruction set's
+kernels and the thread count (a reduction adds in another order), so a machine of another ISA is expected to give
+other numbers for the same seed, inside the interval rather than equal to it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig
+
+from ablate.tables.collect import under_condition
+from ablate.tables.records import read_records, records_path
+from ablate.tables.significance import prediction_interval
+
+#: The record columns that say how a number was computed, beside the config.
+NUMERICS = {"made_cpu": "CPU", "cpu_isa": "ISA", "made_precision": "precision", "made_threads": "threads"}
+
+
+def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> str:
+    """Markdown: per row of ``table`` that both have, the means of the primary metric, the user's seeds inside the
+    published prediction interval, and the numerics that differ."""
+    key = str(table.primary)
+    mine, published = under_condition(mine, table), under_condition(published, table)
+    lines = [
+        "| Row | Yours (mean, n) | Published (mean, n) | Published 95 % PI for a new seed | Your seeds inside | "
+        "Numerics that differ |",
+        "|:--|--:|--:|:--|--:|:--|",
+    ]
+    for spec in table.rows:
+        row = str(spec["row"])
+        a, b = mine[mine["row"] == row], published[published["row"] == row]
+        if not len(a) or not len(b) or key not in a or key not in b:
+            continue
+        lo, hi = prediction_interval(b[key])
+        if np.isnan(lo):  # one published seed: no interval
+            interval, inside = "— (needs 2 published seeds)", "—"
+        else:
+            interval, inside = f"[{lo:.2f}, {hi:.2f}]", f"{int(((a[key] >= lo) & (a[key] <= hi)).sum())} of {len(a)}"
+        lines.append(
+            f"| {spec.get('name', row)} | {a[key].mean():.2f} ({len(a)}) | {b[key].mean():.2f} ({len(b)}) | "
+            f"{interval} | {inside} | {differing(a, b) or 'none'} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def differing(mine: pd.DataFrame, published: pd.DataFrame) -> str:
+    """``name: published -> yours`` for each of :data:`NUMERICS` whose values differ."""
+    out = []
+    for column, name in NUMERICS.items():
+        before = sorted({str(v) for v in published.get(column, pd.Series(["?"]))})
+        now = sorted({str(v) for v in mine.get(column, pd.Series(["?"]))})
+        if before != now:
+            out.append(f"{name}: {' / '.join(before)} -> {' / '.join(now)}")
+    return "; ".join(out)
+
+
+def against_published(mine: pd.DataFrame, table: DictConfig, results: Path) -> str | None:
+    """The comparison of ``mine`` with the published records of ``table`` under ``results``; None where it has
+    none."""
+    path = records_path(results, str(table.name))
+    if not path.exists() or not len(mine):
+        return None
+    title = f"# Your {table.name} beside the published one ({path})\n\n"
+    return title + compare(mine, read_records(path), table)

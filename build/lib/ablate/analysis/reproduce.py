@@ -1,0 +1,151 @@
+"""``python -m ablate.report --reproduce experiment=<table> row=<row> [seed=N]``: does a row's number hold here?
+
+It reruns one seed of the row (its first recorded seed unless ``seed=`` says) at today's code, in a scratch launch
+directory and store (so no checkpoint of the recorded run is resumed; the generated data is shared through a link,
+being the same files), and says:
+
+* whether the new value lies inside the row's 95 % *prediction interval for a new seed*, ``mean ± t(0.975, n-1) ·
+  s · sqrt(1 + 1/n)`` over the recorded seeds (:func:`ablate.tables.significance.prediction_interval`): the range a
+  single new run should fall in, wider than the CI of the mean;
+* how far it is from the recorded run of the same seed;
+* where this machine, the precision or the thread count differ from the recorded runs' own: the numerics are a
+  source of variation of their own (Bouthillier et al. 2021).
+
+The recorded runs are the table's published records (``results/runs/<table>.csv``, :mod:`ablate.tables.records`)
+where it has them, so the check works on a fresh clone; else the runs of the store the config names.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig
+
+from ablate.store import Tracker
+from ablate.tables import collect, table_spec
+from ablate.tables.collect import under_condition
+from ablate.tables.records import read_records, records_path
+from ablate.tables.significance import prediction_interval
+
+#: How a number was computed, beside the config (a run's tags, its record's columns): compared between the recorded
+#: runs and now, by the name a line gives it.
+NUMERICS = {"cpu": "made_cpu", "cpu_isa": "cpu_isa", "precision": "made_precision", "threads": "made_threads"}
+
+
+@dataclass
+class Reproduction:
+    row: str
+    seed: int
+    key: str
+    value: float
+    recorded: float | None  # the recorded run of the same seed
+    values: list[float]  # every recorded seed of the row
+    interval: tuple[float, float]
+    differences: list[str]  # the numerics that differ from the recorded runs'
+
+    @property
+    def inside(self) -> bool:
+        lo, hi = self.interval
+        return bool(lo <= self.value <= hi)
+
+    def lines(self) -> list[str]:
+        lo, hi = self.interval
+        n = len(self.values)
+        head = f"{self.row}, seed {self.seed}, {self.key}: {self.value:.2f} rerun here"
+        if self.recorded is not None:
+            head += f"; recorded {self.recorded:.2f} ({self.value - self.recorded:+.2f})"
+        if np.isnan(lo):
+            verdict = f"no prediction interval: the row has {n} recorded seed(s), it needs 2"
+        else:
+            verdict = (
+                f"{'inside' if self.inside else 'OUTSIDE'} the row's 95 % prediction interval for a new seed "
+                f"[{lo:.2f}, {hi:.2f}] (mean {np.mean(self.values):.2f} over {n} recorded seeds)"
+            )
+        out = [head, verdict]
+        out += [f"differs from the recorded runs: {d}" for d in self.differences] or [
+            "same CPU, precision and threads as the recorded runs"
+        ]
+        return out
+
+
+def numerics(run: pd.Series) -> dict[str, str]:
+    """The numerics of one run (a row of a table's runs or records)."""
+    return {name: str(run.get(column, "?")) for name, column in NUMERICS.items()}
+
+
+def differences(recorded: list[dict[str, str]], now: dict[str, str]) -> list[str]:
+    """``key: recorded value(s) -> now`` for each of :data:`NUMERICS` that differs."""
+    out = []
+    for key in NUMERICS:
+        before = sorted({r.get(key, "?") for r in recorded})
+        if before != [now.get(key, "?")]:
+            out.append(f"{key}: {' / '.join(before)} -> {now.get(key, '?')}")
+    return out
+
+
+def rerun(overrides: list[str], launch: Path, scratch: Path) -> None:
+    """Run ``python -m ablate <overrides>`` in ``scratch`` with a store of its own, its data linked to the launch
+    directory's; raise with the job's exit status when it fails."""
+    scratch.mkdir(parents=True, exist_ok=True)
+    data = launch / "data"
+    if data.is_dir() and not (scratch / "data").exists():
+        (scratch / "data").symlink_to(data, target_is_directory=True)
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{scratch / 'mlflow.db'}"}
+    code = subprocess.call([sys.executable, "-m", "ablate", *overrides], cwd=scratch, env=env)
+    if code:
+        raise RuntimeError(f"the rerun failed (exit {code}); its log is under {scratch / 'outputs'}")
+
+
+def recorded_runs(cfg: DictConfig, table: DictConfig, results: Path) -> tuple[pd.DataFrame, str]:
+    """The runs a row's rerun is compared with, and where they come from: the published records of the table
+    (``results/runs/<table>.csv``, so the check works on a fresh clone), else the runs of the store ``cfg`` names."""
+    path = records_path(results, str(table.name))
+    if path.exists():
+        return under_condition(read_records(path), table), str(path)
+    tracker = Tracker.from_config(cfg)
+    return under_condition(collect(tracker, str(table.name)), table), tracker.uri
+
+
+def reproduce(
+    cfg: DictConfig, overrides: list[str], keep: Path | None = None, results: Path = Path("results")
+) -> Reproduction:
+    """Rerun one seed of ``cfg``'s row (``row=`` among ``overrides``) and compare it with the row's published
+    records (:func:`recorded_runs`)."""
+    table = table_spec(cfg)
+    row = next((o.split("=", 1)[1] for o in overrides if o.startswith("row=")), None)
+    if row is None:
+        raise ValueError("--reproduce needs row=<row> (one of the table's rows)")
+    runs, source = recorded_runs(cfg, table, results)
+    mine = runs[runs["row"] == row] if len(runs) else runs
+    if not len(mine) or table.primary not in mine:
+        raise ValueError(f"no FINISHED runs of row '{row}' of {table.name} in {source}")
+    by_seed = {int(s): float(v) for s, v in zip(mine["seed"], mine[table.primary]) if str(s).isdigit()}
+    given = [o for o in overrides if o.startswith("seed=")]
+    seed = int(given[0].split("=", 1)[1]) if given else min(by_seed)
+    rest = [o for o in overrides if not o.startswith("seed=")]
+    with tempfile.TemporaryDirectory(prefix="ablate-reproduce-") as tmp:
+        scratch = keep or Path(tmp)
+        rerun([*rest, f"seed={seed}"], Path.cwd(), scratch)
+        fresh = Tracker(f"sqlite:///{scratch / 'mlflow.db'}")
+        new = under_condition(collect(fresh, str(table.name)), table)
+        new = new[(new["row"] == row) & (new["seed"].astype(str) == str(seed))]
+        if not len(new):
+            raise RuntimeError(f"the rerun of {row} seed {seed} recorded no FINISHED run")
+    values = list(by_seed.values())
+    return Reproduction(
+        row,
+        seed,
+        str(table.primary),
+        float(new[table.primary].iloc[0]),
+        by_seed.get(seed),
+        values,
+        prediction_interval(values),
+        differences([numerics(r) for _, r in mine.iterrows()], numerics(new.iloc[0])),
+    )

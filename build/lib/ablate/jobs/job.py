@@ -1,0 +1,325 @@
+"""One job: one resolved config -> train, test, and one MLflow run.
+
+A job whose config hash already has a FINISHED run is skipped unless ``force=true``. A job that crashed or was
+killed is recorded FAILED or KILLED and runs again next time, resuming from its last checkpoint
+(``checkpoints/<table>/<config hash>/last.ckpt``) when one exists and loads, else from ``best.ckpt``, else from
+scratch (:mod:`ablate.jobs.checkpoint`, which also writes every checkpoint atomically). SIGTERM or SIGINT stops a job
+after the batch in progress with its checkpoint saved, its run KILLED with the reason, and exit status 143 (130)
+(:mod:`ablate.jobs.preempt`). A full disk fails the job with one message naming the file.
+
+A tracking server that does not answer never stops training: the run's metrics wait in the job's outbox
+(``outbox.jsonl`` beside its checkpoints, :mod:`ablate.store.outbox`) and are delivered once it answers. Where the
+job needs the server (to start, to upload, to end its run) it waits up to ``logger.outage_s``; past that it fails
+with one message naming the server, its checkpoint and outbox kept, and the same command again delivers the outbox
+(the earlier run then ends FAILED) and resumes from the checkpoint.
+
+A job runs in the launch directory, whichever process runs it, so that its relative paths (``checkpoints/``,
+``data/``, the SQLite store, the artifact root) are the ones the sweep was launched with.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+import os
+import re
+import socket
+import sys
+import time
+import traceback
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from mlflow.entities import Run
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException, ValidationError
+
+from ablate import hardware
+from ablate.jobs.preempt import SETTLE_S, STOP, Stopped, exit_status, loky_worker
+from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unreachable
+from ablate.jobs.spec import JobSpec, checkpoint_dir
+from ablate.store import (
+    KIND_JOB,
+    UNHASHED,
+    AccessDenied,
+    ServerUnreachable,
+    SweepContext,
+    Tracker,
+    flatten,
+    provenance_tags,
+    row_name,
+)
+
+log = logging.getLogger(__name__)
+warnings.filterwarnings("ignore", ".*does not have many workers.*")
+warnings.filterwarnings("ignore", ".*GPU available but not used.*")
+
+
+#: Config keys that are not a job's params (the run's ``config.yaml`` artifact keeps the whole config): the table it
+#: fills (its title, rows and the paper's numbers), the options that change no number (ablate.store.UNHASHED), the
+#: metrics' labels, the scale's knobs and the task's modalities and targets (each already in the model's and the data's
+#: own params, which they resolve into), and the side-by-side timing's options.
+NOT_PARAMS = (*UNHASHED, "metrics", "primary", "modalities", "targets", "comp_time", "recipe")
+#: Config keys of Hydra's instantiation or of display alone, in any group: not params either.
+DISPLAY = ("._partial_", "trainer.enable_model_summary", "task.figure_frames")
+
+
+def params_of(cfg: DictConfig) -> dict[str, str]:
+    """A job's MLflow params: its resolved config, flattened, but :data:`NOT_PARAMS` (``scale.name`` kept) and
+    :data:`DISPLAY`."""
+    flat = flatten(OmegaConf.to_container(cfg, resolve=True))
+    dropped = tuple(f"{k}." for k in NOT_PARAMS) + ("scale.",)
+    kept = {k: v for k, v in flat.items() if k == "scale.name" or not (k + ".").startswith(dropped)}
+    return {k: v for k, v in kept.items() if not k.endswith(DISPLAY)}
+
+
+class JobFailed(RuntimeError):
+    """A job ended in error; its run is recorded FAILED."""
+
+
+@dataclass
+class Outcome:
+    """What a job ended as: FINISHED or SKIPPED, its run, and its checkpoint directory."""
+
+    status: str
+    run_id: str
+    ckpt_dir: Path
+
+
+def check_stage(cfg: DictConfig) -> None:
+    """Every option of ``stage`` but its name must be one the model's config reads (``${stage.<option>}`` or
+    ``${oc.select:stage.<option>,...}``, conf/model/): a misspelt or misplaced option (``+stage.spcae=shpl``, or
+    ``stage.space`` on a model without space transforms) raises a ValidationError naming it, instead of the
+    model silently taking its default."""
+    model = OmegaConf.to_yaml(OmegaConf.to_container(cfg.get("model") or {}, resolve=False))
+    reads = sorted(set(re.findall(r"stage\.(\w+)", model)) - {"name"})
+    for option in cfg.get("stage") or {}:
+        if option != "name" and option not in reads:
+            raise ValidationError(
+                f"stage.{option}: not an option of model {cfg.model.get('_target_', '?')!r}, "
+                f"which reads stage.{{{', '.join(['name', *reads])}}}"
+            )
+
+
+def run(spec: JobSpec) -> Outcome:
+    """Run one job tracked as an MLflow run of its table; raise :class:`JobFailed` after recording a FAILED run, and
+    re-raise an interrupt after recording KILLED. A config whose stage options no model reads fails first
+    (:func:`check_stage`). A job whose config hash has a FINISHED run is skipped (``force=true`` reruns it), and one
+    that finished in another table is copied from there."""
+    check_stage(spec.cfg)
+    tracker = Tracker.from_config(spec.cfg, spec.context)
+    exp = tracker.experiment_id(spec.table)
+    deliver_earlier(tracker, spec.outbox)
+    done = already_done(spec, tracker, exp)
+    if done is not None:
+        return done
+    if stale := tracker.close_stale(exp, spec.config_hash):
+        log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, spec.config_hash)
+    run_id = tracker.start(exp, f"{spec.row} seed={spec.seed}", run_tags(spec))
+    log.info("MLflow run %s: %s, seed %s, config %s", run_id, spec.row, spec.seed, spec.config_hash)
+    log.info("Numerics: %s; %s intra-op thread(s)", spec.numerics, spec.cfg.trainer.get("threads") or "all")
+    metrics = train(spec, tracker, run_id)
+    attach_logs(spec, tracker, run_id)
+    tracker.end(run_id, "FINISHED")
+    described = ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items()))
+    log.info("FINISHED %s seed %s: %s", spec.row, spec.seed, described)
+    return Outcome("FINISHED", run_id, spec.ckpt_dir)
+
+
+def run_tags(spec: JobSpec) -> dict[str, str]:
+    """The tags a job's run starts with: what it is (kind, table, row, seed, config hash, scale), its code, its
+    numerics and machine, the race it belongs to, and its sweep's parent run."""
+    cfg = spec.cfg
+    tags = {
+        "kind": spec.kind,
+        "table": spec.table,
+        "row": spec.row,
+        "seed": str(spec.seed),
+        "config_hash": spec.config_hash,
+        **provenance_tags(spec.context.launch_dir),
+        "scale": cfg.scale.name,
+        **hardware.tags(cfg),
+    }
+    if cfg.table.get("seeds"):  # the race this run belongs to: its table replays that race (ablate.tables.racing)
+        tags["race_plan"] = json.dumps(OmegaConf.to_container(cfg.table.seeds, resolve=True), sort_keys=True)
+    if spec.parent_run:
+        tags.update({"mlflow.parentRunId": spec.parent_run, "sweep_id": spec.parent_run})
+        tags["job_num"] = str(spec.context.job_num)
+    return tags
+
+
+def already_done(spec: JobSpec, tracker: Tracker, exp: str) -> Outcome | None:
+    """SKIPPED where the store holds a FINISHED run of this config (in this table, or copied from another), else
+    None (``force=true``: always None)."""
+    if spec.cfg.force:
+        return None
+    done = tracker.finished_run(exp, spec.config_hash)
+    if done is not None:
+        log.info(
+            "Skipping %s (seed %s): run %s with config hash %s is FINISHED (force=true reruns it)",
+            spec.row,
+            spec.seed,
+            done.info.run_id,
+            spec.config_hash,
+        )
+        return Outcome("SKIPPED", done.info.run_id, spec.ckpt_dir)
+    source = tracker.finished_elsewhere(spec.config_hash) if spec.kind == KIND_JOB else None
+    return reuse(spec, tracker, exp, source) if source is not None else None
+
+
+def reuse(spec: JobSpec, tracker: Tracker, exp: str, source: Run) -> Outcome:
+    """Copy a FINISHED run of the same config from another table into this one (tables share rows)."""
+    code = ("git_commit", "ablate_version", "launch_commit")
+    run_id = tracker.copy_run(source, exp, {k: v for k, v in run_tags(spec).items() if k not in code})
+    log.info(
+        "Reusing %s (seed %s): the same config finished as run %s of another table; copied as %s",
+        spec.row,
+        spec.seed,
+        source.info.run_id,
+        run_id,
+    )
+    return Outcome("SKIPPED", run_id, checkpoint_dir(source.data.tags.get("table", ""), spec.config_hash))
+
+
+def train(spec: JobSpec, tracker: Tracker, run_id: str) -> dict[str, float]:
+    """Record the job's params, config and fingerprint, then train and test it (:func:`ablate.jobs.train.fit_and_test`);
+    an interrupt ends the run KILLED, an error FAILED (or waits in the outbox where the server is down)."""
+    from ablate.jobs.train import fit_and_test  # torch and Lightning: imported once a job trains
+
+    cfg, outbox = spec.cfg, spec.outbox
+    try:
+        tracker.log_params(run_id, params_of(cfg))
+        tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
+        record_fingerprint(cfg, tracker, run_id)
+        expert = lambda ecfg, kind, row: run(JobSpec.of(ecfg, spec.context, kind, row))  # noqa: E731
+        with tracker.system_metrics(run_id, bool(cfg.logger.get("system_metrics"))):
+            return fit_and_test(spec, tracker, run_id, expert)
+    except Stopped as stop:
+        stop.reason = stopped_reason(stop, spec.ckpt_dir)
+        record_end(tracker, run_id, "KILLED", {"killed_by": stop.signame, "kill_reason": stop.reason}, outbox=outbox)
+        log.warning("%s (seed %s) KILLED: %s", named(spec), spec.seed, stop.reason)
+        raise
+    except (KeyboardInterrupt, SystemExit) as err:  # Lightning turns Ctrl+C inside fit into sys.exit(1)
+        record_end(tracker, run_id, "KILLED", {"killed_by": type(err).__name__}, outbox=outbox)
+        raise
+    except Exception as err:
+        if (down := unreachable(err)) is not None:  # the server is not there to take the end: the outbox keeps it
+            message = f"{down}; {kept_for_later(outbox, run_id, spec.ckpt_dir, str(down))}"
+        else:
+            message = f"{type(err).__name__}: {err}"
+            record_end(tracker, run_id, "FAILED", {"error": message[:5000]}, traceback.format_exc(), outbox)
+        log.error("%s (seed %s) FAILED: %s", named(spec), spec.seed, message)
+        raise JobFailed(message) from err
+
+
+#: What of a job's output folder its run keeps: its log (``hydra.job.name`` is ``ablate``) and its overrides.
+LOGS = ("ablate.log", ".hydra/overrides.yaml")
+
+
+def attach_logs(spec: JobSpec, tracker: Tracker, run_id: str) -> None:
+    """Attach the job's log and Hydra's ``overrides.yaml`` to its run (under ``logs/``), where the job has an output
+    folder; a file that cannot be attached is one warning, never the job's failure."""
+    folder = spec.context.output_dir
+    if folder is None:
+        return
+    for name in LOGS:
+        path = folder / name
+        if path.is_file():
+            try:
+                tracker.log_artifact(run_id, path, "logs")
+            except Exception as err:  # a convenience: the run's numbers are what matters
+                log.warning("Could not attach %s to run %s: %s", path, run_id, err)
+
+
+def named(spec: JobSpec) -> str:
+    """A job as its log lines name it: ``job unet``; an expert's row already says it (``expert rgb``)."""
+    return spec.row if spec.row.startswith(spec.kind) else f"{spec.kind} {spec.row}"
+
+
+def stopped_reason(stop: Stopped, ckpt_dir: Path) -> str:
+    """What a stopped job tells its run and its user: the signal, and where a rerun resumes."""
+    saved = stop.checkpoint
+    if saved is not None:
+        where = f"checkpoint {saved[0]} saved at step {saved[1]}"
+    elif (ckpt_dir / "last.ckpt").exists():
+        where = f"not training; {ckpt_dir / 'last.ckpt'} is kept"
+    else:
+        where = "stopped before training"
+    return f"stopped by {stop.signame} (preemption or interrupt); {where}; the same command again resumes it"
+
+
+def record_fingerprint(cfg: DictConfig, tracker: Tracker, run_id: str) -> None:
+    """Tag the run with its config's fingerprint (:mod:`ablate.jobs.fingerprint`) and the seconds it took."""
+    from ablate.jobs import fingerprint
+
+    numbers, seconds = fingerprint.timed(cfg)
+    tracker.set_tags(run_id, {fingerprint.TAG: fingerprint.encode(numbers), "fingerprint_s": f"{seconds:.2f}"})
+    log.info("Fingerprint in %.1f s", seconds)
+
+
+@contextmanager
+def in_launch_dir(target: Path) -> Iterator[Path]:
+    """Run the block in the launch directory ``target`` (:attr:`ablate.store.SweepContext.launch_dir`), then go
+    back.
+
+    Workaround for ``hydra/launcher=ray``: a Ray task runs in the directory its cluster was started in, so the
+    relative paths of a job (``checkpoints/``, ``data/``, the expert locks, ``mlflow.db``) would land there, beside
+    another store. Every other launcher starts its jobs in the launch directory already, where this changes nothing.
+    A launch directory missing on this machine is an error: a sweep over several machines needs it on a shared
+    filesystem at the same path (submitit and Hydra's sweep directory need that too).
+    """
+    here = Path.cwd()
+    if here == target:
+        yield target
+        return
+    if not target.is_dir():
+        raise JobFailed(
+            f"the launch directory {target} does not exist on {socket.gethostname()}: run the sweep "
+            "from a directory every machine sees at the same path (a shared filesystem)"
+        )
+    os.chdir(target)
+    try:
+        yield target
+    finally:
+        os.chdir(here)
+
+
+def standard_start_method() -> None:
+    """Workaround for a job in a loky worker (``hydra/launcher=parallel``, joblib): loky makes its own start method
+    the worker's default, and a process that the job spawns through multiprocessing (DDP, ``trainer=ddp_cpu``)
+    then fails at start-up with "cannot find context for 'loky'". Such a job spawns with multiprocessing's own."""
+    if multiprocessing.get_start_method(allow_none=True) not in (None, "fork", "spawn", "forkserver"):
+        multiprocessing.set_start_method("spawn", force=True)
+
+
+def main(cfg: DictConfig) -> str:
+    """Hydra task function: the job's context is read here, once (:meth:`SweepContext.current`), and the job runs in
+    the launch directory. In a multirun a failed job is noted for the end-of-sweep summary and the other jobs go on;
+    a failed single run exits with status 1 and one clear line."""
+    standard_start_method()
+    context = SweepContext.current()
+    try:
+        with STOP.installed(), in_launch_dir(context.launch_dir):
+            return run(JobSpec.of(cfg, context)).status
+    except Stopped as stop:
+        reason = stop.reason
+        if loky_worker():  # a sweep's worker goes with its parent, which is stopping too
+            # when one loky worker exits, the executor kills the others at once: a sibling still recording its
+            # KILLED status would be cut off, so a worker that has recorded its own waits a moment first
+            time.sleep(SETTLE_S)
+            logging.shutdown()
+            os._exit(exit_status(stop.signame))
+        print(f"stopped: {reason}", file=sys.stderr)
+        raise SystemExit(exit_status(stop.signame)) from None
+    # a config that does not resolve, or a server that refuses the credentials or does not answer, fails before any run
+    except (JobFailed, OmegaConfBaseException, AccessDenied, ServerUnreachable) as err:
+        if context.sweep_dir is None:
+            print(f"error: {err}", file=sys.stderr)
+            raise SystemExit(1) from None
+        row = row_name(context.overrides, context.swept, context.row_choice)
+        context.record_failure(f"{context.job_num}_{row.replace(' ', '_').replace('/', '-')}", str(err))
+        return "FAILED"

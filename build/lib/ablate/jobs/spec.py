@@ -1,0 +1,82 @@
+"""A job's identity, owned in one place: its table, row, seed, config hash, checkpoint directory and outbox, and the
+sweep it belongs to (:class:`JobSpec`, built once per job from the composed config and the
+:class:`~ablate.store.SweepContext` read at the job's start).
+
+The job (:mod:`ablate.jobs.job`), the experts (:mod:`ablate.jobs.experts`), latency, the diagnosis and the
+reproduction check take paths and names from here; the racing sweeper names rows with the same function
+(:func:`ablate.store.row_name`) as the job.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from ablate import hardware
+from ablate.store import KIND_JOB, Outbox, SweepContext, config_hash, row_name
+from ablate.store.outbox import FILE as OUTBOX_FILE
+
+#: Where jobs keep their checkpoints, relative to the launch directory (a job runs there).
+CHECKPOINTS = Path("checkpoints")
+
+
+def checkpoint_dir(table: str, chash: str) -> Path:
+    """The folder of a job's checkpoints and outbox: ``checkpoints/<table>/<config hash>``."""
+    return CHECKPOINTS / table / chash
+
+
+def best_checkpoint(table: str, chash: str) -> Path:
+    """A job's best checkpoint (the one it was tested from)."""
+    return checkpoint_dir(table, chash) / "best.ckpt"
+
+
+@dataclass(frozen=True)
+class JobSpec:
+    """One job: ``cfg`` is its config with the numerics resolved for this machine (a copy: ``trainer.precision`` and
+    ``channels_last`` are ``auto`` no longer, :func:`ablate.hardware.resolve`), which is what its config hash holds;
+    ``numerics`` says why, in one sentence; ``kind`` is ``job`` or ``expert``; ``context`` is where it runs;
+    ``outbox`` keeps the metrics and the ends of its runs while the server does not answer, beside its checkpoints."""
+
+    cfg: DictConfig
+    numerics: str
+    kind: str
+    row: str
+    config_hash: str
+    context: SweepContext
+    outbox: Outbox = field(compare=False)  # one instance per job: it keeps what it has read of its file
+
+    @classmethod
+    def of(cls, cfg: DictConfig, context: SweepContext, kind: str = KIND_JOB, row: str | None = None) -> JobSpec:
+        """The spec of job config ``cfg`` in ``context``; ``row`` names it where the caller knows better than the
+        overrides (an expert)."""
+        resolved = copy.deepcopy(cfg)
+        numerics = hardware.resolve(resolved)
+        name = row or row_name(context.overrides, context.swept, context.row_choice)
+        chash = config_hash(resolved)
+        outbox = Outbox(checkpoint_dir(str(resolved.table.name), chash) / OUTBOX_FILE)
+        return cls(resolved, numerics, kind, name, chash, context, outbox)
+
+    @property
+    def table(self) -> str:
+        return str(self.cfg.table.name)
+
+    @property
+    def seed(self) -> int:
+        return int(self.cfg.seed)
+
+    @property
+    def ckpt_dir(self) -> Path:
+        return checkpoint_dir(self.table, self.config_hash)
+
+    @property
+    def parent_run(self) -> str | None:
+        """The sweep's run this job's run is a child of (an expert's run is not: it serves several sweeps)."""
+        return self.context.parent_run if self.kind == KIND_JOB else None
+
+    @property
+    def note_name(self) -> str:
+        """The name of this job's failure note in its sweep directory."""
+        return f"{self.context.job_num}_{self.row.replace(' ', '_').replace('/', '-')}"

@@ -1,0 +1,116 @@
+"""Tables from runs: the store's runs -> pandas -> ``results/<table>.md`` and ``results/<table>.png``.
+
+Only FINISHED job runs count (per row and seed the latest, at the scale of the latest run), so a failed job never
+becomes a row; a row with no finished run is listed under the table instead, and the footer counts the runs still
+RUNNING (a report while a sweep writes) and the bad frames the runs skipped. The same runs give the same bytes:
+no timestamps, rows in the paper's order, PNG written without metadata. It imports the store, never the job or the
+sweep (:mod:`ablate.jobs`, :mod:`ablate.sweep`): what it needs from them (recomputing a run's fingerprint) is passed in.
+
+Two layouts (``table.layout``) share one API, ``write_<layout>(cfg, table, runs, tracker, parent_run,
+results_dir, footer) -> paths``: ``rows`` (:mod:`~ablate.tables.rows`, the default) has a row per trained model;
+``conditions`` (:mod:`~ablate.tables.conditions`, DGFN Table I's shape) has a row per test condition and columns
+model x metric, from runs tested under ``task.eval_conditions``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import pandas as pd
+from omegaconf import DictConfig
+
+from ablate.store import Tracker
+from ablate.tables.collect import collect, made_lines, running, state_lines
+from ablate.tables.conditions import write_conditions
+from ablate.tables.curves import curves_path, from_store, read_curves, write_curves, write_figure
+from ablate.tables.provenance import Recompute, config_of, provenance
+from ablate.tables.records import read_records, records_path, write_records
+from ablate.tables.rows import write_rows
+from ablate.tables.spec import COSTS, table_spec
+
+LAYOUTS = {"rows": write_rows, "conditions": write_conditions}
+
+__all__ = ["COSTS", "LAYOUTS", "collect", "render_records", "table_spec", "write_table"]
+
+
+def write_table(
+    cfg: DictConfig,
+    tracker: Tracker,
+    parent_run: str | None = None,
+    results_dir: str | Path = "results",
+    fingerprint: Recompute | None = None,
+    publish: bool = False,
+) -> list[Path]:
+    """Write ``cfg``'s table and its figures under ``results_dir`` from the store's runs; log them to
+    ``parent_run`` if given. Returns the paths written. ``fingerprint`` recomputes a run's fingerprint from its
+    config (:func:`ablate.jobs.fingerprint.compute`, passed in by the caller) for the provenance footer; without it
+    the footer names changed files. ``publish``: write the table's run records first
+    (:func:`~ablate.tables.records.write_records`) and render from them, the one path from runs to a published
+    table."""
+    table = table_spec(cfg)
+    runs = collect(tracker, table.name)
+    written: list[Path] = []
+    if publish and len(runs):
+        written.append(write_records(runs, str(table.name), results_dir))
+        runs = read_records(written[-1])
+        written.append(write_curves(from_store(tracker, runs, table), results_dir, str(table.name)))
+    config = lambda run_id: config_of(tracker, run_id)  # noqa: E731
+    footer = footer_lines(runs, fingerprint, config, running(tracker, table.name))
+    written += render(cfg, table, runs, results_dir, footer, tracker, parent_run)
+    return written + curves_figure(table, results_dir, tracker, parent_run)
+
+
+def render_records(
+    cfg: DictConfig,
+    results_dir: str | Path = "results",
+    fingerprint: Recompute | None = None,
+    config: Callable[[pd.DataFrame], Callable[[str], DictConfig]] | None = None,
+) -> list[Path] | None:
+    """Write ``cfg``'s table and its figures under ``results_dir`` from its run records
+    (:func:`~ablate.tables.records.records_path`) alone, with no store; None where the table has no records.
+    ``config(runs)`` gives the function that composes a recorded run's config today, for the provenance footer."""
+    table = table_spec(cfg)
+    path = records_path(results_dir, str(table.name))
+    if not path.exists():
+        return None
+    runs = read_records(path)
+    footer = footer_lines(runs, fingerprint, config(runs) if config is not None else None, 0)
+    return render(cfg, table, runs, results_dir, footer, None, None) + curves_figure(table, results_dir, None, None)
+
+
+def curves_figure(
+    table: DictConfig, results_dir: str | Path, tracker: Tracker | None, parent_run: str | None
+) -> list[Path]:
+    """The table's learning curves (:mod:`~ablate.tables.curves`) from the curves kept beside its records, where it
+    has them; logged to ``parent_run`` if given."""
+    path = curves_path(results_dir, str(table.name))
+    figure = write_figure(read_curves(path), table, Path(results_dir)) if path.exists() else None
+    if figure is None:
+        return []
+    if parent_run and tracker is not None:
+        tracker.log_artifact(parent_run, figure)
+    return [figure]
+
+
+def footer_lines(
+    runs: pd.DataFrame, fingerprint: Recompute | None, config: Callable[[str], DictConfig] | None, in_progress: int
+) -> list[str]:
+    """The footer under a table: how its rows were made, its provenance, and what it leaves out."""
+    return made_lines(runs) + provenance(runs, fingerprint, config) + state_lines(runs, in_progress)
+
+
+def render(
+    cfg: DictConfig,
+    table: DictConfig,
+    runs: pd.DataFrame,
+    results_dir: str | Path,
+    footer: list[str],
+    tracker: Tracker | None,
+    parent_run: str | None,
+) -> list[Path]:
+    """The table in its layout (``table.layout``) from its runs."""
+    layout = table.get("layout", "rows")
+    if layout not in LAYOUTS:
+        raise ValueError(f"table.layout: {layout!r} is not one of {', '.join(LAYOUTS)}")
+    return LAYOUTS[layout](cfg, table, runs, tracker, parent_run, results_dir, footer)

@@ -1,0 +1,144 @@
+"""The runs of a table, from the store, as a pandas frame: one row per (table row, seed)."""
+
+from __future__ import annotations
+
+import pandas as pd
+from omegaconf import DictConfig
+
+from ablate.store import KIND_JOB, SKIPPED_FRAMES, Tracker
+
+#: The run tags that say where and how a row was computed (ablate.hardware.tags), for the footer.
+MADE = ("cpu", "precision", "threads")
+
+
+def collect(tracker: Tracker, table: str) -> pd.DataFrame:
+    """One row per (row, seed) of ``table``: its latest FINISHED job run, at the scale of the latest such run.
+
+    A rerun after a config change (another recipe, another dataset) supersedes the earlier run of the same row and
+    seed instead of counting as one more seed; runs at another scale (a smoke sweep beside the default-scale table)
+    stay in the store and out of the table."""
+    return latest(job_runs(tracker, table))
+
+
+def latest(runs: pd.DataFrame) -> pd.DataFrame:
+    """Of :func:`job_runs`' frame, the latest run per (row, seed) at the latest scale: what :func:`collect` gives."""
+    df = at_latest_scale(runs)
+    return df.drop_duplicates(["row", "seed"], keep="last").reset_index(drop=True) if len(df) else df
+
+
+def at_latest_scale(runs: pd.DataFrame) -> pd.DataFrame:
+    """The runs (oldest first) at the scale of the latest of them: a smoke sweep beside a table stays out of it."""
+    return runs[runs["scale"] == runs["scale"].iloc[-1]] if len(runs) else runs
+
+
+def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
+    """Every FINISHED job run of ``table``, oldest first: one row per run, superseded ones too."""
+    exp = tracker.find_experiment(table)
+    if exp is None:
+        return pd.DataFrame()
+    runs = tracker.runs(exp, f"attributes.status = 'FINISHED' and tags.kind = '{KIND_JOB}'")
+    records = [
+        {
+            "row": r.data.tags.get("row", "?"),
+            "seed": r.data.tags.get("seed", "?"),
+            "scale": r.data.tags.get("scale", "?"),
+            "config_hash": r.data.tags.get("config_hash", r.info.run_id),
+            "git_commit": r.data.tags.get("git_commit", "unknown"),
+            "run_id": r.info.run_id,
+            "evaluator": r.data.tags.get("evaluator", ""),
+            "fingerprint": r.data.tags.get("fingerprint", ""),
+            "job_num": int(r.data.tags.get("job_num", "0") or 0),
+            "targets": " ".join(sorted({v for k, v in r.data.params.items() if k.endswith("_target_")})),
+            **{f"made_{k}": r.data.tags.get(k, "?") for k in MADE},
+            "cpu_isa": r.data.tags.get("cpu_isa", "?"),
+            "sweep_id": r.data.tags.get("sweep_id", ""),
+            "race_plan": r.data.tags.get("race_plan", ""),
+            "reused_from": r.data.tags.get("reused_from", ""),
+            "started": r.info.start_time,
+            "ended": r.info.end_time or r.info.start_time,
+            **r.data.metrics,
+        }
+        for r in runs
+    ]
+    if not records:
+        return pd.DataFrame()
+    return pd.DataFrame.from_records(records).sort_values(["started", "config_hash"], kind="stable")
+
+
+def row_seconds(tracker: Tracker, runs: pd.DataFrame) -> dict[str, float]:
+    """Per row of a table's :func:`job_runs`, the median seconds one of its jobs took, start to end, over its
+    FINISHED runs at the latest scale. A run copied from another table (tag ``reused_from``, ``ablate.jobs.job``)
+    took seconds to copy: the time of the run it was copied from counts (read from ``tracker``). The racing sweeper
+    weighs its estimate of a look's wall time with these (``hydra_plugins/ablate_racing_sweeper``): rows of one
+    table can differ twofold in their cost."""
+    runs = at_latest_scale(runs)
+    if not len(runs):
+        return {}
+    seconds = ((runs["ended"] - runs["started"]) / 1000.0).astype(float)
+    for i, source in runs["reused_from"].items():
+        if source:
+            try:
+                run = tracker.get_run(source)
+                seconds[i] = ((run.info.end_time or run.info.start_time) - run.info.start_time) / 1000.0
+            except Exception:  # the source is gone from this store: its time is unknown
+                seconds[i] = float("nan")
+    medians = seconds.groupby(runs["row"]).median().dropna()
+    return {str(row): float(value) for row, value in medians.items()}
+
+
+def made_lines(runs: pd.DataFrame) -> list[str]:
+    """The footer's line on how the rows were made: the CPU, precision and threads of the runs (each set with its
+    run count where they differ: the numerics are a source of variation of their own), and the wall time: per
+    sweep the runs came from, its first job's start to its last job's end, added up (from the runs alone, so the
+    same runs give the same line), beside the jobs' own time added up."""
+    if not len(runs) or "made_cpu" not in runs:
+        return []
+    kinds = runs.groupby([f"made_{k}" for k in MADE]).size()
+    made = [
+        f"{cpu}, precision {precision}, {threads} thread(s) per job" + (f" ({n} runs)" if len(kinds) > 1 else "")
+        for (cpu, precision, threads), n in kinds.items()
+    ]
+    spans = runs.groupby("sweep_id").agg(first=("started", "min"), last=("ended", "max"))
+    wall = float((spans["last"] - spans["first"]).sum()) / 60000
+    head = "Made on " if len(kinds) == 1 else "**Mixed machines or numerics**: made on "
+    return [
+        f"{head}{'; '.join(made)}; wall time {wall:.0f} min over {len(spans)} sweep(s), "
+        f"{(runs['ended'] - runs['started']).sum() / 60000:.0f} min of job time."
+    ]
+
+
+def running(tracker: Tracker, table: str) -> int:
+    """How many job runs of ``table`` are RUNNING (a sweep writing now, or a killed job not yet closed): never rows."""
+    exp = tracker.find_experiment(table)
+    if exp is None:
+        return 0
+    return len(tracker.runs(exp, f"attributes.status = 'RUNNING' and tags.kind = '{KIND_JOB}'"))
+
+
+def state_lines(runs: pd.DataFrame, in_progress: int) -> list[str]:
+    """The footer's lines on what the table leaves out: the RUNNING runs, and the bad frames the runs' data
+    modules skipped (``data.on_bad_frame=skip``), where there are any."""
+    lines = []
+    if in_progress:
+        lines.append(
+            f"{in_progress} run(s) still RUNNING are left out (a sweep is writing, or a killed job not yet rerun); "
+            "regenerate with `python -m ablate.report` when they end."
+        )
+    if len(runs) and SKIPPED_FRAMES in runs:
+        skipped = runs[SKIPPED_FRAMES].fillna(0)
+        if skipped.sum() > 0:
+            lines.append(
+                f"{int(skipped.sum())} bad frame(s) skipped (data.on_bad_frame=skip) in {int((skipped > 0).sum())} "
+                "run(s); each run's log names them."
+            )
+    return lines
+
+
+def under_condition(runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
+    """``runs`` with the metrics of ``table.primary_condition`` (``<condition>/<metric>``) as the plain metrics."""
+    condition = table.get("primary_condition")
+    if not condition or not len(runs):
+        return runs
+    prefix = f"{condition}/"
+    moved = {c: c[len(prefix) :] for c in runs.columns if str(c).startswith(prefix)}
+    return runs.drop(columns=[c for c in moved.values() if c in runs]).rename(columns=moved)

@@ -1,0 +1,176 @@
+"""The columns and footer lines both layouts add to a table: the primary metric's 95 % CI and difference from the
+reference row (:func:`significance`), and latency, parameters and MACs (:func:`costs`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig
+
+from ablate.tables.racing import RacePlan, RaceState, decided, race, race_lines, recorded_plan, seed_values
+from ablate.tables.significance import BOOTSTRAP_FROM, COLLAPSE_RATIO, RESAMPLES, difference, disagreeing_seeds
+from ablate.tables.spec import COSTS, LOWER_IS_BETTER
+from ablate.tables.summary import best_of, fmt, per_seed, reference, signed
+
+
+def tests_used(tests: set[tuple[str, bool]]) -> str:
+    """The footer's name for the tests behind the Δ column, from each difference's (test, bootstrap CI or not)
+    (:class:`ablate.tables.significance.Difference`): where rows of different n used a t and a bootstrap CI, once,
+    with the n the bootstrap starts at."""
+    kinds = sorted({kind for kind, _ in tests})
+    boot = [b for _, b in tests]
+    ci = (", bootstrap CI" if all(boot) else f", bootstrap CI from n = {BOOTSTRAP_FROM}") if any(boot) else ""
+    return ", ".join(kinds) + ci if kinds else "no test: too few seeds"
+
+
+def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> tuple[dict, list[str]]:
+    """The primary metric's CI column and difference-from-reference column, and the footer lines that explain
+    them: the test used, whether the top row is ahead of the second beyond seed noise, and disagreeing seeds."""
+    key, label = table.primary, table.metrics.get(table.primary, table.primary)
+    ref = reference(summary, table)
+    if ref is None:
+        return {}, []
+    raced = replayed_race(summary, runs, table, key)
+    if raced is not None:
+        ref = raced.reference or ref
+    ref_name = str(summary.loc[summary["row"] == ref, "name"].iloc[0])
+    cis, deltas, tests = _ci_and_delta(summary, runs, key, ref, raced)
+    columns = {f"{label} 95% CI": cis, f"Δ {label} vs {ref_name} [95% CI]": deltas}
+    lines = [
+        f"95% CI: of the mean over seeds, Student's t for n < {BOOTSTRAP_FROM}, a percentile bootstrap over "
+        f"seeds ({RESAMPLES} resamples) from n = {BOOTSTRAP_FROM}. Δ: difference from {ref_name} on {label} "
+        f"({tests_used(tests)}; paired over the seeds two rows share); "
+        + ("*: its 95% CI excludes 0." if raced is None else "*: decided by the race (below).")
+    ]
+    if raced is not None:
+        lines += race_lines(raced, dict(zip(summary["row"], summary["name"])))
+    lines += _top_against_second(summary, runs, key, label, raced)
+    return columns, lines + _disagreeing_seed_lines(summary, runs, table)
+
+
+def replayed_race(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, key: str) -> RaceState | None:
+    """The race's own decisions, replayed from the runs (ablate.tables.racing); None without a race plan or rows."""
+    plan = RacePlan.from_config(recorded_plan(runs) or table.get("seeds"))
+    if plan is None:
+        return None
+    rows = [str(r) for r in summary["row"] if r in set(runs.get("row", []))]
+    named = table.get("reference")
+    candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
+    if not rows:
+        return None
+    return race(seed_values(runs, key), rows, candidates or rows[0], plan, key not in LOWER_IS_BETTER)
+
+
+def _ci_and_delta(
+    summary: pd.DataFrame, runs: pd.DataFrame, key: str, ref: str, raced: RaceState | None
+) -> tuple[list[str], list[str], set[tuple[str, bool]]]:
+    """Each row's 95 % CI and difference from ``ref`` (starred when significant, or decided by the race), and the
+    (test, bootstrap CI or not) of the differences for :func:`tests_used`."""
+    ref_values = per_seed(runs, ref, key)
+    cis: list[str] = []
+    deltas: list[str] = []
+    tests: set[tuple[str, bool]] = set()
+    for row, lo, hi in zip(summary["row"], summary[f"{key}_lo"], summary[f"{key}_hi"]):
+        cis.append("—" if np.isnan(lo) else f"[{lo:.2f}, {hi:.2f}]")
+        if row == ref:
+            deltas.append("reference")
+            continue
+        d = difference(per_seed(runs, row, key), ref_values)
+        if np.isnan(d.ci.lo):
+            deltas.append("—" if np.isnan(d.delta) else signed(d.delta))
+            continue
+        tests.add((d.kind, d.ci.method == "bootstrap"))
+        star = d.significant if raced is None else decided(raced, row, ref)
+        deltas.append(f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}]" + (" *" if star else ""))
+    return cis, deltas, tests
+
+
+def _top_against_second(
+    summary: pd.DataFrame, runs: pd.DataFrame, key: str, label: str, raced: RaceState | None
+) -> list[str]:
+    """The footer line saying whether the top row is ahead of the second beyond seed noise (none under two rows)."""
+    ranked = summary.dropna(subset=[f"{key}_mean"]).sort_values(
+        f"{key}_mean", ascending=key in LOWER_IS_BETTER, kind="stable"
+    )
+    if len(ranked) < 2:
+        return []
+    (top, top_name), (second, second_name) = [tuple(r) for r in ranked[["row", "name"]].iloc[:2].to_numpy()]
+    if raced is not None and raced.top:
+        names = dict(zip(summary["row"], summary["name"]))
+        (top, second), (top_name, second_name) = raced.top, (names[raced.top[0]], names[raced.top[1]])
+    d = difference(per_seed(runs, top, key), per_seed(runs, second, key))
+    ahead = d.significant if raced is None else decided(raced, top, second)
+    verdict = (
+        "n/a (too few seeds)"
+        if np.isnan(d.ci.lo)
+        else f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}], {d.test}, p = {d.p:.3f}: "
+        + ("ahead beyond seed noise" if ahead else "not separable from seed noise")
+        + ("" if raced is None else " (the race's decision)")
+    )
+    return [f"Top row {top_name} against the second, {second_name}, on {label}: {verdict}."]
+
+
+def _disagreeing_seed_lines(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> list[str]:
+    """A warning per seed whose metric collapsed against the median of its row's other seeds (a failed seed)."""
+    lines: list[str] = []
+    for row, name in zip(summary["row"], summary["name"]):
+        for k, lab in table.metrics.items():
+            if k in LOWER_IS_BETTER:
+                continue
+            for seed, v, med in disagreeing_seeds(per_seed(runs, row, k)):
+                lines.append(
+                    f"**Seeds disagree**: {name}, {lab}, seed {seed} gives {v:.2f} against a median of "
+                    f"{med:.2f} over its other seeds (below {COLLAPSE_RATIO:.0%} of it); the row's mean "
+                    "hides a failed seed."
+                )
+    return lines
+
+
+def costs(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> tuple[dict, list[str]]:
+    """Latency (median [interquartile range] over the interleaved rounds, and its ratio to the reference row),
+    parameters and MACs per row, with a footer saying how latency was measured and warning of a loaded machine."""
+    if not len(summary):
+        return {}, []
+    columns: dict[str, list[str]] = {}
+
+    def per_row(key: str) -> list[float]:
+        return [per_seed(runs, row, key).mean() if key in runs else np.nan for row in summary["row"]]
+
+    med, q1, q3 = per_row("latency_ms"), per_row("latency_q1_ms"), per_row("latency_q3_ms")
+    label = table.metrics.get("latency_ms", COSTS["latency_ms"])
+    best = np.nanmin(med) if not np.all(np.isnan(med)) else np.nan
+    columns[f"{label} (ours)"] = [
+        "—" if np.isnan(m) else (f"**{m:.2f}**" if m == best else f"{m:.2f}") + f" [{a:.2f}, {b:.2f}]"
+        for m, a, b in zip(med, q1, q3)
+    ]
+    paper = summary["latency_ms_paper"] if "latency_ms_paper" in summary else pd.Series(dtype=float)
+    if paper.notna().any():
+        columns[f"{label} (paper)"] = [fmt(v, np.nan, v == best_of(paper, "latency_ms")) for v in paper]
+    ref = reference(summary, table)
+    ref_med = med[list(summary["row"]).index(ref)] if ref is not None else np.nan
+    if not np.isnan(ref_med):
+        columns[f"{label} ratio"] = ["—" if np.isnan(m) else f"{m / ref_med:.2f}×" for m in med]
+    for key in ("params_m", "macs_g"):
+        values = per_row(key)
+        if not np.all(np.isnan(values)):
+            columns[table.metrics.get(key, COSTS[key])] = ["—" if np.isnan(v) else f"{v:.2f}" for v in values]
+    lines = []
+    if np.all(np.isnan(med)):
+        lines.append(f"{label}: not measured yet (`python -m ablate.latency experiment={table.name}`).")
+        return columns, lines
+    load, cores = runs.get("latency_load", pd.Series(dtype=float)).max(), runs["latency_cores"].max()
+    rounds = (
+        f"{label}: median [interquartile range] of one forward pass at batch 1, every row timed side by side "
+        "in one process, interleaved (`python -m ablate.latency`); ratio to the reference row. "
+        f"Load average up to {load:.1f} on {cores:.0f} cores."
+    )
+    lines.append(
+        rounds
+        + (
+            f" **Loaded machine**: the load exceeded the {cores:.0f} available cores while timing; "
+            "rerun `python -m ablate.latency` on a quiet machine."
+            if load > cores
+            else ""
+        )
+    )
+    return columns, lines

@@ -1,0 +1,73 @@
+"""A table's numbers for papers and notebooks: ``<table>.csv`` (unformatted) and ``<table>.tex`` (booktabs) beside
+its markdown, from the same summary and race the markdown shows.
+
+The CSV has one line per row: its name, n, and per metric the mean, std and 95 % CI of the mean over seeds and the
+paper's value; for the primary metric also the difference from the reference row with its 95 % CI and p-value
+(:func:`ablate.tables.significance.difference`, paired over shared seeds) and the race's verdict on that comparison
+(``decided`` or ``undecided``, :mod:`ablate.tables.racing`; empty without a race). The LaTeX table shows mean ± std
+per metric, the best of each column in bold (pandas' ``Styler``; names and labels escaped), with ``\\toprule``/``\\midrule``/``\\bottomrule``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig
+
+from ablate.tables.columns import replayed_race
+from ablate.tables.racing import decided
+from ablate.tables.significance import difference
+from ablate.tables.summary import best_of, per_seed, reference
+
+
+def numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
+    """The table's numbers, unformatted: one line per row of ``summary`` (:func:`ablate.tables.summary.summarise`)."""
+    key = str(table.primary)
+    out = summary[["row", "name", "n"]].copy()
+    for metric in table.metrics:
+        for part in ("mean", "std", "lo", "hi", "paper"):
+            out[f"{metric}_{part}"] = summary[f"{metric}_{part}"].astype(float)
+    raced = replayed_race(summary, runs, table, key) if len(summary) else None
+    ref = (raced.reference if raced is not None else None) or reference(summary, table)
+    deltas = []
+    for row in summary["row"]:
+        if ref is None or row == ref or not len(runs):
+            deltas.append({"delta": np.nan, "delta_lo": np.nan, "delta_hi": np.nan, "p": np.nan, "verdict": ""})
+            continue
+        d = difference(per_seed(runs, row, key), per_seed(runs, ref, key))
+        verdict = "" if raced is None else ("decided" if decided(raced, row, ref) else "undecided")
+        deltas.append({"delta": d.delta, "delta_lo": d.ci.lo, "delta_hi": d.ci.hi, "p": d.p, "verdict": verdict})
+    out["reference"] = ref or ""
+    return pd.concat([out.reset_index(drop=True), pd.DataFrame(deltas)], axis=1)
+
+
+def latex(summary: pd.DataFrame, table: DictConfig) -> str:
+    """Mean ± std per metric, the best of each column in bold, as a booktabs LaTeX table."""
+    shown = pd.DataFrame({"Row": summary["name"].astype(str)})
+    best: dict[str, float] = {}
+    for metric, label in table.metrics.items():
+        mean, std = summary[f"{metric}_mean"].astype(float), summary[f"{metric}_std"].astype(float)
+        shown[str(label)] = [
+            "--" if np.isnan(m) else f"{m:.2f}" + ("" if np.isnan(s) else f" $\\pm$ {s:.2f}") for m, s in zip(mean, std)
+        ]
+        best[str(label)] = best_of(mean, metric)
+    means = {str(label): summary[f"{metric}_mean"].astype(float).tolist() for metric, label in table.metrics.items()}
+
+    def bold(column: pd.Series) -> list[str]:
+        if column.name not in means:
+            return ["" for _ in column]
+        return ["font-weight: bold" if m == best[str(column.name)] else "" for m in means[str(column.name)]]
+
+    styler = shown.style.hide(axis="index").apply(bold, axis=0)
+    styler = styler.format(escape="latex", subset=["Row"]).format_index(escape="latex", axis="columns")
+    return styler.to_latex(hrules=True, convert_css=True, column_format="l" + "r" * len(table.metrics))
+
+
+def write_numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, out: Path) -> list[Path]:
+    """Write ``<table>.csv`` and ``<table>.tex`` under ``out``; the paths."""
+    csv, tex = out / f"{table.name}.csv", out / f"{table.name}.tex"
+    numbers(summary, runs, table).to_csv(csv, index=False, lineterminator="\n")
+    tex.write_text(latex(summary, table))
+    return [csv, tex]

@@ -1,0 +1,133 @@
+"""A table's run records: the runs a published table uses, as a plain CSV beside it (``results/runs/<table>.csv``),
+from which the report renders the table again on any machine, with no store (DomainBed's ``results.jsonl`` ->
+``collect_results.py`` is the model: records in, tables out).
+
+One line per run the table uses (:func:`ablate.tables.collect.collect`: per row and seed the latest FINISHED run,
+at the latest scale): who it is (``table``, ``row``, ``seed``, ``status``, ``scale``, ``config_hash``), the code
+that made it (``git_commit``, its ``fingerprint``, ``evaluator``, ``targets``), where and how (``made_cpu``,
+``cpu_isa``, ``made_precision``, ``made_threads``), when (``started``, ``ended`` in ms, ``seconds``), the race and
+sweep it belongs to (``race_plan``, ``sweep_id``, ``job_num``, ``reused_from``, ``run_id``), and one column per
+final metric: the test metrics the table shows (per condition and difficulty where it has them), latency and
+costs. No per-step history, no checkpoints. Numbers are written as Python's shortest round-trip form, so a table
+rendered from the records is the table rendered from the store, byte for byte.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+
+from ablate.store import Tracker
+
+#: Where records live under a results folder.
+RUNS_DIR = "runs"
+#: The text columns of a record (a run's tags): read back as text, never as numbers.
+TEXT = (
+    "table",
+    "row",
+    "seed",
+    "status",
+    "scale",
+    "config_hash",
+    "git_commit",
+    "run_id",
+    "evaluator",
+    "fingerprint",
+    "targets",
+    "made_cpu",
+    "cpu_isa",
+    "made_precision",
+    "made_threads",
+    "sweep_id",
+    "race_plan",
+    "reused_from",
+)
+#: The whole-number columns: the job's number in its sweep, its start and end (ms since the epoch).
+WHOLE = ("job_num", "started", "ended")
+#: Metrics a record leaves out: the per-epoch ones (their last values) and the test metrics' second names.
+HISTORY = ("train/", "val/", "test/", "epoch", "lr")
+
+
+def records_path(results_dir: str | Path, table: str) -> Path:
+    """The records of ``table`` under ``results_dir``: ``<results_dir>/runs/<table>.csv``."""
+    return Path(results_dir) / RUNS_DIR / f"{table}.csv"
+
+
+def to_records(runs: pd.DataFrame, table: str) -> pd.DataFrame:
+    """The record of each of a table's runs (the frame :func:`~ablate.tables.collect.collect` gives), its columns
+    in a fixed order: :data:`TEXT`, :data:`WHOLE`, ``seconds``, then the final metrics, sorted by name."""
+    out = runs.copy()
+    out["table"], out["status"] = table, "FINISHED"
+    if "cpu_isa" not in out:
+        out["cpu_isa"] = "?"
+    out["seconds"] = ((out["ended"] - out["started"]) / 1000.0).astype(float)
+    known = set(TEXT) | set(WHOLE) | {"seconds"}
+    metrics = sorted(c for c in out.columns if c not in known and not str(c).startswith(HISTORY))
+    return out[[c for c in (*TEXT, *WHOLE, "seconds") if c in out] + metrics]
+
+
+def write_records(runs: pd.DataFrame, table: str, results_dir: str | Path) -> Path:
+    """Write a table's records (:func:`to_records`) to :func:`records_path`; the path."""
+    path = records_path(results_dir, table)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    to_records(runs, table).to_csv(path, index=False, lineterminator="\n")
+    return path
+
+
+def read_records(path: str | Path) -> pd.DataFrame:
+    """A table's runs from its records, in the frame the tables read from the store (:func:`to_records`' columns;
+    text columns as text, metrics as floats, a missing metric NaN)."""
+    path = Path(path)
+    header = pd.read_csv(path, nrows=0).columns
+    numeric = [c for c in header if c not in TEXT]
+    frame = pd.read_csv(
+        path,
+        dtype={**{c: str for c in header if c in TEXT}, **{c: "int64" for c in header if c in WHOLE}},
+        keep_default_na=False,
+        na_values={c: [""] for c in numeric if c not in WHOLE},
+    )
+    for column in numeric:
+        if column not in WHOLE:
+            frame[column] = frame[column].astype(float)
+    return frame
+
+
+#: The tag an imported run carries: the record it was made from (``<records file>#<run id>``).
+IMPORTED = "imported_from"
+#: The kind of an imported run: never a job of this store, so no job skips on it and no table here counts it.
+KIND_IMPORTED = "imported"
+#: Record columns that become tags of another name (the rest of :data:`TEXT` keep theirs, but ``status``): the
+#: config hash and run id are the recorded run's, kept apart from this store's own.
+TAG_NAMES = {
+    "made_cpu": "cpu",
+    "made_precision": "precision",
+    "made_threads": "threads",
+    "config_hash": "recorded_config_hash",
+    "run_id": "recorded_run_id",
+}
+
+
+def load_records(tracker: Tracker, path: Path) -> int:
+    """Load a table's records into ``tracker``'s store as FINISHED runs of its experiment, of kind
+    :data:`KIND_IMPORTED` and tagged :data:`IMPORTED` (the record they come from), with the recorded tags, final
+    metrics and times, so that ``mlflow ui`` shows the runs behind a published table. They are not this store's
+    jobs: none is skipped or reused on them, and no table rendered from this store counts them. A record already
+    loaded is not loaded again; how many were."""
+    records = read_records(path)
+    if not len(records):
+        return 0
+    exp = tracker.experiment_id(str(records["table"].iloc[0]))
+    done = {r.data.tags.get(IMPORTED) for r in tracker.runs(exp, f"tags.{IMPORTED} != ''")}
+    loaded = 0
+    for _, record in records.iterrows():
+        origin = f"{path.as_posix()}#{record['run_id']}"
+        if origin in done:
+            continue
+        shown = [c for c in TEXT if c != "status" and c in record and str(record[c]) != ""]
+        tags = {TAG_NAMES.get(c, c): str(record[c]) for c in shown} | {"kind": KIND_IMPORTED, IMPORTED: origin}
+        metrics = {c: float(record[c]) for c in records.columns if c not in (*TEXT, *WHOLE) and pd.notna(record[c])}
+        name = f"{record['row']} seed={record['seed']} (imported)"
+        tracker.import_run(exp, name, tags, metrics, int(record["started"]), int(record["ended"]))
+        loaded += 1
+    return loaded
