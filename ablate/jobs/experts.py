@@ -65,12 +65,15 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
 RunJob = Callable[..., Any]
 
 
-def ensure_expert(cfg: DictConfig, modality: str, run: RunJob) -> tuple[Path, str]:
+def ensure_expert(cfg: DictConfig, modality: str, run: RunJob, wait: bool = True) -> tuple[Path, str] | None:
     """The best checkpoint and MLflow run id of ``modality``'s expert, training it first (with ``run``) if there is
-    none."""
+    none; under the expert's lock, so that no two jobs train it. ``wait=False``: None at once where another job holds
+    the lock (is training it)."""
     ecfg = expert_config(cfg, modality)
     chash = config_hash(ecfg)
-    with file_lock(checkpoint_dir(EXPERTS_TABLE, chash).with_suffix(".lock")):
+    with file_lock(checkpoint_dir(EXPERTS_TABLE, chash).with_suffix(".lock"), wait=wait) as held:
+        if not held:
+            return None
         outcome = run(ecfg, kind=KIND_EXPERT, row=f"expert {modality}")
         best = outcome.ckpt_dir / "best.ckpt"
         if not best.exists():  # tracked as FINISHED but the checkpoint is gone: train it again
@@ -99,8 +102,23 @@ def needed(cfg: DictConfig) -> list[str]:
 
 def prepare(cfg: DictConfig, run: RunJob) -> dict[str, tuple[Path, str]]:
     """Stage 1: every expert the job needs, trained now with ``run`` if missing -> {modality: (checkpoint, run
-    id)}."""
-    return {m: ensure_expert(cfg, m, run) for m in needed(cfg)}
+    id)}, in the order of :func:`needed`. The job takes whichever expert no other job is training: two jobs of a
+    sweep that need the same two experts train them side by side, one each, instead of one training while the
+    other waits for its lock; a job waits only where every expert it still needs is being trained by another."""
+    order = needed(cfg)
+    done: dict[str, tuple[Path, str]] = {}
+    while len(done) < len(order):
+        left = [m for m in order if m not in done]
+        for modality in left:
+            got = ensure_expert(cfg, modality, run, wait=False)
+            if got is not None:
+                done[modality] = got
+                break
+        else:  # each is being trained by another job: wait for the first
+            got = ensure_expert(cfg, left[0], run)
+            assert got is not None  # a waiting lock is always held
+            done[left[0]] = got
+    return {m: done[m] for m in order}
 
 
 def attach(

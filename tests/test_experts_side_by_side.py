@@ -1,0 +1,48 @@
+"""Two jobs that need the same two experts train them side by side, one each (recorded start and end times), instead
+of one job training both while the other waits on each expert's lock; each expert is trained once."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+
+from ablate.config import compose
+from ablate.jobs.experts import prepare
+from ablate.jobs.spec import checkpoint_dir
+from ablate.store import config_hash
+
+
+def test_two_jobs_train_their_two_experts_at_the_same_time(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)  # the experts' checkpoints and locks live under ./checkpoints
+    cfg = compose(["experiment=smoe_table1", "row=smoe_fpn", "scale=smoke"])  # fused: needs the rgb and ddm experts
+    trained: list[tuple[str, str, float, float]] = []  # (job, expert, start, end)
+
+    def job(name: str) -> dict[str, Any]:
+        def run(ecfg: Any, kind: str, row: str) -> SimpleNamespace:
+            folder = checkpoint_dir("experts", config_hash(ecfg))
+            if not (folder / "best.ckpt").exists():  # as the job does: a FINISHED expert is not trained again
+                start = time.monotonic()
+                time.sleep(0.6)  # an expert training
+                folder.mkdir(parents=True, exist_ok=True)
+                (folder / "best.ckpt").write_text("weights")
+                trained.append((name, row, start, time.monotonic()))
+            return SimpleNamespace(ckpt_dir=folder, run_id=f"run of {row}")
+
+        return prepare(cfg, run)
+
+    results: dict[str, dict[str, Any]] = {}
+    workers = [threading.Thread(target=lambda n=n: results.__setitem__(n, job(n))) for n in ("sum", "max")]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
+    assert sorted(row for _, row, _, _ in trained) == ["expert ddm_jet", "expert rgb"]  # each once
+    (_, _, a0, a1), (_, _, b0, b1) = trained
+    assert a0 < b1 and b0 < a1, trained  # the two trainings overlap: side by side
+    assert {job for job, _, _, _ in trained} == {"sum", "max"}  # one each
+    assert list(results["sum"]) == list(results["max"]) == ["rgb", "ddm_jet"]  # in the job's own order
