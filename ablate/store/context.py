@@ -65,8 +65,11 @@ class SweepContext:
             num = None
         overrides = tuple(str(o) for o in hc.overrides.task)
         job = cls.of_sweep(sdir, launch).with_job(num, overrides, str(choice) if choice else None)
-        output = getattr(hc.runtime, "output_dir", None)
-        return dataclasses.replace(job, output_dir=Path(str(output)) if output else None)
+        try:
+            output: Path | None = Path(str(hc.runtime.output_dir))
+        except MissingMandatoryValue:  # a config composed outside a running job
+            output = None
+        return dataclasses.replace(job, output_dir=output)
 
     @classmethod
     def of_sweep(cls, sweep_dir: Path | None, launch_dir: Path) -> SweepContext:
