@@ -159,3 +159,14 @@ def test_the_learning_curves_are_kept_per_epoch_beside_the_records(tmp_path: Pat
     # epoch 1's steps are 11..20, up to its validation at step 20: the mean of 1.5 + 0.01 * step over them
     assert list(loss.index) == [0, 1, 2] and loss[1] == pytest.approx(1.5 + 0.01 * 15.5)
     assert len(curves) == 6 * 2 * 3  # per run, two metrics, three epochs: no per-step history
+
+
+def test_the_results_summary_reads_a_tables_numbers_as_it_read_its_markdown(tmp_path: Path) -> None:
+    from ablate.tables import table_spec
+    from ablate.tables.index import summarise_numbers, summarise_table
+
+    write_table(CFG, store(tmp_path), results_dir=tmp_path / "a", publish=True)
+    spec = table_spec(CFG)
+    from_numbers = summarise_numbers(spec, pd.read_csv(tmp_path / "a" / "t2.csv"))
+    from_markdown = summarise_table(spec, (tmp_path / "a" / "t2.md").read_text())
+    assert from_numbers == from_markdown and from_numbers.ours == "ChiNet"

@@ -8,7 +8,14 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.tables.racing import RacePlan, RaceState, decided, race, race_lines, recorded_plan, seed_values
-from ablate.tables.significance import BOOTSTRAP_FROM, COLLAPSE_RATIO, RESAMPLES, difference, disagreeing_seeds
+from ablate.tables.significance import (
+    BOOTSTRAP_FROM,
+    COLLAPSE_RATIO,
+    RESAMPLES,
+    Difference,
+    difference,
+    disagreeing_seeds,
+)
 from ablate.tables.spec import COSTS, LOWER_IS_BETTER
 from ablate.tables.summary import best_of, fmt, per_seed, reference, signed
 
@@ -85,26 +92,46 @@ def _ci_and_delta(
     return cis, deltas, tests
 
 
-def _top_against_second(
-    summary: pd.DataFrame, runs: pd.DataFrame, key: str, label: str, raced: RaceState | None
-) -> list[str]:
-    """The footer line saying whether the top row is ahead of the second beyond seed noise (none under two rows)."""
+def top_and_second(
+    summary: pd.DataFrame, runs: pd.DataFrame, key: str, raced: RaceState | None
+) -> tuple[str, str, Difference, bool] | None:
+    """The top row's and the second's names (the race's where it ranked them, else by mean), their difference on
+    ``key``, and whether the top row is ahead beyond seed noise (the race's decision where there is one); None under
+    two rows."""
     ranked = summary.dropna(subset=[f"{key}_mean"]).sort_values(
         f"{key}_mean", ascending=key in LOWER_IS_BETTER, kind="stable"
     )
     if len(ranked) < 2:
-        return []
+        return None
     (top, top_name), (second, second_name) = [tuple(r) for r in ranked[["row", "name"]].iloc[:2].to_numpy()]
     if raced is not None and raced.top:
         names = dict(zip(summary["row"], summary["name"]))
         (top, second), (top_name, second_name) = raced.top, (names[raced.top[0]], names[raced.top[1]])
     d = difference(per_seed(runs, top, key), per_seed(runs, second, key))
     ahead = d.significant if raced is None else decided(raced, top, second)
+    return str(top_name), str(second_name), d, bool(ahead)
+
+
+def ahead_words(d: Difference, ahead: bool) -> str:
+    """The top row against the second, in the words of the footer and the results summary."""
+    if np.isnan(d.ci.lo):
+        return "n/a (too few seeds)"
+    return "ahead beyond seed noise" if ahead else "not separable from seed noise"
+
+
+def _top_against_second(
+    summary: pd.DataFrame, runs: pd.DataFrame, key: str, label: str, raced: RaceState | None
+) -> list[str]:
+    """The footer line saying whether the top row is ahead of the second beyond seed noise (none under two rows)."""
+    found = top_and_second(summary, runs, key, raced)
+    if found is None:
+        return []
+    top_name, second_name, d, ahead = found
     verdict = (
-        "n/a (too few seeds)"
+        ahead_words(d, ahead)
         if np.isnan(d.ci.lo)
         else f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}], {d.test}, p = {d.p:.3f}: "
-        + ("ahead beyond seed noise" if ahead else "not separable from seed noise")
+        + ahead_words(d, ahead)
         + ("" if raced is None else " (the race's decision)")
     )
     return [f"Top row {top_name} against the second, {second_name}, on {label}: {verdict}."]

@@ -4,7 +4,9 @@ its markdown, from the same summary and race the markdown shows.
 The CSV has one line per row: its name, n, and per metric the mean, std and 95 % CI of the mean over seeds and the
 paper's value; for the primary metric also the difference from the reference row with its 95 % CI and p-value
 (:func:`ablate.tables.significance.difference`, paired over shared seeds) and the race's verdict on that comparison
-(``decided`` or ``undecided``, :mod:`ablate.tables.racing`; empty without a race). The LaTeX table shows mean ± std
+(``decided`` or ``undecided``, :mod:`ablate.tables.racing`; empty without a race); on the top row, whether it is
+ahead of the second beyond seed noise (``top_vs_second``, as the footer says it); and Kendall's τ between our ranking
+and the paper's with the rows it compares (``kendall_tau``, ``kendall_n``). The results summary reads these. The LaTeX table shows mean ± std
 per metric, the best of each column in bold (pandas' ``Styler``; names and labels escaped), with ``\\toprule``/``\\midrule``/``\\bottomrule``.
 """
 
@@ -16,10 +18,10 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from ablate.tables.columns import replayed_race
+from ablate.tables.columns import ahead_words, replayed_race, top_and_second
 from ablate.tables.racing import decided
 from ablate.tables.significance import difference
-from ablate.tables.summary import best_of, per_seed, reference
+from ablate.tables.summary import best_of, kendall, per_seed, reference
 
 
 def numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
@@ -40,7 +42,13 @@ def numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> pd.
         verdict = "" if raced is None else ("decided" if decided(raced, row, ref) else "undecided")
         deltas.append({"delta": d.delta, "delta_lo": d.ci.lo, "delta_hi": d.ci.hi, "p": d.p, "verdict": verdict})
     out["reference"] = ref or ""
-    return pd.concat([out.reset_index(drop=True), pd.DataFrame(deltas)], axis=1)
+    out = pd.concat([out.reset_index(drop=True), pd.DataFrame(deltas)], axis=1)
+    found = top_and_second(summary, runs, key, raced) if len(runs) else None
+    out["top_vs_second"] = [
+        ahead_words(found[2], found[3]) if found is not None and name == found[0] else "" for name in out["name"]
+    ]
+    out["kendall_tau"], out["kendall_n"] = kendall(summary, key) if len(summary) else (np.nan, 0)
+    return out
 
 
 def latex(summary: pd.DataFrame, table: DictConfig) -> str:

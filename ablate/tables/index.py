@@ -1,4 +1,5 @@
-"""The results summary: one line per paper table, read from the tables under ``results/`` and their specs.
+"""The results summary: one line per paper table, read from the tables' numbers under ``results/`` (``<table>.csv``,
+:mod:`ablate.tables.export`) and their specs; a table published before it had numbers, from its markdown.
 
 Per table: our top row and the paper's, Kendall's τ between the two rankings, whether the paper's headline holds
 here, and a link. It is written between two markers (:data:`BEGIN`, :data:`END`) into ``results/README.md`` and
@@ -23,6 +24,8 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.tables.spec import LOWER_IS_BETTER
@@ -93,6 +96,27 @@ def summarise_table(table: DictConfig, text: str) -> Summary:
     return Summary(str(table.name), str(table.title), ours, paper or "—", shown_tau, headline)
 
 
+def summarise_numbers(table: DictConfig, numbers: pd.DataFrame) -> Summary:
+    """The summary line of ``table`` (its spec) from its numbers (``<table>.csv``, :mod:`ablate.tables.export`)."""
+    paper = paper_top(table)
+    top = numbers[numbers["top_vs_second"].fillna("") != ""]
+    ours = str(top["name"].iloc[0]) if len(top) else "—"
+    verdict = str(top["top_vs_second"].iloc[0]) if len(top) else ""
+    if paper is None:
+        headline = "—"
+    elif not len(top) or verdict.startswith("n/a"):
+        headline = "undecided (too few seeds)"
+    elif ours != paper:
+        headline = "does not hold"
+    elif verdict == "ahead beyond seed noise":
+        headline = "holds"
+    else:
+        headline = "not separable from seed noise"
+    tau, n = float(numbers["kendall_tau"].iloc[0]), int(numbers["kendall_n"].iloc[0])
+    shown_tau = "—" if np.isnan(tau) else f"{tau:.2f} ({n} rows)"
+    return Summary(str(table.name), str(table.title), ours, paper or "—", shown_tau, headline)
+
+
 def markdown(summaries: list[Summary], link_prefix: str = "") -> str:
     """The summary as a markdown table, between the markers."""
     lines = [
@@ -133,7 +157,11 @@ def write_index(
     written."""
     out = Path(results_dir)
     summaries = [
-        summarise_table(t, (out / f"{t.name}.md").read_text()) for t in tables if (out / f"{t.name}.md").is_file()
+        summarise_numbers(t, pd.read_csv(out / f"{t.name}.csv"))
+        if (out / f"{t.name}.csv").is_file()
+        else summarise_table(t, (out / f"{t.name}.md").read_text())  # a table published before its numbers were
+        for t in tables
+        if (out / f"{t.name}.md").is_file()
     ]
     written = []
     if splice(out / "README.md", markdown(summaries)):
