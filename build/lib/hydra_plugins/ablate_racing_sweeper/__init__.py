@@ -1,1 +1,0 @@
-"""The racing sweeper (``hydra/sweeper=racing``): a table's seeds look by look, :mod:`ablate.tables.racing`."""
