@@ -15,6 +15,8 @@ runs every command in a fresh interpreter instead.
 from __future__ import annotations
 
 import atexit
+import functools
+import itertools
 import json
 import os
 import shutil
@@ -23,7 +25,6 @@ import socket
 import subprocess
 import sys
 import tempfile
-import threading
 from pathlib import Path
 
 #: What the warm interpreter imports: the libraries a job imports that take longest (``python -X importtime``).
@@ -163,8 +164,7 @@ class ForkServer:
         ready = self.proc.stdout.readline()
         if ready != "ready\n":
             raise RuntimeError(f"the fork server did not start (exit status {self.proc.wait()})")
-        self.lock = threading.Lock()
-        self.count = 0
+        self.count = itertools.count()
 
     def close(self) -> None:
         self.proc.stdin.close()  # it exits when its stdin closes
@@ -174,65 +174,140 @@ class ForkServer:
             self.proc.kill()
         shutil.rmtree(self.folder, ignore_errors=True)
 
-    def run(
-        self, cwd: Path, module: str, args: list[str], env: dict[str, str], timeout: float
-    ) -> subprocess.CompletedProcess:
-        """``python -m module args`` in ``cwd`` with ``env``, as :func:`subprocess.run` with ``capture_output=True,
-        text=True, timeout=timeout`` runs it."""
-        with self.lock:
-            self.count += 1
-            stdout, stderr = self.folder / f"{self.count}.out", self.folder / f"{self.count}.err"
+
+class Command:
+    """A command started by :func:`start`, used as a :class:`subprocess.Popen` (``pid``, ``args``, ``returncode``,
+    ``poll``, ``wait``, ``send_signal``, ``terminate``, ``kill``, ``communicate``). Its stdout and stderr go to
+    files; :meth:`communicate` returns their text (and removes them) where :func:`start` chose them."""
+
+    def __init__(
+        self, cwd: Path, module: str, args: list[str], env: dict[str, str], stdout: Path | None, stderr: Path | None
+    ) -> None:
+        self.args = [sys.executable, "-m", module, *args]
+        self.returncode: int | None = None
+        server = _server_for(env)
+        n = next(server.count) if server else 0
+        folder = server.folder if server else _scratch()
+        self.captured = stdout is None
+        self.stdout, self.stderr = stdout or folder / f"{n}.out", stderr or folder / f"{n}.err"
+        if server is None:
+            with open(self.stdout, "w") as out, open(self.stderr, "w") as err:
+                self._popen: subprocess.Popen | None = subprocess.Popen(
+                    self.args, cwd=cwd, env=env, stdout=out, stderr=err
+                )
+            self.pid = self._popen.pid
+            return
+        self._popen = None
         request = {"cwd": str(cwd), "module": module, "args": list(args), "env": env}
-        request |= {"stdout": str(stdout), "stderr": str(stderr)}
-        cmd = [sys.executable, "-m", module, *args]
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
-            conn.connect(self.socket)
-            conn.sendall((json.dumps(request) + "\n").encode())
-            pid = int(_line(conn))
-            conn.settimeout(timeout)
-            try:
-                code = int(_line(conn))
-            except TimeoutError:
-                os.kill(pid, signal.SIGKILL)  # as subprocess.run does on a timeout
-                conn.settimeout(None)
-                _line(conn)
-                out, err = self._read(stdout), self._read(stderr)
-                raise subprocess.TimeoutExpired(cmd, timeout, out, err) from None
-        return subprocess.CompletedProcess(cmd, code, self._read(stdout), self._read(stderr))
+        request |= {"stdout": str(self.stdout), "stderr": str(self.stderr)}
+        self._conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._conn.connect(server.socket)
+        self._conn.sendall((json.dumps(request) + "\n").encode())
+        self._answer = b""
+        self.pid = int(self._line(None))
 
-    @staticmethod
-    def _read(path: Path) -> str:
-        """A captured stream as ``text=True`` decodes it (the locale's encoding, universal newlines); removed."""
+    def _line(self, timeout: float | None) -> str:
+        """The next line the server sends (a pid, then an exit status), waiting up to ``timeout`` seconds."""
+        self._conn.settimeout(timeout)
         try:
-            return path.read_text()
+            while b"\n" not in self._answer:
+                chunk = self._conn.recv(64)
+                if not chunk:
+                    raise RuntimeError("the fork server closed the connection")
+                self._answer += chunk
         finally:
-            path.unlink(missing_ok=True)
+            self._conn.settimeout(None)
+        line, self._answer = self._answer.split(b"\n", 1)
+        return line.decode()
 
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            try:
+                self.wait(timeout=0)
+            except subprocess.TimeoutExpired:
+                pass
+        return self.returncode
 
-def _line(conn: socket.socket) -> str:
-    """One line the server sent on ``conn`` (a pid or an exit status)."""
-    data = b""
-    while not data.endswith(b"\n"):
-        chunk = conn.recv(1)
-        if not chunk:
-            raise RuntimeError("the fork server closed the connection")
-        data += chunk
-    return data.decode()
+    def wait(self, timeout: float | None = None) -> int:
+        if self.returncode is not None:
+            return self.returncode
+        if self._popen is not None:
+            self.returncode = self._popen.wait(timeout)
+            return self.returncode
+        try:
+            self.returncode = int(self._line(timeout))
+        except (TimeoutError, BlockingIOError):
+            raise subprocess.TimeoutExpired(self.args, timeout) from None
+        self._conn.close()
+        return self.returncode
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None:
+            os.kill(self.pid, sig)
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+    def communicate(self, timeout: float | None = None) -> tuple[str | None, str | None]:
+        """Wait for the command: its stdout and stderr as ``text=True`` decodes them (the locale's encoding,
+        universal newlines) where :func:`start` captured them, else ``(None, None)``."""
+        self.wait(timeout)
+        if not self.captured:
+            return None, None
+        out, err = self.stdout.read_text(), self.stderr.read_text()
+        self.stdout.unlink(missing_ok=True)
+        self.stderr.unlink(missing_ok=True)
+        return out, err
 
 
 _server: ForkServer | None = None
 
 
-def run(cwd: Path, module: str, args: list[str], env: dict[str, str], timeout: float) -> subprocess.CompletedProcess:
-    """``python -m module args`` in ``cwd`` with exactly the environment ``env``: forked from this test process's
-    warm interpreter, or in a fresh one with ``ABLATE_TESTS_FORK=0``."""
+@functools.cache
+def _scratch() -> Path:
+    """Where a fresh process's captured output waits to be read (``ABLATE_TESTS_FORK=0``)."""
+    folder = Path(tempfile.mkdtemp(prefix="ablate-cmd-"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    return folder
+
+
+def _server_for(env: dict[str, str]) -> ForkServer | None:
+    """This test process's warm interpreter (started on first use), or None with ``ABLATE_TESTS_FORK=0``."""
     global _server
     if os.environ.get("ABLATE_TESTS_FORK", "1") == "0":
-        return subprocess.run(
-            [sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout
-        )
+        return None
     if _server is None:
-        base = {k: v for k, v in env.items() if not k.startswith(("MLFLOW_", "RAY_"))}
-        _server = ForkServer(base)
+        _server = ForkServer({k: v for k, v in env.items() if not k.startswith(("MLFLOW_", "RAY_"))})
         atexit.register(_server.close)
-    return _server.run(cwd, module, args, env, timeout)
+    return _server
+
+
+def start(
+    cwd: Path,
+    module: str,
+    args: list[str],
+    env: dict[str, str],
+    stdout: Path | None = None,
+    stderr: Path | None = None,
+) -> Command:
+    """``python -m module args`` in ``cwd`` with exactly the environment ``env``, in the background, as
+    :class:`subprocess.Popen` starts it: forked from this test process's warm interpreter, or a fresh one with
+    ``ABLATE_TESTS_FORK=0``. Its stdout and stderr go to the files ``stdout`` and ``stderr``, or are captured for
+    :meth:`Command.communicate`."""
+    return Command(Path(cwd), module, list(args), env, stdout, stderr)
+
+
+def run(cwd: Path, module: str, args: list[str], env: dict[str, str], timeout: float) -> subprocess.CompletedProcess:
+    """``python -m module args`` in ``cwd`` with exactly the environment ``env``, as :func:`subprocess.run` with
+    ``capture_output=True, text=True, timeout=timeout`` runs it (see :func:`start`)."""
+    command = start(cwd, module, args, env)
+    try:
+        out, err = command.communicate(timeout)
+    except subprocess.TimeoutExpired:
+        command.kill()  # as subprocess.run does on a timeout
+        out, err = command.communicate()
+        raise subprocess.TimeoutExpired(command.args, timeout, out, err) from None
+    return subprocess.CompletedProcess(command.args, command.returncode, out, err)
