@@ -19,6 +19,7 @@ from test_cli import REPO, TINY, ablate, runs
 
 from ablate.jobs.checkpoint import AtomicCheckpointIO, resume_point, write_atomic
 from ablate.store import DiskFull, Tracker
+from tests.stores import sqlite_uri
 
 JOB = ["row=unet", "experiment=chinet_table2", *TINY]
 
@@ -132,7 +133,7 @@ def test_no_checkpoint_is_a_fresh_start_without_tags(tmp_path):
 
 
 def test_a_full_disk_during_an_artifact_upload_names_the_file(tmp_path, monkeypatch):
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "mlartifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "mlartifacts"))
     exp = tracker.experiment_id("t")
     run_id = tracker.start(exp, "r", {"kind": "job"})
     tracker.log_text(run_id, "kept", "kept.txt")
