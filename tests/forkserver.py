@@ -112,7 +112,9 @@ for fd, path in ((1, request["stdout"]), (2, request["stderr"])):
     out = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     os.dup2(out, fd)
     os.close(out)
-sys.path[0] = os.getcwd()  # as `python -m` puts it there
+script = request["module"].endswith(".py")
+# where `python -m` puts the working directory, `python SCRIPT` the script's folder
+sys.path[0] = os.path.dirname(os.path.abspath(request["module"])) if script else os.getcwd()
 import multiprocessing.process
 
 multiprocessing.process.ORIGINAL_DIR = os.getcwd()  # read at import; a spawned child finds its main module by it
@@ -120,7 +122,10 @@ sys.argv = [request["module"], *request["args"]]
 import runpy
 
 try:
-    runpy.run_module(request["module"], run_name="__main__", alter_sys=True)
+    if script:
+        runpy.run_path(request["module"], run_name="__main__")
+    else:
+        runpy.run_module(request["module"], run_name="__main__", alter_sys=True)
     code = 0
 except SystemExit as exit:  # as the interpreter ends on it
     code = exit.code
@@ -183,7 +188,7 @@ class Command:
     def __init__(
         self, cwd: Path, module: str, args: list[str], env: dict[str, str], stdout: Path | None, stderr: Path | None
     ) -> None:
-        self.args = [sys.executable, "-m", module, *args]
+        self.args = [sys.executable, *([] if module.endswith(".py") else ["-m"]), module, *args]
         self.returncode: int | None = None
         server = _server_for(env)
         n = next(server.count) if server else 0
@@ -293,8 +298,8 @@ def start(
     stdout: Path | None = None,
     stderr: Path | None = None,
 ) -> Command:
-    """``python -m module args`` in ``cwd`` with exactly the environment ``env``, in the background, as
-    :class:`subprocess.Popen` starts it: forked from this test process's warm interpreter, or a fresh one with
+    """``python -m module args`` (``python module args`` where ``module`` is a ``.py`` file) in ``cwd`` with exactly
+    the environment ``env``, in the background, as :class:`subprocess.Popen` starts it: forked from this test process's warm interpreter, or a fresh one with
     ``ABLATE_TESTS_FORK=0``. Its stdout and stderr go to the files ``stdout`` and ``stderr``, or are captured for
     :meth:`Command.communicate`."""
     return Command(Path(cwd), module, list(args), env, stdout, stderr)
