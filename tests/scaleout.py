@@ -6,12 +6,12 @@ import importlib.util
 import os
 import socket
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 from mlflow.tracking import MlflowClient
 
+from tests import forkserver
 from tests.stores import seed_store
 
 REPO = Path(__file__).resolve().parents[1]
@@ -38,17 +38,16 @@ def ablate(
     fresh_store: bool = False,
 ) -> subprocess.CompletedProcess:
     """``python -m MODULE ARGS`` in ``cwd``, with ``env`` added to this environment (and no tracking URI unless
-    ``env`` names one). Without a tracking URI in ``env`` the store is ``cwd/mlflow.db``, an empty one copied there
-    (:func:`tests.stores.seed_store`) unless ``fresh_store``."""
+    ``env`` names one), forked from a warm interpreter (:mod:`tests.forkserver`). Without a tracking URI in ``env``
+    the store is ``cwd/mlflow.db``, an empty one copied there (:func:`tests.stores.seed_store`) unless
+    ``fresh_store``."""
     if not fresh_store and "MLFLOW_TRACKING_URI" not in (env or {}):
         seed_store(cwd)
     full = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
     for key in ("MLFLOW_TRACKING_URI", "RAY_AUTH_MODE", "RAY_ADDRESS"):
         full.pop(key, None)
     full.update(env or {})
-    return subprocess.run(
-        [sys.executable, "-m", module, *args], cwd=cwd, env=full, capture_output=True, text=True, timeout=timeout
-    )
+    return forkserver.run(Path(cwd), module, list(args), full, timeout)
 
 
 def output(out: subprocess.CompletedProcess) -> str:

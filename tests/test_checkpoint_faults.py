@@ -7,8 +7,6 @@ import logging
 import os
 import shutil
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -19,6 +17,8 @@ from test_cli import REPO, TINY, ablate, runs
 
 from ablate.jobs.checkpoint import AtomicCheckpointIO, resume_point, write_atomic
 from ablate.store import DiskFull, Tracker
+from tests import forkserver
+from tests.stores import sqlite_uri
 
 JOB = ["row=unet", "experiment=chinet_table2", *TINY]
 
@@ -52,7 +52,8 @@ def test_a_kill_during_a_checkpoint_write_leaves_the_previous_checkpoint_whole(t
     before = last.read_bytes()
     started = tmp_path / "started"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen([sys.executable, "-c", SLOW_SAVE, str(last), str(started)], env=env)
+    (tmp_path / "slow_save.py").write_text(SLOW_SAVE)
+    proc = forkserver.start(tmp_path, str(tmp_path / "slow_save.py"), [str(last), str(started)], env)
     deadline = time.monotonic() + 60
     while not started.exists():
         assert proc.poll() is None and time.monotonic() < deadline, "the writer never started"
@@ -132,7 +133,7 @@ def test_no_checkpoint_is_a_fresh_start_without_tags(tmp_path):
 
 
 def test_a_full_disk_during_an_artifact_upload_names_the_file(tmp_path, monkeypatch):
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "mlartifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "mlartifacts"))
     exp = tracker.experiment_id("t")
     run_id = tracker.start(exp, "r", {"kind": "job"})
     tracker.log_text(run_id, "kept", "kept.txt")
@@ -211,9 +212,7 @@ def test_a_full_disk_fails_the_job_naming_the_checkpoint_and_keeps_the_store(sto
     env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
     env.pop("MLFLOW_TRACKING_URI", None)
     args = ["row=fusenet", "experiment=chinet_table2", *TINY, "trainer.max_epochs=3"]
-    out = subprocess.run(
-        [sys.executable, str(script), *args], cwd=store, env=env, capture_output=True, text=True, timeout=600
-    )
+    out = forkserver.run(store, str(script), args, env, timeout=600)
     assert out.returncode == 1, out.stdout[-3000:] + out.stderr[-3000:]
     errors = [ln for ln in out.stderr.splitlines() if ln.startswith("error:")]
     assert len(errors) == 1 and "no space left" in errors[0] and "checkpoints/chinet_table2/" in errors[0]

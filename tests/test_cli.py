@@ -17,7 +17,7 @@ def runs(cwd: Path, experiment: str, kind: str = "job"):
 @pytest.fixture(scope="module")
 def table2(tmp_path_factory):
     cwd = tmp_path_factory.mktemp("table2")
-    first = ablate(cwd, "-m", "experiment=chinet_table2", *TINY)
+    first = ablate(cwd, "-m", "experiment=chinet_table2", SERIAL, *TINY)
     return cwd, first
 
 
@@ -73,7 +73,7 @@ def test_running_a_table_again_trains_nothing_and_rewrites_the_same_table(table2
 
 def test_a_failing_job_is_recorded_failed_and_the_others_still_run(tmp_path):
     # lr 1e30 blows the weights up: the NaN guard fails that job at once
-    out = ablate(tmp_path, "-m", "task=semantic", "task.optimizer.lr=0.001,1e30", *TINY)
+    out = ablate(tmp_path, "-m", "task=semantic", "task.optimizer.lr=0.001,1e30", SERIAL, *TINY)
     assert out.returncode == 1
     assert "1 job(s) failed" in out.stdout + out.stderr
     assert "NonFiniteLossError" in out.stdout + out.stderr

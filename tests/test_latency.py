@@ -8,6 +8,7 @@ from omegaconf import OmegaConf
 from ablate.analysis.latency import interleaved, machine_load, macs, quartiles
 from ablate.tables.rows import to_markdown
 from ablate.tables.summary import summarise
+from tests.stores import sqlite_uri
 
 
 class FakeClock:
@@ -134,7 +135,7 @@ def test_a_reused_run_is_timed_from_its_source_runs_checkpoint(tmp_path, monkeyp
     from ablate.store.tracker import Tracker
 
     monkeypatch.chdir(tmp_path)
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     source_id = tracker.start(
         tracker.experiment_id("table_a"), "dgfn seed=0", {"table": "table_a", "config_hash": "abc", "kind": "job"}
     )

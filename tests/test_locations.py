@@ -21,6 +21,7 @@ from ablate.store.tracker import EXPERIMENT_KIND, Tracker
 from ablate.store.uris import artifact_location, resolve_uri, tracking_uri
 from ablate.sweep.callback import check_launcher, ray_driver_auth
 from tests.scaleout import REPO, need
+from tests.stores import sqlite_uri
 
 
 @pytest.fixture
@@ -83,7 +84,7 @@ def test_jobs_of_a_sweep_write_to_the_store_it_recorded_whatever_their_environme
 
 
 def test_a_tracker_pickles_for_ddp_spawn_and_tags_every_experiment_as_model_training(tmp_path):
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    uri = sqlite_uri(tmp_path)
     tracker = Tracker(uri, str(tmp_path / "art"))
     exp = tracker.experiment_id("table")
     copy = pickle.loads(pickle.dumps(tracker))

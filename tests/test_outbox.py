@@ -16,6 +16,7 @@ from ablate.store import retry as retry_module
 from ablate.store import run_logger as logger_module
 from ablate.store.outage import shown, symptom
 from ablate.store.retry import retry
+from tests.stores import sqlite_uri
 
 REFUSED = (
     "API request to http://127.0.0.1:5999/api/2.0/mlflow/runs/log-batch failed with exception "
@@ -28,7 +29,7 @@ REFUSED = (
 def tracker(tmp_path_factory):
     """One SQLite store for the module (creating one takes seconds); each test makes runs of its own."""
     folder = tmp_path_factory.mktemp("store")
-    return Tracker(f"sqlite:///{folder / 'mlflow.db'}", str(folder / "artifacts"), outage_s=2)
+    return Tracker(sqlite_uri(folder), str(folder / "artifacts"), outage_s=2)
 
 
 def new_run(tracker):

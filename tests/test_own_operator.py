@@ -1,22 +1,11 @@
 """The README's "Your own fusion operator": a class in the user's own module, a YAML in the user's config folder,
 and a sweep that puts it beside a built-in operator, without touching ablate."""
 
-import os
-import subprocess
-import sys
 import textwrap
-from pathlib import Path
 
 from mlflow.tracking import MlflowClient
 
-REPO = Path(__file__).resolve().parent.parent
-TINY = [
-    "scale=smoke",
-    "data.synth.frames=20",
-    "trainer.enable_progress_bar=false",
-    "trainer.max_epochs=1",
-    "publish=true",
-]
+from tests.scaleout import SERIAL, TINY, ablate
 
 
 def test_a_users_operator_sweeps_beside_a_built_in_one(tmp_path):
@@ -40,12 +29,9 @@ def test_a_users_operator_sweeps_beside_a_built_in_one(tmp_path):
     )
     (tmp_path / "myconf" / "fusion").mkdir(parents=True)
     (tmp_path / "myconf" / "fusion" / "product.yaml").write_text("_target_: my_ops.Product\n_partial_: true\n")
-    env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
-    env.pop("MLFLOW_TRACKING_URI", None)
-    args = ["-m", "fusion=sum,product", f"hydra.searchpath=[file://{tmp_path / 'myconf'}]", *TINY]
-    done = subprocess.run(
-        [sys.executable, "-m", "ablate", *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900
-    )
+    # the two jobs one after the other: the user's operator, not parallelism, is what this tests
+    args = ["-m", "fusion=sum,product", f"hydra.searchpath=[file://{tmp_path / 'myconf'}]", SERIAL, *TINY]
+    done = ablate(tmp_path, *args, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     exp = client.get_experiment_by_name("ablate")

@@ -8,6 +8,7 @@ from omegaconf import OmegaConf
 from ablate.report import main as report
 from ablate.store.tracker import KIND_JOB, Tracker
 from ablate.tables.parity import parity, write_parity
+from tests.stores import sqlite_uri
 
 TABLE = OmegaConf.create(
     {
@@ -21,7 +22,7 @@ TABLE = OmegaConf.create(
 
 
 def store(tmp_path, bf16_rates, fp32_rates=(90.0, 91.0, 92.0), row="chinet"):
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     exp = tracker.experiment_id("t2")
     for precision, rates in (("32-true", fp32_rates), ("bf16-mixed", bf16_rates)):
         for seed, rate in enumerate(rates):
@@ -66,7 +67,7 @@ def test_a_rewrite_replaces_its_own_section_only(tmp_path):
 
 
 def test_a_row_with_one_precision_only_is_one_error(tmp_path, capsys, monkeypatch):
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     run = tracker.start(tracker.experiment_id("chinet_table2"), "c", {"kind": KIND_JOB, "row": "chinet"})
     tracker.set_tags(run, {"seed": "0", "scale": "cpu", "precision": "32-true", "config_hash": "x"})
     tracker.log_metrics(run, {"det_rate": 90.0})

@@ -5,34 +5,27 @@ RUNNING runs out and counts them in the footer."""
 
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 from test_cli import REPO, TINY, ablate, runs
 
+from tests import forkserver
 from tests.stores import seed_store
 
 EPOCHS = 30  # 3 steps an epoch at TINY: long enough to be stopped in the middle, both jobs of a sweep
 RESUMED_EPOCHS = 10  # a job stopped after its first epoch and rerun to its end: the rerun trains the rest
 
 
-def start(cwd: Path, *args: str) -> subprocess.Popen:
+def start(cwd: Path, *args: str) -> forkserver.Command:
+    """``python -m ablate ARGS`` in ``cwd`` in the background (a :class:`subprocess.Popen` with its output captured)."""
     seed_store(cwd)
     env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
     env.pop("MLFLOW_TRACKING_URI", None)
-    return subprocess.Popen(
-        [sys.executable, "-m", "ablate", *args],
-        cwd=cwd,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    return forkserver.start(cwd, "ablate", list(args), env)
 
 
-def wait_for(cwd: Path, pattern: str, count: int, proc: subprocess.Popen, timeout: float = 300) -> None:
+def wait_for(cwd: Path, pattern: str, count: int, proc: forkserver.Command, timeout: float = 300) -> None:
     deadline = time.monotonic() + timeout
     while len(list(cwd.glob(pattern))) < count:
         assert proc.poll() is None, proc.communicate()[1][-3000:]
@@ -129,7 +122,7 @@ def test_sigterm_to_a_joblib_sweep_takes_its_workers_with_it(tmp_path):
     assert parent.info.status == "KILLED" and parent.data.tags["killed_by"] == "SIGTERM"
 
 
-def report_while_paused(cwd: Path, proc: subprocess.Popen) -> str:
+def report_while_paused(cwd: Path, proc: forkserver.Command) -> str:
     """The table ``python -m ablate.report`` writes while the sweep ``proc`` is stopped (SIGSTOP) in the middle of a
     job: the job's run stays RUNNING for the whole report, however slow the machine."""
     proc.send_signal(signal.SIGSTOP)

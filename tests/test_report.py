@@ -10,6 +10,7 @@ from ablate.store.tracker import KIND_JOB, Tracker
 from ablate.tables import collect, write_table
 from ablate.tables.collect import job_runs, row_seconds
 from ablate.tables.summary import kendall, summarise
+from tests.stores import sqlite_uri
 
 TABLE = OmegaConf.create(
     {
@@ -30,7 +31,7 @@ TABLE = OmegaConf.create(
 
 @pytest.fixture
 def tracker(tmp_path):
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     exp = tracker.experiment_id("t2")
 
     def job(row, seed, rate, ms, status="FINISHED", chash=None, scale="cpu"):
@@ -88,7 +89,7 @@ def test_markdown_has_rows_paper_column_bold_best_and_is_reproducible(tracker, t
 
 
 def test_rows_without_finished_runs_are_listed_not_tabled(tmp_path):
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     exp = tracker.experiment_id("t2")
     run = tracker.start(exp, "u", {"kind": KIND_JOB, "row": "unet", "seed": "0", "config_hash": "x"})
     tracker.log_metrics(run, {"det_rate": 50.0, "comp_time_ms": 5.0})
@@ -127,7 +128,7 @@ def test_rows_without_finished_runs_are_listed_not_tabled(tmp_path):
     ],
 )
 def test_footer_says_when_the_metric_changed_since_the_runs(tmp_path, task, evaluators, expected):
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     exp = tracker.experiment_id("t2")
     for seed, evaluator in enumerate(evaluators):
         tags = {"kind": KIND_JOB, "row": "unet", "seed": str(seed), "config_hash": f"unet-{seed}"}
@@ -150,7 +151,7 @@ def test_footer_says_when_the_metric_changed_since_the_runs(tmp_path, task, eval
 def test_an_ad_hoc_sweep_keeps_the_typed_order_and_has_no_paper_columns(tmp_path):
     """`-m fusion=sum,max,sharpen,smoe`: rows in the order typed (Hydra's job numbers), the first typed is the
     reference, and no paper column or τ line where there are no paper numbers."""
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     exp = tracker.experiment_id("ablate")
     for num, (row, ap) in enumerate(
         [("fusion=sum", 20.0), ("fusion=max", 22.0), ("fusion=sharpen", 21.0), ("fusion=smoe", 23.0)]
@@ -182,7 +183,7 @@ def test_an_ad_hoc_sweep_keeps_the_typed_order_and_has_no_paper_columns(tmp_path
 
 def test_a_rows_job_time_is_its_runs_and_a_copied_run_counts_its_sources(tmp_path):
     # the racing sweeper's look estimate weighs rows by these seconds: a copy took milliseconds, its source minutes
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     tags = {"kind": KIND_JOB, "scale": "cpu", "seed": "0"}
 
     def job(exp, row, start_s, minutes):

@@ -6,6 +6,7 @@ from omegaconf import OmegaConf
 
 from ablate.store.tracker import KIND_JOB, Tracker
 from ablate.tables import write_table
+from tests.stores import sqlite_uri
 
 CONDITIONS = [
     {
@@ -54,7 +55,7 @@ CURVE = {"gfu": {"0.5": 60.0, "2": 20.0}, "base": {"0.5": 50.0, "2": 5.0}}
 
 @pytest.fixture
 def tracker(tmp_path):
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     for table in ("t1", "t2"):
         exp = tracker.experiment_id(table)
         for row, values in OURS.items():

@@ -9,6 +9,7 @@ from ablate.store import config_hash, flatten, git_commit
 from ablate.store.retry import retry
 from ablate.store.tracker import Tracker
 from ablate.store.uris import SHARED_VIEW_KEY, SHARED_VIEW_TAG, runs_link
+from tests.stores import sqlite_uri
 
 
 def _cfg(**over):
@@ -74,7 +75,7 @@ def test_retry_reraises_other_errors_at_once():
 
 
 def test_experiment_creation_is_idempotent_and_stale_runs_are_killed(tmp_path):
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     exp = tracker.experiment_id("table")
     assert tracker.experiment_id("table") == exp
     run = tracker.start(exp, "job", {"config_hash": "abc"})
@@ -95,7 +96,7 @@ def test_sweeps_whose_process_died_are_closed_as_killed(tmp_path):
     from ablate.store.tracker import KIND_SWEEP
     from ablate.sweep.callback import close_dead_sweeps
 
-    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     exp = tracker.experiment_id("table")
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     host = socket.gethostname()
@@ -110,7 +111,7 @@ def test_sweeps_whose_process_died_are_closed_as_killed(tmp_path):
 def test_the_table_view_is_an_mlflow_shared_view_with_the_metric_columns(tmp_path):
     import json
 
-    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db")
+    tracker = Tracker(sqlite_uri(tmp_path))
     exp = tracker.experiment_id("chinet_table2")
     link = tracker.share_table_view(exp, ["det_rate", "normal/ap11"])
     state = json.loads(tracker.experiment_tags(exp)[SHARED_VIEW_TAG + SHARED_VIEW_KEY])

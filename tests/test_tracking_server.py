@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.scaleout import REPO, TINY, ablate, free_port, most_at_once, need, output, runs
+from tests.scaleout import REPO, SERIAL, TINY, ablate, free_port, most_at_once, need, output, runs
 
 SCRIPT = REPO / "scripts" / "tracking_server.py"
 
@@ -257,7 +257,9 @@ def test_two_parallel_jobs_log_to_the_server_and_their_artifacts_are_stored_by_i
 def test_against_the_server_a_rerun_skips_a_shared_row_is_reused_and_a_killed_job_resumes(sweep):
     uri, _, cwd, first = sweep
     assert first.returncode == 0, output(first)
-    again = ablate(cwd, "-m", "experiment=chinet_table2", "row=chinet,unet", *TINY, env={"MLFLOW_TRACKING_URI": uri})
+    again = ablate(
+        cwd, "-m", "experiment=chinet_table2", "row=chinet,unet", SERIAL, *TINY, env={"MLFLOW_TRACKING_URI": uri}
+    )
     assert again.returncode == 0, output(again)
     assert again.stdout.count("Skipping") == 2
     reuse = ablate(cwd, "experiment=chinet_table3", "row=chinet", *TINY, env={"MLFLOW_TRACKING_URI": uri})

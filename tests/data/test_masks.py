@@ -1,11 +1,6 @@
 """Instance masks from LiDAR + 3D boxes (ablate.data.masks) on the real KITTI sample frames, the dataset's use of
 them when a folder has no instance_2/, and the instance task trained on them at scale=smoke."""
 
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -15,8 +10,7 @@ from ablate.data import DataError
 from ablate.data.dataset import KittiDataset
 from ablate.data.kitti import Calibration, list_frames, read_image, read_labels, read_velodyne
 from ablate.data.masks import from_lidar, instance_map
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.scaleout import ablate
 
 
 @pytest.fixture(scope="module")
@@ -100,29 +94,19 @@ def test_no_masks_and_nothing_to_derive_them_from_is_a_data_error(obj, tmp_path)
 
 
 def test_instance_task_trains_on_real_kitti_at_smoke_scale(kitti_root, tmp_path):
-    env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
-    env.pop("MLFLOW_TRACKING_URI", None)
-    out = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "ablate",
-            "data=kitti",
-            f"data.root={kitti_root / 'object'}",
-            "scale=smoke",
-            "experts=null",
-            "data.batch_size=2",
-            "data.limit_frames={train:2,val:1,test:1}",
-            "trainer.max_epochs=1",
-            "trainer.enable_progress_bar=false",
-            "task.figure_frames=1",
-            "comp_time.warmup=0",
-            "comp_time.repeats=1",
-        ],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
+    out = ablate(
+        tmp_path,
+        "data=kitti",
+        f"data.root={kitti_root / 'object'}",
+        "scale=smoke",
+        "experts=null",
+        "data.batch_size=2",
+        "data.limit_frames={train:2,val:1,test:1}",
+        "trainer.max_epochs=1",
+        "trainer.enable_progress_bar=false",
+        "task.figure_frames=1",
+        "comp_time.warmup=0",
+        "comp_time.repeats=1",
         timeout=900,
     )
     assert out.returncode == 0, out.stderr[-3000:]
