@@ -87,8 +87,10 @@ def test_printed_link_shows_the_parent_its_jobs_and_the_metric_columns(ui, brows
     cwd, _, link = ui
     page = browser.new_page(viewport={"width": 2400, "height": 1000})
     page.goto(link)
-    page.get_by_text("sweep ").first.wait_for(timeout=60_000)
-    page.locator(".ag-row", has_text="sweep ").first.locator("button").first.click()  # unfold the sweep's jobs
+    page.get_by_text("chinet_table2 scale=smoke").first.wait_for(timeout=60_000)  # the sweep, named after its table
+    page.locator(".ag-row", has_text="chinet_table2 scale=smoke").first.locator(
+        "button"
+    ).first.click()  # unfold its jobs
     for name in ROWS:
         page.get_by_text(name, exact=True).first.wait_for(timeout=20_000)
     headers = " ".join(page.locator(".ag-header-cell").all_inner_texts())
@@ -108,5 +110,5 @@ def test_a_user_clicks_from_the_home_page_to_the_runs(ui, browser):
     page.goto(base + "/")
     page.get_by_text("Model training", exact=True).first.click()
     page.get_by_text("chinet_table2", exact=True).first.click()
-    page.get_by_text("sweep ").first.wait_for(timeout=60_000)
+    page.get_by_text("chinet_table2 scale=smoke").first.wait_for(timeout=60_000)  # the sweep, named after its table
     assert "workflowType=machine_learning" in page.url, page.url

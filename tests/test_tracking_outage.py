@@ -179,7 +179,7 @@ def test_a_sweep_survives_its_server_killed_and_back_8_s_later(outage):
         assert len(val) == EPOCHS == len({s for s, _ in val}), (job.data.tags["row"], val)  # each epoch once
         train = steps(client, job.info.run_id, "train/loss")
         assert [s for s, _ in train] == list(range(len(train))) and len(train) % EPOCHS == 0  # each step once
-        assert len(steps(client, job.info.run_id, "test/loss")) == 1
+        assert len(steps(client, job.info.run_id, "loss")) == 1  # the test loss, logged once under its plain name
         in_outage = [t for _, t in val + train if outage.down_at * 1000 < t < outage.back_at * 1000]
         assert in_outage, f"{job.data.tags['row']} logged nothing while the server was down"  # it kept training
         during += len(in_outage)

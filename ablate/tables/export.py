@@ -76,6 +76,10 @@ def latex(summary: pd.DataFrame, table: DictConfig) -> str:
 def write_numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, out: Path) -> list[Path]:
     """Write ``<table>.csv`` and ``<table>.tex`` under ``out``; the paths."""
     csv, tex = out / f"{table.name}.csv", out / f"{table.name}.tex"
+    if summary.empty:  # no row has a finished run yet (a report while the first jobs train)
+        pd.DataFrame(columns=["row", "name", "n"]).to_csv(csv, index=False, lineterminator="\n")
+        tex.write_text("% no row has a finished run yet\n")
+        return [csv, tex]
     numbers(summary, runs, table).to_csv(csv, index=False, lineterminator="\n")
     tex.write_text(latex(summary, table))
     return [csv, tex]

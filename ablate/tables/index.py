@@ -99,6 +99,15 @@ def summarise_table(table: DictConfig, text: str) -> Summary:
 def summarise_numbers(table: DictConfig, numbers: pd.DataFrame) -> Summary:
     """The summary line of ``table`` (its spec) from its numbers (``<table>.csv``, :mod:`ablate.tables.export`)."""
     paper = paper_top(table)
+    if numbers.empty or "top_vs_second" not in numbers:  # no row has a finished run yet
+        return Summary(
+            str(table.name),
+            str(table.title),
+            "—",
+            paper or "—",
+            "—",
+            "—" if paper is None else "undecided (too few seeds)",
+        )
     top = numbers[numbers["top_vs_second"].fillna("") != ""]
     ours = str(top["name"].iloc[0]) if len(top) else "—"
     verdict = str(top["top_vs_second"].iloc[0]) if len(top) else ""
