@@ -12,7 +12,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from tests import forkserver
-from tests.stores import seed_store
+from tests.stores import keep_data, seed_data, seed_store
 
 REPO = Path(__file__).resolve().parents[1]
 # publish=true: these sweeps' tables are read under results/, as a publishing sweep writes them (a sweep that does not
@@ -40,14 +40,18 @@ def ablate(
     """``python -m MODULE ARGS`` in ``cwd``, with ``env`` added to this environment (and no tracking URI unless
     ``env`` names one), forked from a warm interpreter (:mod:`tests.forkserver`). Without a tracking URI in ``env``
     the store is ``cwd/mlflow.db``, an empty one copied there (:func:`tests.stores.seed_store`) unless
-    ``fresh_store``."""
+    ``fresh_store``; the smoke dataset is copied into ``cwd/data`` once a command has made it
+    (:func:`tests.stores.seed_data`)."""
     if not fresh_store and "MLFLOW_TRACKING_URI" not in (env or {}):
         seed_store(cwd)
+    seed_data(cwd)
     full = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
     for key in ("MLFLOW_TRACKING_URI", "RAY_AUTH_MODE", "RAY_ADDRESS"):
         full.pop(key, None)
     full.update(env or {})
-    return forkserver.run(Path(cwd), module, list(args), full, timeout)
+    done = forkserver.run(Path(cwd), module, list(args), full, timeout)
+    keep_data(cwd)
+    return done
 
 
 def output(out: subprocess.CompletedProcess) -> str:

@@ -11,7 +11,7 @@ from pathlib import Path
 from test_cli import REPO, TINY, ablate, runs
 
 from tests import forkserver
-from tests.stores import seed_store
+from tests.stores import seed_data, seed_store
 
 EPOCHS = 30  # 3 steps an epoch at TINY: long enough to be stopped in the middle, both jobs of a sweep
 RESUMED_EPOCHS = 10  # a job stopped after its first epoch and rerun to its end: the rerun trains the rest
@@ -20,6 +20,7 @@ RESUMED_EPOCHS = 10  # a job stopped after its first epoch and rerun to its end:
 def start(cwd: Path, *args: str) -> forkserver.Command:
     """``python -m ablate ARGS`` in ``cwd`` in the background (a :class:`subprocess.Popen` with its output captured)."""
     seed_store(cwd)
+    seed_data(cwd)
     env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0"}
     env.pop("MLFLOW_TRACKING_URI", None)
     return forkserver.start(cwd, "ablate", list(args), env)

@@ -21,6 +21,7 @@ from mlflow.tracking import MlflowClient
 
 from tests import forkserver
 from tests.scaleout import REPO, TINY, ablate, output, runs
+from tests.stores import seed_data
 from tests.test_tracking_server import SCRIPT, running, server  # noqa: F401 (a fixture: this module's own server)
 
 #: Seconds the server stays down at least: longer than the short job's budget (it stays down until that job has
@@ -40,6 +41,7 @@ def launch(cwd: Path, *args: str, uri: str) -> forkserver.Command:
     env = {**os.environ, "PYTHONPATH": str(REPO), "HYDRA_FULL_ERROR": "0", "MLFLOW_TRACKING_URI": uri}
     for key in ("RAY_AUTH_MODE", "RAY_ADDRESS"):
         env.pop(key, None)
+    seed_data(cwd)
     return forkserver.start(cwd, "ablate", list(args), env, stdout=cwd / "stdout.txt", stderr=cwd / "stderr.txt")
 
 
