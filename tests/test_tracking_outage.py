@@ -1,5 +1,5 @@
 """A tracking server outage (issue #24): the ``mlflow server`` of scripts/tracking_server.py (PostgreSQL stays up) is
-killed while a 2-job sweep trains and started again on the same port 8 s later. The jobs keep training, the metrics
+killed while a 2-job sweep trains and started again on the same port 20 s later. The jobs keep training, the metrics
 they log meanwhile reach the server after it, and both runs end FINISHED with each epoch's metrics once. A job with a
 budget shorter than the outage (``logger.outage_s=5``), training beside them, fails in one line naming the server;
 its checkpoint and outbox are kept, and once the server is back the same command delivers them (the earlier run ends
@@ -26,11 +26,11 @@ from tests.test_tracking_server import SCRIPT, running, server  # noqa: F401 (a 
 
 #: Seconds the server stays down at least: longer than the short job's budget (it stays down until that job has
 #: ended, which is about as long: its training after the kill, then its 5 s).
-DOWN_S = 8
+DOWN_S = 20
 #: Epochs of each sweep job: at scale=smoke, longer than the short job takes to start and train its first step (a
 #: job that ends training in the outage waits for the server at its end; one that trains on delivers what waits once
 #: the server answers).
-EPOCHS = 16
+EPOCHS = 24
 #: The job whose budget the outage outlasts: a table and seed of its own.
 SHORT = ["experiment=chinet_table3", "row=simo", "seed=1", "trainer.max_epochs=8", "logger.outage_s=5", *TINY]
 
@@ -133,7 +133,7 @@ class Outage:
 @pytest.fixture(scope="module")
 def outage(server, tmp_path_factory) -> Outage:  # noqa: F811
     """A 2-job sweep and a job with a 5 s budget (launched once the sweep's jobs train), all three training when the
-    server is killed; the server is started again 8 s later (or once the short job has ended, if that is later)."""
+    server is killed; the server is started again 20 s later (or once the short job has ended, if that is later)."""
     uri, store = server
     sweep_dir, short_dir = tmp_path_factory.mktemp("sweep"), tmp_path_factory.mktemp("short")
     began = time.monotonic()
@@ -169,7 +169,7 @@ def outage(server, tmp_path_factory) -> Outage:  # noqa: F811
     return Outage(uri, sweep_dir, sweep_end, short_dir, short_end, short_run.info.run_id, down_at, back_at, began)
 
 
-def test_a_sweep_survives_its_server_killed_and_back_8_s_later(outage):
+def test_a_sweep_survives_its_server_killed_and_back_20_s_later(outage):
     code, out, err = outage.sweep
     assert code == 0, out[-4000:] + "\n---\n" + err[-4000:]
     client, jobs = runs(outage.uri, "chinet_table2")
