@@ -50,6 +50,9 @@ def ui(tmp_path_factory) -> tuple[Path, str, str]:
     assert found, output(out)
     port = free_port()
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    # MLflow's server-side job runner (huey consumers for its GenAI features) off, as scripts/tracking_server.py
+    # has it: the UI of runs never uses it, and it starts eight more processes, each importing MLflow
+    env["MLFLOW_SERVER_ENABLE_JOB_EXECUTION"] = "false"
     log = cwd / "mlflow_ui.log"
     with log.open("w") as out:
         server = subprocess.Popen(
