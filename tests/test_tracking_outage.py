@@ -27,12 +27,15 @@ from tests.test_tracking_server import SCRIPT, running, server  # noqa: F401 (a 
 #: Seconds the server stays down at least: longer than the short job's budget (it stays down until that job has
 #: ended, which is about as long: its training after the kill, then its 5 s).
 DOWN_S = 8
-#: Epochs of each sweep job: at scale=smoke, longer than the short job takes to start and train its first step (a
-#: job that ends training in the outage waits for the server at its end; one that trains on delivers what waits once
-#: the server answers).
-EPOCHS = 16
-#: The job whose budget the outage outlasts: a table and seed of its own.
+#: Epochs of each sweep job: at scale=smoke, longer than the short job takes to start (in a fresh interpreter too,
+#: ABLATE_TESTS_FORK=0) and train its first step, about as long as the outage (a job that ends training in the
+#: outage waits for the server at its end; one that trains on delivers what waits once the server answers).
+EPOCHS = 24
+#: The job whose budget the outage outlasts: a table and seed of its own, on 8 frames of data, not TINY's 20 (2
+#: training steps an epoch: its epochs half as long, and the outage with them, which lasts its epochs after the
+#: kill, then its 5 s).
 SHORT = ["experiment=chinet_table3", "row=simo", "seed=1", "trainer.max_epochs=8", "logger.outage_s=5", *TINY]
+SHORT += ["data.synth.frames=8"]
 
 
 def launch(cwd: Path, *args: str, uri: str) -> forkserver.Command:
