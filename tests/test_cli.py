@@ -7,6 +7,7 @@ import pytest
 
 from tests.scaleout import REPO, SERIAL, TINY, ablate  # noqa: F401 (the other end-to-end tests import them from here)
 from tests.scaleout import runs as store_runs
+from tests.shared import smoke_table2
 
 
 def runs(cwd: Path, experiment: str, kind: str = "job"):
@@ -16,9 +17,8 @@ def runs(cwd: Path, experiment: str, kind: str = "job"):
 
 @pytest.fixture(scope="module")
 def table2(tmp_path_factory):
-    cwd = tmp_path_factory.mktemp("table2")
-    first = ablate(cwd, "-m", "experiment=chinet_table2", SERIAL, *TINY)
-    return cwd, first
+    """ChiNet Table II swept at scale=smoke: the session's sweep (tests/shared.py), in a directory of this module."""
+    return smoke_table2(tmp_path_factory, "table2")
 
 
 def test_a_table_sweep_leaves_one_parent_with_a_finished_child_per_row(table2):

@@ -19,7 +19,8 @@ from pathlib import Path
 import pytest
 
 from scripts.tracking_server import wait_healthy
-from tests.scaleout import SERIAL, TINY, ablate, free_port, need, output, runs
+from tests.scaleout import free_port, need, output, runs
+from tests.shared import smoke_table2
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 #: Chromium as root in a sandbox with no network: no sandbox, no GPU, none of its background connections.
@@ -38,18 +39,21 @@ ROWS = ("chinet seed=0", "unet seed=0", "fusenet seed=0")
 
 @pytest.fixture(scope="module")
 def ui(tmp_path_factory) -> tuple[Path, str, str]:
-    """A smoke ChiNet Table II sweep in a fresh directory, then ``mlflow ui`` there on a free port: (the directory,
-    the address of the UI, the link the sweep printed, pointed at that port)."""
+    """A smoke ChiNet Table II sweep (the session's, tests/shared.py, in a directory of its own), then ``mlflow ui``
+    there on a free port: (the directory, the address of the UI, the link the sweep printed, pointed at that
+    port)."""
     if CHROMIUM is None:
         pytest.skip("Chromium is not installed (apt-get install chromium)")
     need("playwright")
-    cwd = tmp_path_factory.mktemp("ui")
-    out = ablate(cwd, "-m", "experiment=chinet_table2", SERIAL, *TINY)
+    cwd, out = smoke_table2(tmp_path_factory, "ui")
     assert out.returncode == 0, output(out)
     found = re.search(r"Runs in the MLflow UI.*?: (http://127\.0\.0\.1:5000/\S+)", out.stdout + out.stderr)
     assert found, output(out)
     port = free_port()
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    # MLflow's server-side job runner (huey consumers for its GenAI features) off, as scripts/tracking_server.py
+    # has it: the UI of runs never uses it, and it starts eight more processes, each importing MLflow
+    env["MLFLOW_SERVER_ENABLE_JOB_EXECUTION"] = "false"
     log = cwd / "mlflow_ui.log"
     with log.open("w") as out:
         server = subprocess.Popen(
