@@ -46,3 +46,31 @@ def test_two_jobs_train_their_two_experts_at_the_same_time(tmp_path: Path, monke
     assert a0 < b1 and b0 < a1, trained  # the two trainings overlap: side by side
     assert {job for job, _, _, _ in trained} == {"sum", "max"}  # one each
     assert list(results["sum"]) == list(results["max"]) == ["rgb", "ddm_jet"]  # in the job's own order
+
+
+def test_a_job_holds_no_running_run_while_it_waits_for_its_experts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from ablate.jobs import experts, job
+    from ablate.jobs.spec import JobSpec
+    from ablate.store import SweepContext, Tracker
+    from tests.stores import seed_store
+
+    monkeypatch.chdir(tmp_path)
+    seed_store(tmp_path)  # ./mlflow.db, the default store
+    cfg = compose(["experiment=smoe_table1", "row=smoe_fpn", "scale=smoke"])
+    spec = JobSpec.of(cfg, SweepContext(launch_dir=tmp_path))
+    tracker = Tracker.from_config(spec.cfg, spec.context)
+    seen: list[list[str]] = []
+
+    def prepare(cfg: Any, run: Any) -> dict[str, Any]:  # an expert in training elsewhere: the job waits here
+        seen.append([r.info.status for r in tracker.runs(tracker.experiment_id(spec.table))])
+        raise job.JobFailed("expert rgb: FAILED")
+
+    monkeypatch.setattr(experts, "prepare", prepare)
+    with pytest.raises(job.JobFailed, match="an expert failed"):
+        job.run(spec)
+    assert seen == [[]]  # no run of the job while it waited
+    runs = tracker.runs(tracker.experiment_id(spec.table))  # its failure is recorded, naming the expert
+    assert [r.info.status for r in runs] == ["FAILED"]
+    assert runs[0].data.tags["error"].startswith("an expert failed: expert rgb")

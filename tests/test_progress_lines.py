@@ -47,4 +47,6 @@ def test_a_redirected_sweeps_log_has_no_progress_bar_and_every_jobs_end(tmp_path
     text = out.stdout + out.stderr
     assert "\r" not in text  # no progress-bar refresh
     assert text.count("FINISHED model=") == 2 and "epoch 2/2, step" in text
+    # the plan and its ETA before the first job ends
+    assert -1 < text.find("Sweep plan: 2 job(s), 1 at a time") < text.find("Sweep ETA: ~") < text.find("FINISHED")
     assert len(text.encode()) < 20_000, f"{len(text.encode())} bytes for 2 jobs of 2 epochs"

@@ -4,7 +4,7 @@ config at ``scale=paper``, at batch 1, on the CPU in fp32, in the calling proces
 - The data (:func:`sample_config`): :data:`FRAMES` frames of the generated dataset at the paper's resolution
   (``data.synth`` height and width of ``conf/scale/paper.yaml``: KITTI's 375 x 1242), batch 1, no loader workers;
   the data module as configured otherwise (BiFNet's paper augmentation included).
-- The model and task (:func:`_build`) built with hydra's ``instantiate`` as :mod:`ablate.jobs.job` does, with the
+- The model and task (:func:`ablate.jobs.steptime.build`) built with hydra's ``instantiate`` as :mod:`ablate.jobs.job` does, with the
   frozen experts of a two-stage row (SMoE §4.3; BiFNet §V-B) loaded into the fused model from freshly built experts
   (``load_expert`` with ``experts.freeze``), so that what is frozen is what a job freezes.
 - One training step (the row's training corruptions, forward, loss, backward, the recipe's optimiser and scheduler
@@ -26,16 +26,12 @@ import time
 from collections.abc import Iterable
 from typing import Any, cast
 
-import lightning as L
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
-from ablate.capacity.rows import needed_experts
-from ablate.data.datamodule import collate
-from ablate.jobs.experts import expert_config, feature_cache
+from ablate.jobs.steptime import build as _build
 
 #: Frames of generated data each row reads (one training, one test frame after the 60/20/20 split).
 FRAMES = 2
@@ -157,37 +153,6 @@ def frozen_parts(model: torch.nn.Module) -> list[torch.nn.Module]:
             parts.append(module)
             inside.add(name)
     return parts
-
-
-def _build(cfg: DictConfig, small: DictConfig, batch_size: int = 1) -> dict[str, Any]:
-    """The data (a training batch of ``batch_size`` frames, the training split's first ones, repeated where it has
-    fewer, and a test batch of one frame), model and task of job config ``cfg`` on the frames of ``small``, with the
-    experts of a two-stage row loaded (frozen where ``experts.freeze``) and the frozen experts' feature cache a job
-    would use on the CPU (:func:`ablate.jobs.experts.feature_cache`)."""
-    L.seed_everything(int(small.seed), workers=True, verbose=False)
-    datamodule = instantiate(small.data)
-    datamodule.setup("fit")
-    train = datamodule.datasets["train"]
-    test = datamodule.datasets["test"] if len(datamodule.datasets["test"]) else train
-    start = time.perf_counter()
-    batch, test_batch = collate([train[i % len(train)] for i in range(batch_size)]), collate([test[0]])
-    data_s = time.perf_counter() - start
-    model = instantiate(small.model)
-    task = instantiate(small.task, model=model)
-    freeze = bool((cfg.get("experts") or {}).get("freeze", True))
-    for modality in needed_experts(cfg):  # stage 2 starts from the experts, as ablate.jobs.experts.attach loads them
-        model.load_expert(modality, instantiate(expert_config(cfg, modality).model), freeze=freeze)
-    task.feature_cache = feature_cache(small, model)
-    task.train()
-    step_batch = task.train_corruptions.apply(batch, 0) if task.train_corruptions is not None else batch
-    return {
-        "task": task,
-        "model": model,
-        "batch": step_batch,
-        "test_batch": test_batch,
-        "data_s": data_s,
-        "distinct_frames": min(batch_size, len(train)),
-    }
 
 
 def _features(task: Any) -> int:

@@ -119,10 +119,11 @@ def run(spec: JobSpec) -> Outcome:
         return done
     if stale := tracker.close_stale(exp, spec.config_hash):
         log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, spec.config_hash)
+    experts = prepare_experts(spec, tracker, exp)  # before the job's run: no RUNNING run while it waits for one
     run_id = tracker.start(exp, f"{spec.row} seed={spec.seed}", run_tags(spec))
     log.info("MLflow run %s: %s, seed %s, config %s", run_id, spec.row, spec.seed, spec.config_hash)
     log.info("Numerics: %s; %s intra-op thread(s)", spec.numerics, spec.cfg.trainer.get("threads") or "all")
-    metrics = train(spec, tracker, run_id)
+    metrics = train(spec, tracker, run_id, experts)
     attach_logs(spec, tracker, run_id)
     tracker.end(run_id, "FINISHED")
     described = ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items()))
@@ -185,7 +186,25 @@ def reuse(spec: JobSpec, tracker: Tracker, exp: str, source: Run) -> Outcome:
     return Outcome("SKIPPED", run_id, checkpoint_dir(source.data.tags.get("table", ""), spec.config_hash))
 
 
-def train(spec: JobSpec, tracker: Tracker, run_id: str) -> dict[str, float]:
+def prepare_experts(spec: JobSpec, tracker: Tracker, exp: str) -> dict[str, tuple[Path, str]]:
+    """Stage 1 (SMoE §4.3): the experts the job starts from, trained first where missing, each as a job of its own
+    (:func:`ablate.jobs.experts.prepare`), before the job's own run starts. An expert that fails fails the job: its
+    run is recorded FAILED, naming the expert."""
+    if not spec.cfg.get("experts"):
+        return {}
+    from ablate.jobs.experts import prepare  # torch: imported once a job trains
+
+    try:
+        return prepare(spec.cfg, lambda ecfg, kind, row: run(JobSpec.of(ecfg, spec.context, kind, row)))
+    except JobFailed as err:
+        run_id = tracker.start(exp, f"{spec.row} seed={spec.seed}", run_tags(spec))
+        message = f"an expert failed: {err}"
+        record_end(tracker, run_id, "FAILED", {"error": message[:5000]}, outbox=spec.outbox)
+        log.error("%s (seed %s) FAILED: %s", named(spec), spec.seed, message)
+        raise JobFailed(message) from err
+
+
+def train(spec: JobSpec, tracker: Tracker, run_id: str, experts: dict[str, tuple[Path, str]]) -> dict[str, float]:
     """Record the job's params, config and fingerprint, then train and test it (:func:`ablate.jobs.train.fit_and_test`);
     an interrupt ends the run KILLED, an error FAILED (or waits in the outbox where the server is down)."""
     from ablate.jobs.train import fit_and_test  # torch and Lightning: imported once a job trains
@@ -195,9 +214,8 @@ def train(spec: JobSpec, tracker: Tracker, run_id: str) -> dict[str, float]:
         tracker.log_params(run_id, params_of(cfg))
         tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
         record_fingerprint(cfg, tracker, run_id)
-        expert = lambda ecfg, kind, row: run(JobSpec.of(ecfg, spec.context, kind, row))  # noqa: E731
         with tracker.system_metrics(run_id, bool(cfg.logger.get("system_metrics"))):
-            return fit_and_test(spec, tracker, run_id, expert)
+            return fit_and_test(spec, tracker, run_id, experts)
     except Stopped as stop:
         stop.reason = stopped_reason(stop, spec.ckpt_dir)
         record_end(tracker, run_id, "KILLED", {"killed_by": stop.signame, "kill_reason": stop.reason}, outbox=outbox)

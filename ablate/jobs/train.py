@@ -26,9 +26,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from ablate import hardware
 from ablate.jobs.checkpoint import AtomicCheckpointIO, resume_point
-from ablate.jobs.experts import RunJob, feature_cache
 from ablate.jobs.experts import attach as attach_experts
-from ablate.jobs.experts import prepare as prepare_experts
+from ablate.jobs.experts import feature_cache
 from ablate.jobs.preempt import STOP, SaveOnStop, Stopped
 from ablate.jobs.progress_lines import ProgressLines, progress_bar
 from ablate.jobs.spec import JobSpec
@@ -40,18 +39,20 @@ log = logging.getLogger(__name__)
 warnings.filterwarnings("ignore", ".*compute.*method of metric .* was called before the .*update.* method.*")
 
 
-def fit_and_test(spec: JobSpec, tracker: Tracker, run_id: str, run: RunJob) -> dict[str, float]:
+def fit_and_test(
+    spec: JobSpec, tracker: Tracker, run_id: str, experts: dict[str, tuple[Path, str]]
+) -> dict[str, float]:
     """Train with Lightning, test the best checkpoint, and log metrics, checkpoint and figures to ``run_id``.
     Metrics logged while the tracking server does not answer wait in the job's outbox, and are all delivered before
     the test's results are logged.
 
-    With ``experts`` set (SMoE §4.3), a fused model first gets its frozen single-modal experts (trained with
-    ``run`` where missing; their features per frame are computed once and cached for the fit with
+    With ``experts`` set (SMoE §4.3), a fused model first gets its frozen single-modal experts (``experts``:
+    {modality: (best checkpoint, run id)}, trained before the job's run started, :func:`ablate.jobs.job.prepare_experts`;
+    their features per frame are computed once and cached for the fit with
     ``experts.cache_features``), and a single-modal job *is* the expert: it is tested from the expert's checkpoint,
     never trained twice.
     """
     cfg = spec.cfg
-    experts = prepare_experts(cfg, run) if cfg.get("experts") else {}
     if cfg.trainer.get("threads"):
         torch.set_num_threads(int(cfg.trainer.threads))
     L.seed_everything(cfg.seed, workers=True)

@@ -31,6 +31,7 @@ SOURCE = Path(__file__).resolve().parents[2]
 UNHASHED = (
     "force",
     "publish",
+    "plan",
     "logger",
     "hydra",
     "table",

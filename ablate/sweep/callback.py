@@ -28,7 +28,16 @@ from ablate.analysis.latency import measure
 from ablate.config import CONF, compose
 from ablate.jobs import fingerprint
 from ablate.jobs.preempt import GRACE_S, alive, install_parent
-from ablate.store import KIND_SWEEP, AccessDenied, ServerUnreachable, SweepContext, Tracker, is_server, provenance_tags
+from ablate.store import (
+    KIND_SWEEP,
+    AccessDenied,
+    ServerUnreachable,
+    SweepContext,
+    Tracker,
+    config_hash,
+    is_server,
+    provenance_tags,
+)
 from ablate.store.context import PARENT_FILE, STORE_FILE, SWEPT_FILE
 from ablate.sweep import progress
 from ablate.tables import COSTS, table_spec, write_table
@@ -230,7 +239,13 @@ class SweepCallback(Callback):
         context.record(SWEPT_FILE, " ".join(o.get_key_element() for o in parsed if o.is_sweep_override()))
         log.info("MLflow parent run %s in experiment '%s' (%s)", run_id, config.table.name, tracker.uri)
         planned = progress.start(sdir, config)
-        log.info("Sweep of %d job(s), %s at a time", planned, _parallel(config))
+        try:
+            from ablate.sweep.plan import log_plan  # torch and Lightning: the step timing
+
+            log_plan(config, _parallel(config), lambda cfg: tracker.finished_run(exp, config_hash(cfg)) is not None)
+        except Exception as err:  # the plan is a convenience: never the reason a sweep does not start
+            log.warning("Could not plan the sweep: %s", err)
+            log.info("Sweep of %d job(s), %s at a time", planned, _parallel(config))
 
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._job_started = time.monotonic()

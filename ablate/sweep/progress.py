@@ -23,20 +23,28 @@ PLANNED_FILE = ".planned"
 PROGRESS_FILE = ".progress"
 
 
-def planned_jobs(config: DictConfig) -> int:
-    """How many jobs the multirun of ``config`` launches: the product of its swept values, the sweeper's
-    ``params`` and the command line's overrides together (a key on the command line wins), as Hydra's basic
-    sweeper splits them; for a table that races its seeds (``table.seeds``), times the seeds of its first look
-    (each later look replans, :func:`replan`)."""
+def job_overrides(config: DictConfig) -> list[list[str]]:
+    """Every job's overrides, as the multirun of ``config`` launches them: the product of its swept values (the
+    sweeper's ``params``, a table's rows and the command line together, a key on the command line winning), as
+    Hydra's basic sweeper splits them; for a table that races its seeds (``table.seeds``), each with the seeds of its
+    first look."""
     params = OmegaConf.select(config, "hydra.sweeper.params", default=None) or {}
     arguments = list(config.hydra.overrides.task)
     params = sweep_params(params, arguments, config.table)  # a table's rows (ablate.tables.spec.run_rows)
     lines = [f"{key}={value}" for key, value in params.items()] + arguments
     overrides = OverridesParser.create().parse_overrides(lines)
-    jobs = sum(len(batch) for batch in BasicSweeper.split_arguments(overrides, None))
+    jobs = [list(job) for batch in BasicSweeper.split_arguments(overrides, None) for job in batch]
     looks = OmegaConf.select(config, "table.seeds.looks", default=None)
     seeded = any(o.get_key_element().lstrip("+~") == "seed" for o in overrides)
-    return jobs * int(looks[0]) if looks and not seeded else jobs  # a race plans its first look
+    if not looks or seeded:
+        return jobs
+    return [[*job, f"seed={seed}"] for job in jobs for seed in range(int(looks[0]))]
+
+
+def planned_jobs(config: DictConfig) -> int:
+    """How many jobs the multirun of ``config`` launches (:func:`job_overrides`; a race's first look: each later
+    look replans, :func:`replan`)."""
+    return len(job_overrides(config))
 
 
 def replan(sweep_dir: Path, planned: int) -> None:

@@ -1,0 +1,143 @@
+"""A job's steps measured outside a trainer, in the calling process: what a sweep's plan estimates its wall time from
+(:mod:`ablate.sweep.plan`), and what the paper check measures at the paper's scale (:mod:`ablate.capacity.measure`).
+
+:func:`build` makes a job's data, model and task as :mod:`ablate.jobs.train` does (the frozen experts of a
+two-stage row, SMoE §4.3, loaded from freshly built ones: what is frozen is what a job freezes) and the feature cache
+a job would use on the CPU. :func:`step_times` times, on one training batch of the job's batch size: a training step
+with the experts run (every step of a job without a feature cache, the first epoch of one with it), a training step
+with the experts' features read from the cache (the later epochs), and a validation step. Each is the fastest of
+``repeats`` after one untimed step, with the job's ``trainer.threads``, in fp32: the cpu scale's recipes train in
+fp32 (conf/recipe/*_cpu.yaml), and a bf16 job runs faster than this says.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import lightning as L
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from ablate.data.datamodule import collate
+from ablate.jobs.experts import expert_config, feature_cache, needed
+
+
+def build(cfg: DictConfig, small: DictConfig, batch_size: int = 1) -> dict[str, Any]:
+    """The data (a training batch of ``batch_size`` frames, the training split's first ones, repeated where it has
+    fewer, and a test batch of one frame), model and task of job config ``cfg`` on the frames of ``small``, with the
+    experts of a two-stage row loaded (frozen where ``experts.freeze``) and the frozen experts' feature cache a job
+    would use on the CPU (:func:`ablate.jobs.experts.feature_cache`); ``splits``: the frames of each split."""
+    L.seed_everything(int(small.seed), workers=True, verbose=False)
+    datamodule = instantiate(small.data)
+    datamodule.setup("fit")
+    train = datamodule.datasets["train"]
+    test = datamodule.datasets["test"] if len(datamodule.datasets["test"]) else train
+    start = time.perf_counter()
+    batch, test_batch = collate([train[i % len(train)] for i in range(batch_size)]), collate([test[0]])
+    data_s = time.perf_counter() - start
+    model = instantiate(small.model)
+    task = instantiate(small.task, model=model)
+    freeze = bool((cfg.get("experts") or {}).get("freeze", True))
+    two_stage = cfg.get("experts") and cfg.stage.name != "single"
+    for modality in needed(cfg) if two_stage else []:  # stage 2 starts from the experts, as experts.attach loads them
+        model.load_expert(modality, instantiate(expert_config(cfg, modality).model), freeze=freeze)
+    task.feature_cache = feature_cache(small, model)
+    task.train()
+    step_batch = task.train_corruptions.apply(batch, 0) if task.train_corruptions is not None else batch
+    return {
+        "task": task,
+        "model": model,
+        "batch": step_batch,
+        "test_batch": test_batch,
+        "data_s": data_s,
+        "distinct_frames": min(batch_size, len(train)),
+        "splits": {split: len(frames) for split, frames in datamodule.datasets.items()},
+    }
+
+
+@dataclass(frozen=True)
+class StepTimes:
+    """Seconds of a job's steps and its batches an epoch (:func:`step_times`)."""
+
+    train_s: float  # a training step, the experts run
+    cached_s: float  # a training step, the experts' features from the cache (train_s where the job has no cache)
+    eval_s: float  # a validation step
+    train_batches: int  # training batches an epoch
+    eval_batches: int  # validation batches an epoch
+    test_batches: int  # test batches
+
+    def fit_seconds(self, epochs: int, max_steps: int | None = None, cached: bool = False) -> float:
+        """A fit of ``epochs`` epochs (Lightning's ``max_epochs``; -1: unbounded) stopped at ``max_steps`` steps
+        where set: its training steps, the first epoch's at :attr:`train_s` and the rest's at :attr:`cached_s` where
+        the job caches the experts' features (``cached``), and a validation epoch after each epoch."""
+        steps = epochs * self.train_batches if epochs > 0 else 0
+        if max_steps and max_steps > 0:
+            steps = min(steps, max_steps) if epochs > 0 else max_steps
+        first = min(steps, self.train_batches) if cached else steps
+        epochs_run = math.ceil(steps / max(self.train_batches, 1))
+        return first * self.train_s + (steps - first) * self.cached_s + epochs_run * self.eval_batches * self.eval_s
+
+    def test_seconds(self, conditions: int = 1) -> float:
+        """The test: every test batch once per test condition, at a validation step's cost."""
+        return self.test_batches * max(conditions, 1) * self.eval_s
+
+
+def _loss(out: Any) -> torch.Tensor:
+    return out["loss"] if isinstance(out, dict) else out
+
+
+def step_times(cfg: DictConfig, repeats: int = 2, clock: Callable[[], float] = time.perf_counter) -> StepTimes:
+    """The steps of job config ``cfg`` (its own data, batch size and threads) timed on ``clock``; see the module."""
+    threads = torch.get_num_threads()
+    if cfg.trainer.get("threads"):
+        torch.set_num_threads(int(cfg.trainer.threads))
+    try:
+        batch_size = int(cfg.data.batch_size)
+        built = build(cfg, cfg, batch_size)
+        task, batch = built["task"], built["batch"]
+        optimizer, _ = task.optimizers_for(task.trainable(), 1000)
+
+        def train_step() -> None:
+            loss = _loss(task.training_step(batch, 0))
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+
+        cache = task.feature_cache
+        task.feature_cache = None
+        train_s = _fastest(train_step, repeats, clock)
+        task.feature_cache = cache
+        cached_s = _fastest(train_step, repeats, clock) if cache is not None else train_s  # the first fills it
+        task.feature_cache = None
+        task.eval()
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the task's self.log without a trainer: logged nowhere, as meant
+            eval_s = _fastest(lambda: task.validation_step(batch, 0), repeats, clock)
+    finally:
+        torch.set_num_threads(threads)
+    splits = built["splits"]
+    return StepTimes(
+        train_s,
+        cached_s,
+        eval_s,
+        math.ceil(splits.get("train", 0) / batch_size),
+        math.ceil(splits.get("val", 0) / batch_size),
+        math.ceil(splits.get("test", 0) / batch_size),
+    )
+
+
+def _fastest(step: Callable[[], Any], repeats: int, clock: Callable[[], float]) -> float:
+    """The fastest of ``repeats`` timed calls of ``step``, after one untimed call."""
+    step()
+    times = []
+    for _ in range(max(repeats, 1)):
+        start = clock()
+        step()
+        times.append(clock() - start)
+    return min(times)

@@ -1,0 +1,178 @@
+"""A sweep's plan, logged before its first job starts: the jobs, the experts they will train first (SMoE §4.3), and an
+estimated wall time.
+
+Each job's config is composed from its overrides, as the sweep will launch it (the first look of a race: its rows x
+the look's seeds). An expert is planned once per config hash, as :func:`ablate.jobs.experts.ensure_expert` trains it;
+one whose best checkpoint exists is not trained again, and a job whose config has a FINISHED run in the store is
+skipped (``done``). Every other job and expert is estimated from the recipe's steps (epochs x training batches, or
+``trainer.max_steps``) at a step time measured here, now (:func:`ablate.jobs.steptime.step_times`): one row key (the
+job's overrides but the seed; an expert's modality) at a time, until ``plan.measure_s`` seconds have gone by; a job
+or expert not measured by then takes the mean of those measured.
+
+The wall time schedules the items on the sweep's workers in order, as its launcher does, each on the worker free
+first: the experts first (each fused job trains whichever expert no other job is training,
+:func:`ablate.jobs.experts.prepare`), and a job no earlier than the experts it needs are trained. The estimate
+leaves out the start of each job's interpreter and the sweep's end (row timing, the table); progress lines
+(:mod:`ablate.sweep.progress`) update it from the jobs' real durations as they finish.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from omegaconf import DictConfig, OmegaConf
+
+from ablate import hardware
+from ablate.config import compose
+from ablate.jobs.experts import expert_config, needed
+from ablate.jobs.spec import best_checkpoint
+from ablate.jobs.steptime import StepTimes, step_times
+from ablate.store import config_hash, row_name
+from ablate.sweep.progress import job_overrides
+
+log = logging.getLogger(__name__)
+
+#: Seconds a sweep spends timing its jobs' steps before it launches them, where the config does not say.
+MEASURE_S = 30.0
+
+
+@dataclass
+class Item:
+    """One job or expert of the plan: its name, the items it waits for, and its estimated seconds (None: not
+    estimated; 0 where it is done already)."""
+
+    name: str
+    key: str  # what it is measured as: its overrides but the seed, or "expert <modality>"
+    config: DictConfig
+    done: bool = False
+    needs: list[str] = field(default_factory=list)  # the names of the experts it waits for
+    seconds: float | None = None
+    how: str = ""
+
+
+def swept_keys(jobs: list[list[str]]) -> set[str]:
+    """The keys whose value differs between ``jobs``: what names their rows."""
+    values: dict[str, set[str]] = {}
+    for job in jobs:
+        for item in job:
+            key, _, value = item.lstrip("+~").partition("=")
+            values.setdefault(key, set()).add(value)
+    return {key for key, seen in values.items() if len(seen) > 1 or len(jobs) == 1}
+
+
+def items(config: DictConfig, done: Callable[[DictConfig], bool] = lambda cfg: False) -> list[Item]:
+    """The experts, then the jobs, of the sweep of ``config`` (``done``: whether a job's resolved config has a
+    FINISHED run)."""
+    jobs = job_overrides(config)
+    swept = swept_keys(jobs)
+    experts: dict[str, Item] = {}
+    planned: list[Item] = []
+    for overrides in jobs:
+        cfg = copy.deepcopy(compose(overrides))
+        hardware.resolve(cfg)
+        row = row_name(overrides, swept)
+        key = " ".join(sorted(o for o in overrides if not o.lstrip("+~").startswith("seed=")))
+        job = Item(f"{row} seed {cfg.seed}", key or row, cfg, done=done(cfg))
+        for modality in needed(cfg) if cfg.get("experts") and not job.done else []:
+            ecfg = expert_config(cfg, modality)
+            chash = config_hash(ecfg)
+            name = f"expert {modality} seed {cfg.seed}"
+            if chash not in experts:
+                trained = best_checkpoint(str(ecfg.table.name), chash).exists()
+                experts[chash] = Item(name, f"expert {modality}", ecfg, done=trained)
+            if not experts[chash].done:
+                job.needs.append(experts[chash].name)
+        planned.append(job)
+    return [*experts.values(), *planned]
+
+
+def estimate(
+    plan: list[Item],
+    measure_s: float = MEASURE_S,
+    measure: Callable[[DictConfig], StepTimes] = step_times,
+    clock: Callable[[], float] = time.monotonic,
+) -> None:
+    """Set each item's :attr:`Item.seconds` and :attr:`Item.how` (see the module)."""
+    start = clock()
+    times: dict[str, StepTimes] = {}
+    for item in plan:
+        if item.done:
+            item.seconds, item.how = 0.0, "done"
+            continue
+        if item.key not in times and clock() - start < measure_s:
+            try:
+                times[item.key] = measure(item.config)
+            except Exception as err:  # an estimate is a convenience: the job will say what is wrong
+                log.warning("Could not time the steps of %s for the sweep's plan: %s", item.name, err)
+        if item.key in times:
+            item.seconds, item.how = seconds(item.config, times[item.key]), "measured"
+    for item in plan:  # the rest: the mean of the measured of their kind
+        if item.seconds is None:
+            expert = item.key.startswith("expert")
+            kind = [
+                float(i.seconds or 0.0) for i in plan if i.how == "measured" and i.key.startswith("expert") == expert
+            ]
+            if kind:
+                item.seconds, item.how = sum(kind) / len(kind), "as the measured"
+
+
+def seconds(cfg: DictConfig, times: StepTimes) -> float:
+    """A job's or expert's estimated seconds: its fit (none for a single-modal row of two-stage training, which is
+    tested from its expert) and its test."""
+    conditions = len(cfg.task.get("eval_conditions") or {}) if "task" in cfg else 0
+    test = times.test_seconds(conditions or 1)
+    if cfg.get("experts") and cfg.stage.name == "single":
+        return test
+    epochs = int(cfg.trainer.get("max_epochs") or -1)
+    steps = cfg.trainer.get("max_steps")
+    return times.fit_seconds(epochs, int(steps) if steps is not None else None, cached=True) + test
+
+
+def wall_seconds(plan: list[Item], parallel: int) -> float | None:
+    """The plan's wall time on ``parallel`` workers (see the module); None where an item has no estimate."""
+    if any(item.seconds is None for item in plan):
+        return None
+    free = [0.0] * max(parallel, 1)
+    ends: dict[str, float] = {}
+    for item in plan:
+        worker = min(range(len(free)), key=free.__getitem__)
+        begin = max([free[worker], *(ends.get(name, 0.0) for name in item.needs)])
+        ends[item.name] = free[worker] = begin + float(item.seconds or 0.0)
+    return max(free)
+
+
+def lines(plan: list[Item], parallel: int, race: bool) -> list[str]:
+    """The plan as log lines: a header, one line per item, the estimated wall time."""
+    experts = [i for i in plan if i.key.startswith("expert") and not i.done]
+    jobs = [i for i in plan if not i.key.startswith("expert")]
+    skipped = sum(i.done for i in jobs)
+    header = f"Sweep plan: {len(jobs)} job(s){' (the first look of a race)' if race else ''}, {parallel} at a time"
+    header += f"; {len(experts)} expert(s) to train first" if experts else ""
+    header += f"; {skipped} done already (skipped)" if skipped else ""
+    out = [header]
+    for item in [*experts, *(i for i in jobs if not i.done)]:
+        guess = f"~{_minutes(item.seconds)} ({item.how})" if item.seconds is not None else "not estimated"
+        out.append(f"  {item.name}: {guess}")
+    wall = wall_seconds(plan, parallel)
+    more = "; later looks add seeds where rows are undecided" if race else ""
+    out.append(f"Sweep ETA: {'~' + _minutes(wall) if wall is not None else 'unknown until a job ends'}{more}")
+    return out
+
+
+def _minutes(seconds: float | None) -> str:
+    seconds = float(seconds or 0.0)
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
+
+
+def log_plan(config: DictConfig, parallel: int, done: Callable[[DictConfig], bool]) -> None:
+    """Compose, estimate and log the sweep's plan (``plan.measure_s`` seconds of step timing at most; 0: none)."""
+    measure_s = float(OmegaConf.select(config, "plan.measure_s", default=MEASURE_S))
+    plan = items(config, done)
+    estimate(plan, measure_s)
+    race = bool(OmegaConf.select(config, "table.seeds.looks", default=None))
+    for line in lines(plan, parallel, race):
+        log.info(line)

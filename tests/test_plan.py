@@ -1,0 +1,104 @@
+"""A sweep's plan (ablate.sweep.plan): the jobs and the experts they train first, each estimated from its recipe's
+steps at a measured step time, and the wall time on the sweep's workers; on a fake clock and fake step times."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from omegaconf import DictConfig
+
+from ablate.jobs.spec import best_checkpoint
+from ablate.jobs.steptime import StepTimes
+from ablate.store import config_hash
+from ablate.sweep.plan import estimate, items, lines, wall_seconds
+from tests.test_progress import sweep_config
+
+EXPERT = StepTimes(train_s=2.0, cached_s=2.0, eval_s=0.5, train_batches=10, eval_batches=2, test_batches=4)
+FUSED = StepTimes(train_s=1.0, cached_s=0.25, eval_s=0.5, train_batches=10, eval_batches=2, test_batches=4)
+
+
+class Clock:
+    """A fake clock: each step time measured takes 20 s of it."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+        self.measured: list[str] = []
+
+    def __call__(self) -> float:
+        return self.now
+
+    def measure(self, cfg: DictConfig) -> StepTimes:
+        self.now += 20.0
+        expert = cfg.stage.name == "single"
+        self.measured.append(f"expert {cfg.stage.modality}" if expert else str(cfg.fusion.name))
+        return EXPERT if expert else FUSED
+
+
+def test_the_headline_sweep_plans_its_two_experts_first_and_estimates_its_wall_time(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)  # no expert trained yet: ./checkpoints is empty
+    plan = items(sweep_config("fusion=sum,max,sharpen,smoe"))
+    names = [item.name for item in plan]
+    assert names == [
+        "expert rgb seed 0",
+        "expert ddm_jet seed 0",
+        *(f"fusion={f} seed 0" for f in ("sum", "max", "sharpen", "smoe")),
+    ]
+    assert all(item.needs == ["expert rgb seed 0", "expert ddm_jet seed 0"] for item in plan[2:])
+    clock = Clock()
+    estimate(plan, measure_s=50, measure=clock.measure, clock=clock)
+    # 50 s of measuring at 20 s each: the two experts and the first fused row; the others as the measured row
+    assert clock.measured == ["expert rgb", "expert ddm_jet", "sum"]
+    assert [item.how for item in plan] == ["measured"] * 3 + ["as the measured"] * 3
+    expert_epochs, fused_epochs = 10, 4  # the cpu scale's recipe (conf/recipe/instance_cpu.yaml)
+    conditions = len(plan[2].config.task.get("eval_conditions") or {}) or 1
+    test = 4 * conditions * 0.5
+    # an expert: 10 epochs of 10 steps at 2 s, a validation epoch (2 batches at 0.5 s) after each, its test
+    assert plan[0].seconds == pytest.approx(expert_epochs * (10 * 2.0 + 2 * 0.5) + test)
+    # a fused row: its first epoch runs the experts (1 s a step), the later ones read their cached features
+    fused = 10 * 1.0 + (fused_epochs - 1) * 10 * 0.25 + fused_epochs * 2 * 0.5 + test
+    assert [item.seconds for item in plan[2:]] == pytest.approx([fused] * 4)
+    # two at a time: both experts side by side, then the four rows two by two
+    assert wall_seconds(plan, 2) == pytest.approx(plan[0].seconds + 2 * fused)
+    assert wall_seconds(plan, 1) == pytest.approx(2 * plan[0].seconds + 4 * fused)
+    text = lines(plan, 2, race=False)
+    assert text[0] == "Sweep plan: 4 job(s), 2 at a time; 2 expert(s) to train first"
+    assert text[-1] == f"Sweep ETA: ~{(plan[0].seconds + 2 * fused) / 60:.1f} min"
+
+
+def test_trained_experts_and_finished_jobs_cost_nothing_and_a_race_plans_its_first_look(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    config = sweep_config("experiment=smoe_table1", "row=smoe_sum,smoe_max")
+    first = items(config)
+    assert [item.name for item in first if item.key.startswith("expert")] == [
+        f"expert {m} seed {s}" for s in range(3) for m in ("rgb", "ddm_jet")
+    ]  # the first look: three seeds, an expert of each modality per seed
+    for expert in first[:6]:  # trained: their best checkpoints exist
+        best = best_checkpoint("experts", config_hash(expert.config))
+        best.parent.mkdir(parents=True)
+        best.write_text("weights")
+    plan = items(config, done=lambda cfg: cfg.seed == 0)  # seed 0 of both rows FINISHED in the store
+    experts, jobs = plan[:4], plan[4:]  # a finished job needs no expert: seed 0's are not planned
+    assert [e.name for e in experts] == [f"expert {m} seed {s}" for s in (1, 2) for m in ("rgb", "ddm_jet")]
+    assert all(e.done for e in experts) and [j.done for j in jobs] == [True, False, False] * 2
+    assert all(item.needs == [] for item in plan)
+    clock = Clock()
+    estimate(plan, measure=clock.measure, clock=clock)
+    assert clock.measured == ["sum", "max"]  # each row once, its first seed to train
+    text = lines(plan, 2, race=True)
+    assert text[0] == "Sweep plan: 6 job(s) (the first look of a race), 2 at a time; 2 done already (skipped)"
+    assert len(text) == 2 + 4 and text[-1].endswith("; later looks add seeds where rows are undecided")
+
+
+def test_without_time_to_measure_the_eta_waits_for_the_first_job(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    plan = items(sweep_config("task=semantic", "model=unet,fusenet", "scale=smoke"))
+    clock = Clock()
+    estimate(plan, measure_s=0, measure=clock.measure, clock=clock)
+    assert clock.measured == [] and lines(plan, 1, race=False)[-1] == "Sweep ETA: unknown until a job ends"
