@@ -94,7 +94,7 @@ def test_trained_experts_and_finished_jobs_cost_nothing_and_a_race_plans_its_fir
     assert len(text) == 2 + 4 and text[-1].endswith("; later looks add seeds where rows are undecided")
 
 
-def test_without_time_to_measure_the_eta_waits_for_the_first_job(
+def test_without_time_to_measure_the_eta_waits_for_the_first_job_and_one_job_is_always_measured(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.chdir(tmp_path)
@@ -102,3 +102,7 @@ def test_without_time_to_measure_the_eta_waits_for_the_first_job(
     clock = Clock()
     estimate(plan, measure_s=0, measure=clock.measure, clock=clock)
     assert clock.measured == [] and lines(plan, 1, race=False)[-1] == "Sweep ETA: unknown until a job ends"
+    # a budget shorter than one measurement: the first job is measured all the same, the other taken as it
+    plan = items(sweep_config("task=semantic", "model=unet,fusenet", "scale=smoke"))
+    estimate(plan, measure_s=1, measure=clock.measure, clock=clock)
+    assert len(clock.measured) == 1 and [item.how for item in plan] == ["measured", "as the measured"]

@@ -98,30 +98,12 @@ def step_times(cfg: DictConfig, repeats: int = 2, clock: Callable[[], float] = t
     if cfg.trainer.get("threads"):
         torch.set_num_threads(int(cfg.trainer.threads))
     try:
-        batch_size = int(cfg.data.batch_size)
-        built = build(cfg, cfg, batch_size)
-        task, batch = built["task"], built["batch"]
-        optimizer, _ = task.optimizers_for(task.trainable(), 1000)
-
-        def train_step() -> None:
-            loss = _loss(task.training_step(batch, 0))
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-
-        cache = task.feature_cache
-        task.feature_cache = None
-        train_s = _fastest(train_step, repeats, clock)
-        task.feature_cache = cache
-        cached_s = _fastest(train_step, repeats, clock) if cache is not None else train_s  # the first fills it
-        task.feature_cache = None
-        task.eval()
-        with torch.no_grad(), warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the task's self.log without a trainer: logged nowhere, as meant
-            eval_s = _fastest(lambda: task.validation_step(batch, 0), repeats, clock)
+        with warnings.catch_warnings():  # the task's self.log without a trainer: logged nowhere, as meant
+            warnings.filterwarnings("ignore", ".*self.trainer.* reference is not registered.*")
+            built, train_s, cached_s, eval_s = _timed(cfg, repeats, clock)
     finally:
         torch.set_num_threads(threads)
-    splits = built["splits"]
+    splits, batch_size = built["splits"], int(cfg.data.batch_size)
     return StepTimes(
         train_s,
         cached_s,
@@ -130,6 +112,31 @@ def step_times(cfg: DictConfig, repeats: int = 2, clock: Callable[[], float] = t
         math.ceil(splits.get("val", 0) / batch_size),
         math.ceil(splits.get("test", 0) / batch_size),
     )
+
+
+def _timed(cfg: DictConfig, repeats: int, clock: Callable[[], float]) -> tuple[dict[str, Any], float, float, float]:
+    """The built job (:func:`build`) and its training step's seconds with the experts run and with them cached, and
+    its validation step's."""
+    built = build(cfg, cfg, int(cfg.data.batch_size))
+    task, batch = built["task"], built["batch"]
+    optimizer, _ = task.optimizers_for(task.trainable(), 1000)
+
+    def train_step() -> None:
+        loss = _loss(task.training_step(batch, 0))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    cache = task.feature_cache
+    task.feature_cache = None
+    train_s = _fastest(train_step, repeats, clock)
+    task.feature_cache = cache
+    cached_s = _fastest(train_step, repeats, clock) if cache is not None else train_s  # the untimed step fills it
+    task.feature_cache = None
+    task.eval()
+    with torch.no_grad():
+        eval_s = _fastest(lambda: task.validation_step(batch, 0), repeats, clock)
+    return built, train_s, cached_s, eval_s
 
 
 def _fastest(step: Callable[[], Any], repeats: int, clock: Callable[[], float]) -> float:

@@ -6,8 +6,9 @@ the look's seeds). An expert is planned once per config hash, as :func:`ablate.j
 one whose best checkpoint exists is not trained again, and a job whose config has a FINISHED run in the store is
 skipped (``done``). Every other job and expert is estimated from the recipe's steps (epochs x training batches, or
 ``trainer.max_steps``) at a step time measured here, now (:func:`ablate.jobs.steptime.step_times`): one row key (the
-job's overrides but the seed; an expert's modality) at a time, until ``plan.measure_s`` seconds have gone by; a job
-or expert not measured by then takes the mean of those measured.
+job's overrides but the seed; an expert's modality) at a time, until ``plan.measure_s`` seconds have gone by (the
+first expert and the first job whatever the time: the first measurement generates the dataset where it is missing,
+which the first job would do); a job or expert not measured by then takes the mean of those measured.
 
 The wall time schedules the items on the sweep's workers in order, as its launcher does, each on the worker free
 first: the experts first (each fused job trains whichever expert no other job is training,
@@ -103,7 +104,8 @@ def estimate(
         if item.done:
             item.seconds, item.how = 0.0, "done"
             continue
-        if item.key not in times and clock() - start < measure_s:
+        first = not any(key.startswith("expert") == item.key.startswith("expert") for key in times)
+        if item.key not in times and measure_s > 0 and (first or clock() - start < measure_s):
             try:
                 times[item.key] = measure(item.config)
             except Exception as err:  # an estimate is a convenience: the job will say what is wrong
