@@ -24,6 +24,7 @@ from ablate.store import Tracker
 from ablate.tables.collect import collect, made_lines, running, state_lines
 from ablate.tables.conditions import write_conditions
 from ablate.tables.curves import curves_path, from_store, read_curves, write_curves, write_figure
+from ablate.tables.forest import write_forest
 from ablate.tables.provenance import Recompute, config_of, provenance
 from ablate.tables.records import read_records, records_path, write_records
 from ablate.tables.rows import write_rows
@@ -113,4 +114,8 @@ def render(
     layout = table.get("layout", "rows")
     if layout not in LAYOUTS:
         raise ValueError(f"table.layout: {layout!r} is not one of {', '.join(LAYOUTS)}")
-    return LAYOUTS[layout](cfg, table, runs, tracker, parent_run, results_dir, footer)
+    written = LAYOUTS[layout](cfg, table, runs, tracker, parent_run, results_dir, footer)
+    forest = write_forest(table, runs, results_dir)  # the race's verdicts at a glance
+    if forest is not None and parent_run and tracker is not None:
+        tracker.log_artifact(parent_run, forest)
+    return written + ([forest] if forest is not None else [])

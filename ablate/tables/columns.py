@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from ablate.tables.racing import RacePlan, RaceState, decided, race, race_lines, recorded_plan, seed_values
+from ablate.tables.racing import RacePlan, RaceState, race, race_lines, recorded_plan, seed_values
 from ablate.tables.significance import (
     BOOTSTRAP_FROM,
     COLLAPSE_RATIO,
@@ -18,6 +18,14 @@ from ablate.tables.significance import (
 )
 from ablate.tables.spec import COSTS, LOWER_IS_BETTER
 from ablate.tables.summary import best_of, fmt, per_seed, reference, signed
+from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, UNDECIDED, WORSE
+
+#: The Δ column's mark of each verdict of the race (ablate.tables.verdicts).
+MARKS = {BETTER: " ↑", WORSE: " ↓", EQUIVALENT: " ≈", DIFFERENT: " *", UNDECIDED: ""}
+MARKS_LEGEND = (
+    "the race's verdict (below): ↑ / ↓ better / worse by more than δ, ≈ equivalent within ±δ, * different but of "
+    "uncertain practical size (without a δ: different beyond seed noise), no mark: undecided."
+)
 
 
 def tests_used(tests: set[tuple[str, bool]]) -> str:
@@ -47,12 +55,22 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
         f"95% CI: of the mean over seeds, Student's t for n < {BOOTSTRAP_FROM}, a percentile bootstrap over "
         f"seeds ({RESAMPLES} resamples) from n = {BOOTSTRAP_FROM}. Δ: difference from {ref_name} on {label} "
         f"({tests_used(tests)}; paired over the seeds two rows share); "
-        + ("*: its 95% CI excludes 0." if raced is None else "*: decided by the race (below).")
+        + ("*: its 95% CI excludes 0." if raced is None else MARKS_LEGEND)
     ]
     if raced is not None:
-        lines += race_lines(raced, dict(zip(summary["row"], summary["name"])))
+        lines += rope_line(table, label) + race_lines(raced, dict(zip(summary["row"], summary["name"])))
     lines += _top_against_second(summary, runs, key, label, raced)
     return columns, lines + _disagreeing_seed_lines(summary, runs, table)
+
+
+def rope_line(table: DictConfig, label: str) -> list[str]:
+    """The footer's line on the table's region of practical equivalence: its δ and why (none without one)."""
+    rope = table.get("rope") or {}
+    if rope.get("delta") is None:
+        return []
+    reason = f": {rope['reason']}" if rope.get("reason") else ""
+    delta = float(rope["delta"])
+    return [f"Region of practical equivalence: ±δ = {delta:g} {label}{reason} (the rule: docs/verdicts.md)."]
 
 
 def replayed_race(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, key: str) -> RaceState | None:
@@ -60,6 +78,7 @@ def replayed_race(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, 
     plan = RacePlan.from_config(recorded_plan(runs) or table.get("seeds"))
     if plan is None:
         return None
+    plan = plan.with_rope(table)  # the table's δ (table.rope), fixed before its first run
     rows = [str(r) for r in summary["row"] if r in set(runs.get("row", []))]
     named = table.get("reference")
     candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
@@ -87,17 +106,17 @@ def _ci_and_delta(
             deltas.append("—" if np.isnan(d.delta) else signed(d.delta))
             continue
         tests.add((d.kind, d.ci.method == "bootstrap"))
-        star = d.significant if raced is None else decided(raced, row, ref)
-        deltas.append(f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}]" + (" *" if star else ""))
+        mark = (" *" if d.significant else "") if raced is None else MARKS[kind_of(raced, row, ref)]
+        deltas.append(f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}]" + mark)
     return cis, deltas, tests
 
 
 def top_and_second(
     summary: pd.DataFrame, runs: pd.DataFrame, key: str, raced: RaceState | None
-) -> tuple[str, str, Difference, bool] | None:
+) -> tuple[str, str, Difference, str] | None:
     """The top row's and the second's names (the race's where it ranked them, else by mean), their difference on
-    ``key``, and whether the top row is ahead beyond seed noise (the race's decision where there is one); None under
-    two rows."""
+    ``key``, and the verdict on the top row against the second (:mod:`ablate.tables.verdicts`: the race's where
+    there is one, else ``different`` where the 95 % CI of the difference excludes 0); None under two rows."""
     ranked = summary.dropna(subset=[f"{key}_mean"]).sort_values(
         f"{key}_mean", ascending=key in LOWER_IS_BETTER, kind="stable"
     )
@@ -108,31 +127,47 @@ def top_and_second(
         names = dict(zip(summary["row"], summary["name"]))
         (top, second), (top_name, second_name) = raced.top, (names[raced.top[0]], names[raced.top[1]])
     d = difference(per_seed(runs, top, key), per_seed(runs, second, key))
-    ahead = d.significant if raced is None else decided(raced, top, second)
-    return str(top_name), str(second_name), d, bool(ahead)
+    kind = (DIFFERENT if d.significant else UNDECIDED) if raced is None else kind_of(raced, top, second)
+    return str(top_name), str(second_name), d, kind
 
 
-def ahead_words(d: Difference, ahead: bool) -> str:
+def kind_of(raced: RaceState, a: str, b: str) -> str:
+    """The race's verdict on ``a`` against ``b``, as ``a``'s (better where ``a`` is ahead by more than δ)."""
+    c = raced.comparisons.get(frozenset((a, b)))
+    if c is None:
+        return UNDECIDED
+    flip = {BETTER: WORSE, WORSE: BETTER}
+    return c.kind if c.a == a else flip.get(c.kind, c.kind)
+
+
+def ahead_words(d: Difference, kind: str, rope: float | None = None) -> str:
     """The top row against the second, in the words of the footer and the results summary."""
     if np.isnan(d.ci.lo):
         return "n/a (too few seeds)"
-    return "ahead beyond seed noise" if ahead else "not separable from seed noise"
+    if kind == BETTER:
+        return f"ahead by more than δ = {rope:g}"
+    if kind == EQUIVALENT:
+        return f"equivalent to it within ±{rope:g}"
+    if kind == DIFFERENT:
+        return "ahead beyond seed noise" + (", of uncertain practical size" if rope is not None else "")
+    return "not separable from seed noise"
 
 
 def _top_against_second(
     summary: pd.DataFrame, runs: pd.DataFrame, key: str, label: str, raced: RaceState | None
 ) -> list[str]:
-    """The footer line saying whether the top row is ahead of the second beyond seed noise (none under two rows)."""
+    """The footer line on the top row against the second (none under two rows)."""
     found = top_and_second(summary, runs, key, raced)
     if found is None:
         return []
-    top_name, second_name, d, ahead = found
+    top_name, second_name, d, kind = found
+    said = ahead_words(d, kind, raced.plan.rope if raced is not None else None)
     verdict = (
-        ahead_words(d, ahead)
+        said
         if np.isnan(d.ci.lo)
         else f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}], {d.test}, p = {d.p:.3f}: "
-        + ahead_words(d, ahead)
-        + ("" if raced is None else " (the race's decision)")
+        + said
+        + ("" if raced is None else " (the race's verdict)")
     )
     return [f"Top row {top_name} against the second, {second_name}, on {label}: {verdict}."]
 

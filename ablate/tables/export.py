@@ -4,8 +4,9 @@ its markdown, from the same summary and race the markdown shows.
 The CSV has one line per row: its name, n, and per metric the mean, std and 95 % CI of the mean over seeds and the
 paper's value; for the primary metric also the difference from the reference row with its 95 % CI and p-value
 (:func:`ablate.tables.significance.difference`, paired over shared seeds) and the race's verdict on that comparison
-(``decided`` or ``undecided``, :mod:`ablate.tables.racing`; empty without a race); on the top row, whether it is
-ahead of the second beyond seed noise (``top_vs_second``, as the footer says it); and Kendall's τ between our ranking
+(``better``, ``worse``, ``equivalent``, ``different`` or ``undecided``, :mod:`ablate.tables.verdicts`; empty without
+a race), and the table's δ (``rope``); on the top row, its verdict against the second (``top_vs_second``, as the
+footer says it); and Kendall's τ between our ranking
 and the paper's with the rows it compares (``kendall_tau``, ``kendall_n``). The results summary reads these. The LaTeX table shows mean ± std
 per metric, the best of each column in bold (pandas' ``Styler``; names and labels escaped), with ``\\toprule``/``\\midrule``/``\\bottomrule``.
 """
@@ -18,8 +19,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from ablate.tables.columns import ahead_words, replayed_race, top_and_second
-from ablate.tables.racing import decided
+from ablate.tables.columns import ahead_words, kind_of, replayed_race, top_and_second
 from ablate.tables.significance import difference
 from ablate.tables.summary import best_of, kendall, per_seed, reference
 
@@ -39,13 +39,15 @@ def numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> pd.
             deltas.append({"delta": np.nan, "delta_lo": np.nan, "delta_hi": np.nan, "p": np.nan, "verdict": ""})
             continue
         d = difference(per_seed(runs, row, key), per_seed(runs, ref, key))
-        verdict = "" if raced is None else ("decided" if decided(raced, row, ref) else "undecided")
+        verdict = "" if raced is None else kind_of(raced, row, ref)
         deltas.append({"delta": d.delta, "delta_lo": d.ci.lo, "delta_hi": d.ci.hi, "p": d.p, "verdict": verdict})
     out["reference"] = ref or ""
     out = pd.concat([out.reset_index(drop=True), pd.DataFrame(deltas)], axis=1)
     found = top_and_second(summary, runs, key, raced) if len(runs) else None
+    rope = raced.plan.rope if raced is not None else None
+    out["rope"] = np.nan if rope is None else rope
     out["top_vs_second"] = [
-        ahead_words(found[2], found[3]) if found is not None and name == found[0] else "" for name in out["name"]
+        ahead_words(found[2], found[3], rope) if found is not None and name == found[0] else "" for name in out["name"]
     ]
     out["kendall_tau"], out["kendall_n"] = kendall(summary, key) if len(summary) else (np.nan, 0)
     return out

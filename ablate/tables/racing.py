@@ -36,7 +36,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -45,9 +45,23 @@ from omegaconf import DictConfig, OmegaConf
 from scipy import stats
 
 from ablate.tables.collect import latest, under_condition
+from ablate.tables.verdicts import (
+    BETTER,
+    DIFFERENT,
+    EQUIVALENT,
+    MULTIPLICITY,
+    UNDECIDED,
+    WORSE,
+    PairedTests,
+    paired_tests,
+    rejected,
+    verdict,
+    words,
+)
 
 CORRECTIONS = ("bonferroni", "pocock", "obrien_fleming", "none")
 LEVEL = 0.95
+Z_LEVEL = float(stats.norm.ppf(1 - (1 - LEVEL) / 2))  # the normal quantile of a two-sided LEVEL interval
 
 
 @dataclass(frozen=True)
@@ -59,6 +73,8 @@ class RacePlan:
     alpha: float = 0.05
     correction: str = "bonferroni"
     budget_min: float | None = None
+    rope: float | None = None  # δ of the table's region of practical equivalence (table.rope.delta); None: none
+    multiplicity: str = "holm"  # the correction over a table's comparisons (ablate.tables.verdicts)
 
     def __post_init__(self) -> None:
         looks = list(self.looks)
@@ -72,13 +88,17 @@ class RacePlan:
             raise ValueError(f"table.seeds.correction: {self.correction!r} is not one of {', '.join(CORRECTIONS)}")
         if self.budget_min is not None and self.budget_min <= 0:
             raise ValueError(f"table.seeds.budget_min: {self.budget_min} must be positive (or null: no budget)")
+        if self.rope is not None and not self.rope > 0:
+            raise ValueError(f"table.rope.delta: {self.rope} must be positive (or null: no region of equivalence)")
+        if self.multiplicity not in MULTIPLICITY:
+            raise ValueError(f"table.seeds.multiplicity: {self.multiplicity!r} is not one of {', '.join(MULTIPLICITY)}")
 
     @classmethod
     def from_config(cls, seeds: Mapping[str, Any] | None) -> RacePlan | None:
         """The plan of ``table.seeds``, or None where the table does not race."""
         if not seeds:
             return None
-        unknown = set(seeds) - {"looks", "alpha", "correction", "budget_min"}
+        unknown = set(seeds) - {"looks", "alpha", "correction", "budget_min", "multiplicity"}
         if unknown:
             raise ValueError(f"table.seeds: unknown option(s) {', '.join(sorted(unknown))}")
         budget = seeds.get("budget_min")
@@ -87,14 +107,22 @@ class RacePlan:
             float(seeds.get("alpha", 0.05)),
             str(seeds.get("correction", "bonferroni")),
             None if budget is None else float(budget),
+            multiplicity=str(seeds.get("multiplicity", "holm")),
         )
+
+    def with_rope(self, table: Mapping[str, Any] | DictConfig | None) -> RacePlan:
+        """This plan with the δ of ``table`` (``table.rope.delta``; none where the table states none)."""
+        rope = (table or {}).get("rope") or {}
+        delta = rope.get("delta") if isinstance(rope, Mapping | DictConfig) else None
+        return replace(self, rope=None if delta is None else float(delta))
 
     @classmethod
     def of_table(cls, cfg: DictConfig) -> RacePlan | None:
         """The plan of a composed config's table (``table.seeds``, which experiments take from ``scale.race``): the
         one source of a table's seeds, for the racing sweeper, the tables, the diagnosis and the capacity plan."""
         seeds = cfg.table.get("seeds")
-        return cls.from_config(OmegaConf.to_container(seeds, resolve=True) if seeds is not None else None)  # type: ignore[arg-type]
+        plan = cls.from_config(OmegaConf.to_container(seeds, resolve=True) if seeds is not None else None)  # type: ignore[arg-type]
+        return plan.with_rope(cfg.table) if plan is not None else None
 
     @property
     def first(self) -> int:
@@ -125,15 +153,27 @@ class RacePlan:
             "none": "no correction for the repeated looks (the error rate is not held)",
         }[self.correction]
         budget = f"; wall-time budget {self.budget_min:g} min" if self.budget_min else ""
+        over = {
+            "holm": "Holm's step-down over the table's comparisons (family-wise)",
+            "bh": "Benjamini-Hochberg over the table's comparisons (false discovery rate)",
+            "none": "no correction over the table's comparisons (each holds alpha on its own)",
+        }[self.multiplicity]
+        tests = (
+            f"paired t-tests against 0 and against ±δ = {self.rope:g} (TOST for equivalence)"
+            if self.rope is not None
+            else "a two-sided paired t-test"
+        )
         return (
-            f"Racing seeds: looks at {', '.join(map(str, self.looks))} seeds per row, alpha = {self.alpha:g} per "
-            f"comparison, {how}: per-look levels {levels} of a two-sided paired t-test{budget}"
+            f"Racing seeds: looks at {', '.join(map(str, self.looks))} seeds per row, alpha = {self.alpha:g}, "
+            f"{how}: per-look levels {levels} of {tests}; {over}{budget}"
         )
 
 
 @dataclass(frozen=True)
 class Comparison:
-    """Row ``a`` against row ``b`` (``a - b``) at the look where it was decided or last tested."""
+    """Row ``a`` against row ``b`` (``a - b``) at the look where it was decided or last tested: its verdict
+    (:mod:`ablate.tables.verdicts`: better, worse, equivalent, different, undecided), the paired figures, and the
+    (1 - 2 ``level``) interval of the mean difference TOST reads (``lo``, ``hi``)."""
 
     a: str
     b: str
@@ -143,18 +183,26 @@ class Comparison:
     delta: float
     p: float
     level: float
-    decided: bool
+    decided: bool  # the race gives it no more seeds
     p_ab: float  # P(A > B) over the paired seeds (ties count one half)
     p_ab_lo: float
     p_ab_hi: float
+    kind: str = UNDECIDED
+    lo: float = math.nan
+    hi: float = math.nan
+    rope: float | None = None
 
     def verdict(self) -> str:
-        """``decided at look k`` or ``undecided``, with the figures."""
-        state = f"decided at look {self.look}" if self.decided else "undecided"
+        """The verdict in words, where it was reached, with the figures."""
+        said = words(self.kind, self.rope)
+        state = f"{said} at look {self.look}" if self.kind != UNDECIDED else said
         if self.n < 2:
             return f"{state} (n = {self.n}: no test below 2 paired seeds)"
+        interval = (
+            f"[{self.lo:+.2f}, {self.hi:+.2f}], the {100 * (1 - 2 * self.level):.1f}% interval; " if self.rope else ""
+        )
         return (
-            f"{state} (n = {self.n}, Δ {self.delta:+.2f}, p = {self.p:.3g} against {self.level:.4f}; "
+            f"{state} (n = {self.n}, Δ {self.delta:+.2f} {interval}p = {self.p:.3g} against {self.level:.4f}; "
             f"P(A > B) = {self.p_ab:.2f} [{self.p_ab_lo:.2f}, {self.p_ab_hi:.2f}])"
         )
 
@@ -187,7 +235,7 @@ def wilson(successes: float, n: int) -> tuple[float, float]:
     """The 95 % Wilson score interval of a proportion (Wilson 1927), sound at the few seeds a table has."""
     if n == 0:
         return math.nan, math.nan
-    z = float(stats.norm.ppf(1 - (1 - LEVEL) / 2))
+    z = Z_LEVEL
     p = successes / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
@@ -196,21 +244,17 @@ def wilson(successes: float, n: int) -> tuple[float, float]:
 
 def paired_test(a: pd.Series, b: pd.Series) -> tuple[int, float, float, float, float, float]:
     """(n, mean of a - b, two-sided paired t-test p, P(A > B), its Wilson interval) over the seeds both have."""
-    shared = a.index.intersection(b.index)
-    d = (a[shared] - b[shared]).to_numpy(dtype=float)
+    return _paired(_differences(a, b), paired_tests(_differences(a, b), None))
+
+
+def _paired(d: np.ndarray, tests: PairedTests) -> tuple[int, float, float, float, float, float]:
+    """:func:`paired_test`'s figures from the differences ``d`` and their tests."""
     n = len(d)
     if n == 0:
         return 0, math.nan, math.nan, math.nan, math.nan, math.nan
-    delta = float(d.mean())
-    if n < 2:
-        p = math.nan
-    elif np.all(d == d[0]):  # no spread: the difference is exact
-        p = 0.0 if delta else 1.0
-    else:
-        p = float(stats.ttest_1samp(d, 0.0).pvalue)
     wins = float((d > 0).sum() + 0.5 * (d == 0).sum())
     lo, hi = wilson(wins, n)
-    return n, delta, p, wins / n, lo, hi
+    return n, tests.mean, tests.p_diff, wins / n, lo, hi
 
 
 def _ranked(values: Mapping[str, pd.Series], rows: list[str], higher_is_better: bool) -> list[str]:
@@ -251,17 +295,45 @@ def race(
         current = {frozenset(p[:2]) for p in pairs}
         for key in [k for k in state.comparisons if k not in current]:
             del state.comparisons[key]  # an earlier top vs second (or reference) that no longer is one
-        for a, b, why in pairs:
-            key = frozenset((a, b))
-            if key in state.comparisons and state.comparisons[key].decided:
-                continue
-            n, delta, p, p_ab, lo, hi = paired_test(seen[a], seen[b])
-            decided = n >= 2 and not math.isnan(p) and p <= levels[k]
-            state.comparisons[key] = Comparison(a, b, why, k + 1, n, delta, p, levels[k], decided, p_ab, lo, hi)
+        _look(state, [pair for pair in pairs if not decided(state, *pair[:2])], seen, k, levels[k])
         state.looks_done = k + 1
         open_pairs = state.undecided()
         state.racing = [r for r in rows if any(r in (c.a, c.b) for c in open_pairs)]
     return state
+
+
+def _look(
+    state: RaceState, pairs: list[tuple[str, str, str]], seen: dict[str, pd.Series], k: int, level: float
+) -> None:
+    """Test the open comparisons ``pairs`` at look ``k`` (0-based) at ``level``, each kind of claim corrected over
+    them (:func:`ablate.tables.verdicts.rejected`), and record each one's verdict: a claim of practical size (beyond
+    δ, or equivalent within it) ends it; so does a difference where the table has no δ. A difference found at an
+    earlier look stays found."""
+    plan = state.plan
+    diffs = [_differences(seen[a], seen[b]) for a, b, _ in pairs]
+    tests = [paired_tests(d, plan.rope) for d in diffs]
+    claims = {
+        kind: rejected([getattr(t, kind) for t in tests], level, plan.multiplicity)
+        for kind in ("p_beyond", "p_equiv", "p_diff")
+    }
+    for i, (a, b, why) in enumerate(pairs):
+        key = frozenset((a, b))
+        n, delta, p, p_ab, lo, hi = _paired(diffs[i], tests[i])
+        kind = verdict(claims["p_beyond"][i], claims["p_equiv"][i], claims["p_diff"][i], tests[i].mean)
+        earlier = state.comparisons.get(key)
+        if kind == UNDECIDED and earlier is not None and earlier.kind == DIFFERENT:
+            kind = DIFFERENT
+        done = kind in (BETTER, WORSE, EQUIVALENT) or (plan.rope is None and kind == DIFFERENT)
+        ilo, ihi = tests[i].interval(level)
+        state.comparisons[key] = Comparison(
+            a, b, why, k + 1, n, delta, p, level, done, p_ab, lo, hi, kind, ilo, ihi, plan.rope
+        )
+
+
+def _differences(a: pd.Series, b: pd.Series) -> np.ndarray:
+    """``a - b`` over the seeds both have."""
+    _, ia, ib = np.intersect1d(a.index.to_numpy(), b.index.to_numpy(), return_indices=True)
+    return a.to_numpy(dtype=float)[ia] - b.to_numpy(dtype=float)[ib]
 
 
 def _first(series: pd.Series | None, n: int) -> pd.Series:
@@ -269,8 +341,9 @@ def _first(series: pd.Series | None, n: int) -> pd.Series:
     if series is None or not len(series):
         return pd.Series(dtype=float)
     s = pd.Series(series, dtype=float).dropna()
-    s.index = [int(i) for i in s.index]
-    return s[[i for i in s.index if 0 <= i < n]].sort_index()
+    seeds = np.asarray(s.index, dtype=int)
+    keep = (seeds >= 0) & (seeds < n)
+    return pd.Series(s.to_numpy()[keep], index=seeds[keep]).sort_index()
 
 
 def recorded_plan(runs: pd.DataFrame) -> dict[str, Any] | None:
@@ -313,8 +386,8 @@ def race_lines(state: RaceState, names: Mapping[str, str]) -> list[str]:
     lines = [state.plan.describe() + "."]
     for c in state.comparisons.values():
         lines.append(f"{names.get(c.a, c.a)} vs {names.get(c.b, c.b)} ({c.why}): {c.verdict()}.")
-    open_ = [f"{names.get(c.a, c.a)} vs {names.get(c.b, c.b)}" for c in state.undecided()]
-    if open_:
+    still = state.undecided()
+    if still:
         if state.looks_done < len(state.plan.looks):
             why = (
                 f"the race ended after look {state.looks_done} of {len(state.plan.looks)} "
@@ -322,5 +395,8 @@ def race_lines(state: RaceState, names: Mapping[str, str]) -> list[str]:
             )
         else:
             why = "after the last look"
-        lines.append(f"Left undecided, {why}: {', '.join(open_)}.")
+        for kind, head in ((UNDECIDED, "Left undecided"), (DIFFERENT, "Different, of uncertain practical size")):
+            open_ = [f"{names.get(c.a, c.a)} vs {names.get(c.b, c.b)}" for c in still if c.kind == kind]
+            if open_:
+                lines.append(f"{head}, {why}: {', '.join(open_)}.")
     return lines
