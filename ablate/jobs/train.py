@@ -13,11 +13,13 @@ import hashlib
 import json
 import logging
 import shutil
+import tempfile
 import warnings
 from pathlib import Path
 from typing import Any, cast
 
 import lightning as L
+import pandas as pd
 import torch
 from hydra.utils import instantiate
 from lightning.pytorch.callbacks import Callback, LearningRateMonitor, ModelCheckpoint
@@ -31,7 +33,7 @@ from ablate.jobs.experts import feature_cache
 from ablate.jobs.preempt import STOP, SaveOnStop, Stopped
 from ablate.jobs.progress_lines import ProgressLines, progress_bar
 from ablate.jobs.spec import JobSpec
-from ablate.store import SKIPPED_FRAMES, RunLogger, Tracker
+from ablate.store import FRAME_COUNTS, SKIPPED_FRAMES, RunLogger, Tracker
 
 log = logging.getLogger(__name__)
 # torchmetrics warns when a metric is computed before its first update: a validation epoch whose batches held no
@@ -154,9 +156,24 @@ def test(
     tracker.set_tags(run_id, {"evaluator": task.evaluator} if getattr(task, "evaluator", None) else {})
     for name, figure in task.figures(sample).items():
         tracker.log_figure(run_id, figure, name)
+    log_frame_counts(tracker, run_id, getattr(task, "frame_counts", []))
     if best and spec.cfg.logger.get("log_checkpoint", True) and Path(best).resolve().parent == spec.ckpt_dir.resolve():
         tracker.log_artifact(run_id, best, "checkpoints")
     return metrics
+
+
+def log_frame_counts(tracker: Tracker, run_id: str, counts: list[dict[str, Any]]) -> None:
+    """The test metric's counts per test frame (:attr:`ablate.tasks.base.FusionTask.frame_counts`) as the run's
+    artifact :data:`ablate.store.FRAME_COUNTS`, where the task keeps them: what a table resamples the test set
+    from (:mod:`ablate.tables.frames`)."""
+    if not counts:
+        return
+    width = len(counts[0]["counts"])
+    rows = [[c["frame"], c["condition"], *c["counts"]] for c in counts]
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / Path(FRAME_COUNTS).name
+        pd.DataFrame(rows, columns=["frame", "condition", *(f"c{i}" for i in range(width))]).to_csv(path, index=False)
+        tracker.log_artifact(run_id, path, str(Path(FRAME_COUNTS).parent))
 
 
 class DataCount(Callback):

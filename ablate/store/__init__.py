@@ -28,7 +28,7 @@ from ablate.store.identity import (
 from ablate.store.locks import file_lock
 from ablate.store.outage import DEFAULT_OUTAGE_S, ServerUnreachable
 from ablate.store.outbox import Outbox
-from ablate.store.tracker import KIND_JOB, KIND_SWEEP, SKIPPED_FRAMES, Tracker
+from ablate.store.tracker import FRAME_COUNTS, KIND_JOB, KIND_SWEEP, SKIPPED_FRAMES, Tracker
 from ablate.store.uris import is_server, runs_link, tracking_uri
 
 if TYPE_CHECKING:
@@ -50,6 +50,7 @@ __all__ = [
     "KIND_JOB",
     "KIND_SWEEP",
     "SKIPPED_FRAMES",
+    "FRAME_COUNTS",
     "AccessDenied",
     "DiskFull",
     "UNHASHED",

@@ -50,6 +50,8 @@ T = TypeVar("T")
 KIND_JOB, KIND_SWEEP = "job", "sweep"
 #: The metric a job logs once its data module is set up: the bad frames it left out (``data.on_bad_frame=skip``).
 SKIPPED_FRAMES = "data/skipped_frames"
+#: A run's artifact of its test metric's counts per test frame (ablate.tables.frames).
+FRAME_COUNTS = "frames/test_counts.csv"
 #: Every experiment's kind (model training, not GenAI). MLflow 3.17's UI still opens on its GenAI view until the
 #: browser's "Model training" switch is set (a per-browser setting, default GenAI), so a sweep also prints
 #: :func:`runs_link`, which sets it.

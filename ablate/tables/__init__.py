@@ -25,6 +25,8 @@ from ablate.tables.collect import collect, made_lines, running, state_lines
 from ablate.tables.conditions import write_conditions
 from ablate.tables.curves import curves_path, from_store, read_curves, write_curves, write_figure
 from ablate.tables.forest import write_forest
+from ablate.tables.frames import from_store as frames_from_store
+from ablate.tables.frames import read_frames, write_frames
 from ablate.tables.provenance import Recompute, config_of, provenance
 from ablate.tables.records import read_records, records_path, write_records
 from ablate.tables.rows import write_rows
@@ -56,6 +58,10 @@ def write_table(
         written.append(write_records(runs, str(table.name), results_dir))
         runs = read_records(written[-1])
         written.append(write_curves(from_store(tracker, runs, table), results_dir, str(table.name)))
+    frames = frames_from_store(tracker, runs) if len(runs) else pd.DataFrame()
+    if publish and (kept := write_frames(frames, results_dir, str(table.name))) is not None:
+        written.append(kept)
+    runs.attrs["frames"] = frames  # the counts per test frame the verdicts resample (ablate.tables.frames)
     config = lambda run_id: config_of(tracker, run_id)  # noqa: E731
     footer = footer_lines(runs, fingerprint, config, running(tracker, table.name))
     written += render(cfg, table, runs, results_dir, footer, tracker, parent_run)
@@ -76,6 +82,7 @@ def render_records(
     if not path.exists():
         return None
     runs = read_records(path)
+    runs.attrs["frames"] = read_frames(results_dir, str(table.name))
     footer = footer_lines(runs, fingerprint, config(runs) if config is not None else None, 0)
     return render(cfg, table, runs, results_dir, footer, None, None) + curves_figure(table, results_dir, None, None)
 

@@ -7,6 +7,8 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
+from ablate.tables.frames import RESAMPLES as FRAME_RESAMPLES
+from ablate.tables.frames import judged
 from ablate.tables.racing import RacePlan, RaceState, race, race_lines, recorded_plan, seed_values
 from ablate.tables.significance import (
     BOOTSTRAP_FROM,
@@ -59,8 +61,17 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
     ]
     if raced is not None:
         lines += rope_line(table, label) + race_lines(raced, dict(zip(summary["row"], summary["name"])))
+        if any(c.frames for c in raced.comparisons.values()):
+            lines.append(FRAMES_LINE)
     lines += _top_against_second(summary, runs, key, label, raced)
     return columns, lines + _disagreeing_seed_lines(summary, runs, table)
+
+
+FRAMES_LINE = (
+    f"The verdicts read the seeds-and-frames interval: a two-level paired bootstrap over the seeds and the test "
+    f"frames ({FRAME_RESAMPLES} resamples, the metric recomputed from each frame's counts; ablate.tables.frames), the "
+    "test set's draw counted as a source of variance beside the seeds; the race stopped on the seeds alone."
+)
 
 
 def rope_line(table: DictConfig, label: str) -> list[str]:
@@ -84,7 +95,8 @@ def replayed_race(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, 
     candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
     if not rows:
         return None
-    return race(seed_values(runs, key), rows, candidates or rows[0], plan, key not in LOWER_IS_BETTER)
+    state = race(seed_values(runs, key), rows, candidates or rows[0], plan, key not in LOWER_IS_BETTER)
+    return judged(state, runs, table)  # on the seeds and the test frames where the runs kept counts per frame
 
 
 def _ci_and_delta(

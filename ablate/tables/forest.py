@@ -19,6 +19,7 @@ import pandas as pd  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
+from ablate.tables.frames import judged  # noqa: E402
 from ablate.tables.racing import Comparison, RacePlan, RaceState, race, recorded_plan, table_values  # noqa: E402
 from ablate.tables.spec import LOWER_IS_BETTER  # noqa: E402
 from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, UNDECIDED, WORSE, words  # noqa: E402
@@ -38,7 +39,9 @@ def table_race(table: DictConfig, runs: pd.DataFrame) -> RaceState | None:
     named = table.get("reference")
     candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
     key = str(table.primary)
-    return race(values, rows, candidates or rows[0], plan.with_rope(table), key not in LOWER_IS_BETTER)
+    return judged(
+        race(values, rows, candidates or rows[0], plan.with_rope(table), key not in LOWER_IS_BETTER), runs, table
+    )
 
 
 def plot(state: RaceState, table: DictConfig) -> Figure:

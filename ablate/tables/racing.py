@@ -56,12 +56,12 @@ from ablate.tables.verdicts import (
     paired_tests,
     rejected,
     verdict,
+    wilson,
     words,
 )
 
 CORRECTIONS = ("bonferroni", "pocock", "obrien_fleming", "none")
 LEVEL = 0.95
-Z_LEVEL = float(stats.norm.ppf(1 - (1 - LEVEL) / 2))  # the normal quantile of a two-sided LEVEL interval
 
 
 @dataclass(frozen=True)
@@ -191,16 +191,18 @@ class Comparison:
     lo: float = math.nan
     hi: float = math.nan
     rope: float | None = None
+    frames: bool = False  # judged on the seeds-and-frames interval (ablate.tables.frames), not the seeds' t-tests
 
     def verdict(self) -> str:
         """The verdict in words, where it was reached, with the figures."""
         said = words(self.kind, self.rope)
         state = f"{said} at look {self.look}" if self.kind != UNDECIDED else said
-        if self.n < 2:
+        if self.n < 2 and not self.frames:
             return f"{state} (n = {self.n}: no test below 2 paired seeds)"
-        interval = (
-            f"[{self.lo:+.2f}, {self.hi:+.2f}], the {100 * (1 - 2 * self.level):.1f}% interval; " if self.rope else ""
-        )
+        over = "seeds-and-frames bootstrap" if self.frames else "t"
+        shown = self.rope is not None or self.frames
+        share = f"{100 * (1 - 2 * self.level):.1f}%"
+        interval = f"[{self.lo:+.2f}, {self.hi:+.2f}], the {share} {over} interval; " if shown else ""
         return (
             f"{state} (n = {self.n}, Δ {self.delta:+.2f} {interval}p = {self.p:.3g} against {self.level:.4f}; "
             f"P(A > B) = {self.p_ab:.2f} [{self.p_ab_lo:.2f}, {self.p_ab_hi:.2f}])"
@@ -229,17 +231,6 @@ class RaceState:
     def seeds_wanted(self) -> int:
         """Seeds per racing row at the next look (0 when the race is over)."""
         return 0 if self.over else self.plan.looks[self.looks_done]
-
-
-def wilson(successes: float, n: int) -> tuple[float, float]:
-    """The 95 % Wilson score interval of a proportion (Wilson 1927), sound at the few seeds a table has."""
-    if n == 0:
-        return math.nan, math.nan
-    z = Z_LEVEL
-    p = successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 def paired_test(a: pd.Series, b: pd.Series) -> tuple[int, float, float, float, float, float]:

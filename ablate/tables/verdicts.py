@@ -47,7 +47,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import special
+from scipy import special, stats
 
 MULTIPLICITY = ("holm", "bh", "none")
 #: The smallest δ: above the tables' display precision, in the primary metric's points.
@@ -56,6 +56,9 @@ FLOOR = 0.1
 FRACTION = 0.25
 
 BETTER, WORSE, EQUIVALENT, DIFFERENT, UNDECIDED = "better", "worse", "equivalent", "different", "undecided"
+#: The level of P(A > B)'s interval, and its normal quantile.
+LEVEL = 0.95
+Z_LEVEL = float(stats.norm.ppf(1 - (1 - LEVEL) / 2))
 
 
 @dataclass(frozen=True)
@@ -181,3 +184,14 @@ def rope_rule(table: Mapping[str, Any], lower_is_better: bool = False) -> tuple[
         f"{names.get(second, second)} ({b:g}){floor}"
     )
     return delta, reason
+
+
+def wilson(successes: float, n: int) -> tuple[float, float]:
+    """The 95 % Wilson score interval of a proportion (Wilson 1927), sound at the few seeds a table has."""
+    if n == 0:
+        return math.nan, math.nan
+    z = Z_LEVEL
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)

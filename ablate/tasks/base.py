@@ -112,6 +112,10 @@ class FusionTask(L.LightningModule):
         )
         self._condition: str | None = None
         self._condition_metrics: dict[str, dict[str, nn.Module]] = {}
+        #: What the test metric needs per test frame, for the tables' resampling of the test set
+        #: (:mod:`ablate.tables.frames`): one dict per (frame, condition), filled by a subclass whose metric
+        #: decomposes over frames (:meth:`keep_frame_counts`); empty for the others.
+        self.frame_counts: list[dict[str, Any]] = []
 
     def forward(self, batch: dict) -> dict:
         """The model's outputs, in fp32 whatever the autocast precision (ablate.hardware): losses, metrics and NMS
@@ -172,7 +176,15 @@ class FusionTask(L.LightningModule):
             with self.under(name):
                 self._eval_step(self.eval_conditions.apply(batch, name), "test")
 
+    def keep_frame_counts(self, frames: list[str], counts: torch.Tensor) -> None:
+        """Keep ``counts`` (one row of integers per frame of ``frames``) for the frames of a test batch, under the
+        condition being tested (``""`` without conditions)."""
+        condition = self._condition or ""
+        for frame, row in zip(frames, counts.tolist()):
+            self.frame_counts.append({"frame": str(frame), "condition": condition, "counts": [int(c) for c in row]})
+
     def on_test_epoch_start(self) -> None:
+        self.frame_counts = []
         if self.eval_conditions is None:
             return
         names = self._test_metric_names()

@@ -93,6 +93,15 @@ def median_frequency(batches: Iterable[dict[str, Any]]) -> torch.Tensor:
     return weight.float()
 
 
+def confusion(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B, 9) int64: each frame's 3 x 3 confusion counts, ground truth by prediction, row-major (``[t * 3 + p]``):
+    what ``det_rate`` and the IoUs are computed from (:data:`ablate.tables.frames.FROM_COUNTS`), so that a table can
+    resample the test frames."""
+    n = len(CLASSES)
+    index = (target.long() * n + pred.long()).flatten(1)
+    return torch.stack([torch.bincount(i, minlength=n * n) for i in index.cpu()])
+
+
 def _up(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     return x if x.shape[-2:] == tuple(size) else F.interpolate(x, size=size, mode="bilinear", align_corners=False)
 
@@ -151,6 +160,8 @@ class SemanticTask(FusionTask):
         pred = class_map(outputs, target.shape[-2:])
         getattr(self, f"{stage}_rate").update(pred, target)
         getattr(self, f"{stage}_iou").update(pred, target)
+        if stage == "test" and "frame" in batch:
+            self.keep_frame_counts(list(batch["frame"]), confusion(pred, target))
         self.log(f"{stage}/loss", self.loss(outputs, batch), batch_size=target.shape[0])
 
     def _eval_end(self, stage: str) -> None:
