@@ -115,6 +115,10 @@ def test_table4_end_to_end_at_smoke_scale(tmp_path):
         "Image + LiDAR BEV + DST + CBF",
     ]
     assert "MaxF (paper)" in text and "96.21" in text and "AP (paper)" in text and "PRE (ours)" in text
+    # each job kept its test frames' level histograms (each branch's); the verdicts resample seeds and frames
+    assert "frames/test_counts.csv" in {a.path for a in client.list_artifacts(fused.info.run_id, "frames")}
+    assert (tmp_path / "results" / "runs" / "bifnet_table4.frames.csv.gz").is_file()
+    assert "The verdicts read the seeds-and-frames interval" in text
 
 
 @pytest.mark.parametrize(

@@ -87,3 +87,21 @@ def test_the_bootstrap_p_values_read_the_resamples_against_zero_and_delta() -> N
     a = np.ones((3, 10, 9))
     observed, resampled = resampled_differences(a, a, FROM_COUNTS["det_rate"], resamples=50)
     assert observed == 0.0 and np.all(resampled == 0.0)
+
+
+def test_the_road_max_f_is_recomputed_exactly_from_the_level_histograms_per_frame() -> None:
+    from ablate.metrics.road import RoadMaxF, frame_histograms
+    from ablate.tables.frames import max_f_from_histograms
+
+    gen = torch.Generator().manual_seed(1)
+    shape = (3, 800, 400)  # BEV frames on the devkit's grid (rows z, columns x)
+    target = torch.rand(shape, generator=gen) < 0.3
+    preds = (0.3 * target + 0.7 * torch.rand(shape, generator=gen)).clamp(0, 1)  # overlapping: MaxF under 100
+    valid = torch.rand(shape, generator=gen) < 0.9
+    metric = RoadMaxF()
+    metric.update(preds, target, valid)
+    per_frame = frame_histograms(preds, target, valid).numpy().astype(float)
+    assert per_frame.shape == (3, 514)
+    expected = float(metric.compute()["max_f"])  # float32
+    assert expected < 95 and max_f_from_histograms(per_frame.sum(axis=0)) == pytest.approx(expected, rel=1e-6)
+    assert np.isnan(max_f_from_histograms(np.zeros(514)))  # no road cell

@@ -154,6 +154,39 @@ def road_scores(tp: Tensor, fp: Tensor, fn: Tensor) -> dict[str, Tensor]:
     }
 
 
+def levels(preds: Tensor) -> Tensor:
+    """Per cell, how many thresholds k/255 its road probability reaches (0 .. 256): ``preds`` in [0, 1] (float) or
+    0..255 (uint8, read as k/255)."""
+    if preds.dtype == torch.uint8:
+        return preds.long() + 1
+    p = preds.detach().float() if preds.dtype in (torch.float16, torch.bfloat16) else preds.detach()
+    if not ((p >= 0) & (p <= 1)).all():
+        raise ValueError(
+            f"RoadMaxF.update: preds must be probabilities in [0, 1], got values in "
+            f"[{p.min().item():.4g}, {p.max().item():.4g}] (logits?)"
+        )
+    thresholds = torch.arange(NUM_THRESHOLDS, dtype=p.dtype, device=p.device) / (NUM_THRESHOLDS - 1)
+    return torch.bucketize(p, thresholds, right=True)
+
+
+def frame_histograms(preds: Tensor, target: Tensor, valid: Tensor) -> Tensor:
+    """(B, 2 x 257) int64: per BEV frame, the histogram of :func:`levels` over its road cells, then over its other
+    cells (don't-care cells left out): per-frame counts from which the frames' per-threshold TP / FP / FN, summed
+    over any draw of frames, follow (:func:`ablate.tables.frames.max_f_from_histograms`)."""
+    level, target, valid = (
+        levels(_frames(preds, "preds")),
+        _frames(target, "target").bool(),
+        _frames(valid, "valid").bool(),
+    )
+    bins = NUM_THRESHOLDS + 1
+    rows = []
+    for lv, tg, va in zip(level.cpu(), target.cpu(), valid.cpu()):
+        rows.append(
+            torch.cat([torch.bincount(lv[tg & va], minlength=bins), torch.bincount(lv[~tg & va], minlength=bins)])
+        )
+    return torch.stack(rows)
+
+
 def _frames(x: Tensor, name: str) -> Tensor:
     """(H,W), (B,H,W) or (B,1,H,W) -> (B,H,W)."""
     if x.ndim == 4 and x.shape[1] == 1:
@@ -233,17 +266,7 @@ class RoadMaxF(Metric):
             )
         if not ((target == 0) | (target == 1)).all():
             raise ValueError("RoadMaxF.update: target must be a road mask of 0/1 or bool values")
-        if preds.dtype == torch.uint8:
-            level = preds.long() + 1  # number of thresholds k/255 <= p
-        else:
-            p = preds.detach().float() if preds.dtype in (torch.float16, torch.bfloat16) else preds.detach()
-            if not ((p >= 0) & (p <= 1)).all():
-                raise ValueError(
-                    f"RoadMaxF.update: preds must be probabilities in [0, 1], got values in "
-                    f"[{p.min().item():.4g}, {p.max().item():.4g}] (logits?)"
-                )
-            thresholds = torch.arange(NUM_THRESHOLDS, dtype=p.dtype, device=p.device) / (NUM_THRESHOLDS - 1)
-            level = torch.bucketize(p, thresholds, right=True)
+        level = levels(preds)
         target, valid = target.bool(), valid.to(preds.device)
         if calib is not None:
             level, target, valid = self._warp(level, target, valid, calib)

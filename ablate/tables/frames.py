@@ -7,8 +7,12 @@ metric's counts per test frame (:attr:`ablate.tasks.base.FusionTask.frame_counts
 :data:`ablate.store.FRAME_COUNTS`), the table resamples both.
 
 **Counts.** ChiNet's semantic segmentation keeps each frame's 3 x 3 confusion counts (ground truth by prediction,
-:func:`ablate.tasks.semantic.confusion`); its detection rate and IoUs are ratios of their sums over frames
-(:data:`FROM_COUNTS`), recomputed exactly from them. The counts are published beside the table's records
+:func:`ablate.tasks.semantic.confusion`); its detection rate and IoUs are ratios of their sums over frames. BiFNet's
+road task keeps, per frame and branch, the histograms of its BEV cells' probability levels over road and over
+other cells (:func:`ablate.metrics.road.frame_histograms`, 514 counts): the per-threshold TP and FP over any draw
+of frames follow from their sums, and MaxF from those, as the devkit forms it. Each metric is recomputed exactly
+from the counts (:data:`FROM_COUNTS`). The AP tasks (SMoE's mask AP, DGFN's 11-point box AP) keep none: AP over a
+resample needs each frame's scored detections matched again, which this module does not do. The counts are published beside the table's records
 (``runs/<table>.frames.csv.gz``: run, row, seed, condition, frame, counts), so the intervals render again from the
 records alone.
 
@@ -65,11 +69,37 @@ def _iou(k: int) -> Callable[[np.ndarray], np.ndarray]:
     return iou
 
 
+#: The road devkit's thresholds k/255 (:data:`ablate.metrics.road.NUM_THRESHOLDS`; the tables do not import torch).
+NUM_THRESHOLDS = 256
+
+
+def max_f_from_histograms(c: np.ndarray) -> np.ndarray:
+    """MaxF (%) from :func:`frame_histograms` summed over frames ([..., 514]), as :func:`ablate.metrics.road.road_scores` forms it: the
+    per-threshold TP and FP are the cells at or above each threshold; NaN without a road cell."""
+    bins = NUM_THRESHOLDS + 1
+    tp = np.flip(np.cumsum(np.flip(c[..., :bins], -1), -1), -1)[..., 1:]
+    fp = np.flip(np.cumsum(np.flip(c[..., bins:], -1), -1), -1)[..., 1:]
+    positives = tp[..., :1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        recall = tp / positives
+        precision = tp / (tp + fp + 1e-10)
+        f = 2 * precision * recall / (precision + recall + 1e-10)
+    return np.where(positives[..., 0] > 0, 100 * f.max(axis=-1), np.nan)
+
+
+def _road(c: np.ndarray) -> np.ndarray:
+    """BiFNet's MaxF (%) from the first branch's level histograms (:func:`ablate.metrics.road.frame_histograms`): a
+    road job keeps each branch's in the order camera, BEV, and its main MaxF is its first branch's."""
+    return max_f_from_histograms(c[..., : 2 * (NUM_THRESHOLDS + 1)])
+
+
 #: Each metric that decomposes over test frames, from its counts summed over frames.
 FROM_COUNTS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
     "det_rate": _rate,
     "iou_free_space": _iou(1),
     "iou_road_objects": _iou(2),
+    "max_f": _road,
+    "cam_max_f": _road,  # a row with a camera branch keeps it first
 }
 
 
@@ -88,12 +118,12 @@ def from_store(tracker: Tracker, runs: pd.DataFrame) -> pd.DataFrame:
             continue
         with tempfile.TemporaryDirectory() as folder:
             path = tracker.download_artifact(source, FRAME_COUNTS, folder)
-            counts = pd.read_csv(path, keep_default_na=False)
+            counts = _read(path)
         counts.insert(0, "seed", run["seed"])
         counts.insert(0, "row", run["row"])
         counts.insert(0, "run_id", run["run_id"])
         parts.append(counts)
-    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+    return pd.concat(parts, ignore_index=True).fillna(0) if parts else pd.DataFrame()
 
 
 def write_frames(frames: pd.DataFrame, results_dir: str | Path, table: str) -> Path | None:
@@ -109,7 +139,15 @@ def write_frames(frames: pd.DataFrame, results_dir: str | Path, table: str) -> P
 def read_frames(results_dir: str | Path, table: str) -> pd.DataFrame:
     """The counts kept beside a table's records (empty where there are none)."""
     path = frames_path(results_dir, table)
-    return pd.read_csv(path, keep_default_na=False) if path.exists() else pd.DataFrame()
+    return _read(path) if path.exists() else pd.DataFrame()
+
+
+def _read(path: Path) -> pd.DataFrame:
+    """Counts per frame from a CSV: frames and conditions as text (no condition: ""), counts a row lacks (a road row
+    with one branch beside one with two) as 0."""
+    frames = pd.read_csv(path, dtype={"frame": str, "condition": str})
+    frames["condition"] = frames["condition"].fillna("")
+    return frames.fillna(0)
 
 
 def counts(frames: pd.DataFrame, row: str, seeds: list[int], condition: str = "") -> np.ndarray:

@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from ablate.fusion.geometry import BevGrid
-from ablate.metrics.road import RoadMaxF
+from ablate.metrics.road import RoadMaxF, frame_histograms
 from ablate.tasks.base import FusionTask
 from ablate.tasks.road_bev.evaluate import MetricBev
 from ablate.tasks.road_bev.figures import draw_gains, draw_roads
@@ -83,9 +83,14 @@ class RoadTask(FusionTask):
         target, inside = self.warp.camera(batch["free_space"], calibs)
         valid = inside & (self.warp.camera(batch["road_valid"], calibs)[0] > 0.5 if "road_valid" in batch else inside)
         metrics = getattr(self, f"{stage}_road")
+        kept = []
         for branch, prob in self.probabilities(outputs, batch).items():
             warped = self.warp.camera(prob, calibs)[0] if branch == "cam" else self.warp.lidar(prob, calibs)
             metrics[branch].update(warped.clamp(0, 1), target > 0.5, valid)
+            if stage == "test" and "frame" in batch:
+                kept.append(frame_histograms(warped.clamp(0, 1), target > 0.5, valid))
+        if kept:  # per frame, each branch's histograms in BRANCHES' order: the counts its MaxF resamples from
+            self.keep_frame_counts(list(batch["frame"]), torch.cat(kept, dim=1))
         self.log(f"{stage}/loss", self.criterion(outputs, batch)["loss"], batch_size=len(calibs))
 
     def _eval_end(self, stage: str) -> None:
