@@ -15,6 +15,11 @@ Sample dict (a batch after :func:`collate` holds the same keys):
 shift of the scene or camera, followed by every modality, target and the calibration; validation and test frames
 are never augmented.
 
+What a job's seed changes (docs/verdicts.md#what-a-seed-randomises): the shuffled order of the training frames
+(``order_seed``, the config's ``${seed}``), besides the initialisation and the augmentation's draws (torch's global
+generator, which the job seeds). The data module's own ``seed`` stays fixed: each frame's condition and corruption,
+so every row and seed is tested on one test set, and the generated dataset (``synth.seed``) and the split with it.
+
 Splits (fixed, independent of ``seed``): a folder's ``ImageSets/{train,val,test}.txt`` when present (the
 generated dataset writes a seeded 60/20/20 split there); otherwise a permutation of the sorted frames with seed 0
 cut 4489/1496/1496 when all 7481 KITTI object frames are present (SMoE §3.3), else 60/20/20.
@@ -184,6 +189,7 @@ class KittiDataModule(L.LightningDataModule):
         batch_size: int = 4,
         num_workers: int = 0,
         seed: int = 0,
+        order_seed: int | None = None,
         max_depth: float = 80.0,
         limit_frames: dict | None = None,
         bev: dict | None = None,
@@ -202,6 +208,8 @@ class KittiDataModule(L.LightningDataModule):
         self.modalities, self.targets, self.conditions = list(modalities), list(targets), list(conditions)
         self.severity, self.corruption, self.batch_size = severity, corruption, batch_size
         self.num_workers, self.seed, self.max_depth = num_workers, seed, max_depth
+        # the training data's order: the training seed's (data.order_seed: ${seed}), the data's seed without one
+        self.order_seed = seed if order_seed is None else int(order_seed)
         self.limit_frames, self.bev, self.cache = dict(limit_frames or {}), bev, cache
         self.lidar_weather = list(lidar_weather) if lidar_weather else None
         # flip / scale / translation of the training split (ablate.data.augment): {flip: p, scale: [lo, hi]}
@@ -277,7 +285,7 @@ class KittiDataModule(L.LightningDataModule):
                 f"{d}: the {split} split has no frames ({n} in all{cap}); list them in "
                 f"{d / 'ImageSets' / (split + '.txt')} or give more frames"
             )
-        gen = torch.Generator().manual_seed(self.seed)
+        gen = torch.Generator().manual_seed(self.order_seed if shuffle else self.seed)
         # pinned (page-locked) host memory where a CUDA device will read the batches: faster, asynchronous copies
         return DataLoader(
             self.datasets[split],

@@ -204,3 +204,28 @@ def test_parallel_jobs_seeded_alike_store_one_cache_entry_without_clashing(tmp_p
         job.join(30)
     assert [out.get(timeout=5) for _ in jobs] == [[4_000_000, 7.0, 7.0]] * 2
     assert [p.name for p in tmp_path.rglob("*.npy")] == ["000006.npy"]
+
+
+def test_the_jobs_seed_orders_the_training_frames_and_leaves_the_test_set_alone(dm, tmp_path):
+    """What a seed randomises (docs/verdicts.md): the training frames' order follows ``order_seed`` (the job's
+    seed); the frames, their conditions and the validation and test batches do not."""
+
+    def module(order_seed):
+        other = KittiDataModule(
+            synth=SMALL, data_dir=dm.data_dir, modalities=["rgb"], targets=["semantic"], batch_size=1,
+            conditions=["clear", "night", "rain_day", "rain_night", "glare"], order_seed=order_seed,
+        )  # fmt: skip
+        other.setup()
+        return other
+
+    def order(m, split):
+        loader = m.train_dataloader() if split == "train" else m.test_dataloader()
+        return [b["frame"][0] for b in loader]
+
+    a, b, again = module(0), module(1), module(0)
+    assert order(a, "train") == order(again, "train") and order(a, "train") != order(b, "train")
+    assert sorted(order(a, "train")) == sorted(order(b, "train"))  # the same frames, another order
+    assert order(a, "test") == order(b, "test")
+    for split in ("train", "test"):
+        conditions = [[x["condition"] for x in m.datasets[split]] for m in (a, b)]
+        assert conditions[0] == conditions[1]
