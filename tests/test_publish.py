@@ -46,7 +46,7 @@ def test_a_smoke_sweep_and_an_ad_hoc_sweep_on_other_data_leave_the_published_res
     assert {"logs/ablate.log", "logs/overrides.yaml"} <= {
         a.path for a in client.list_artifacts(job.info.run_id, "logs")
     }
-    assert len(job.data.params) <= 60 and not any(k.startswith(("table.", "logger.")) for k in job.data.params)
+    assert len(job.data.params) <= 62 and not any(k.startswith(("table.", "logger.")) for k in job.data.params)
     (dataset,) = [d.dataset for d in job.inputs.dataset_inputs]  # the data it trained on: synth-<hash>, its frames
     assert dataset.name.startswith("synth-") and '"train": 12' in dataset.profile and dataset.digest
 

@@ -33,7 +33,7 @@ def test_an_undecided_race_adds_seeds_at_the_next_look_through_the_launcher(race
     assert sweep.data.tags["race_looks"] == "2"
     assert sweep.data.tags["race"].startswith("left undecided after the last look")
     table = (cwd / "results" / "chinet_table2.md").read_text()
-    assert "Racing seeds: looks at 1, 2 seeds per row, alpha = 0.05 per comparison, Bonferroni" in table
+    assert "Racing seeds: looks at 1, 2 seeds per row, alpha = 0.05, Bonferroni" in table
     assert "Left undecided, after the last look: ChiNet vs U-Net." in table
     made = r"Made on .+, precision 32-true, 1 thread\(s\) per job; wall time \d+ min over 1 sweep\(s\)"
     assert re.search(made, table), table[-1500:]

@@ -1,0 +1,151 @@
+"""The tuning phase before a race: every row of a table gets the same tuning budget, on validation only.
+
+An ablation table whose rows got unequal tuning measures tuning effort, not design, and one recipe for every row is
+unequal tuning in disguise (Melis et al. 2018; Lucic et al. 2018; Dodge et al. 2019). With ``table.tune`` set, the
+racing sweeper (``hydra_plugins.ablate_racing_sweeper``) runs this phase first and races each row on the config it
+chose:
+
+* **Draws** (:mod:`ablate.sweep.draws`): N trials per row, the same N for every row; trial k's value of each
+  parameter of ``table.tune.space`` depends only on the tuning seed, the table, the parameter's name and k (common
+  random numbers, as DomainBed), so every row gets the same draws; trial 0 is the recipe.
+* **Trials** are jobs of their own kind (``trial=k`` on the command line: ``kind=trial`` runs under the sweep's
+  parent run, tagged with their row and trial): they train and validate and never test; their objective is the
+  best value of the task's validation monitor over the epochs (``val_best``). They train at ``table.tune.job_seed``
+  (1000 by default), a seed no race reaches, the same for every trial and row: the trials differ by their draws
+  alone.
+* **Order and budget**: trial k of every row is one batch, k = 0, 1, ...; ``table.tune.budget_min`` stops the phase
+  only between two batches (every row has then had the same trials), where the next batch would end past it. A
+  failed trial counts as spent: it has no objective and is never chosen.
+* **Resuming**: the same command draws the same configs; a trial whose config has a FINISHED run is skipped by the
+  jobs' config hash, and its objective read back from the store.
+* **Choice**: each row races on its trial with the best objective (the first such trial where several tie: the
+  recipe before any draw). The raced jobs carry ``tuned=k`` and record the tuned parameters' values
+  (``tuned_config``); a table refuses to mix runs of one row tuned to different configs.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from ablate.sweep.draws import draw, parse_space
+
+log = logging.getLogger(__name__)
+
+#: The training seed of every tuning trial: disjoint from any race's seeds (0 .. the last look's).
+JOB_SEED = 1000
+
+
+@dataclass(frozen=True)
+class TuneSpec:
+    """``table.tune``: ``trials`` per row (N, trial 0 the recipe), the draws' ``seed``, the ``space`` (parameter ->
+    Hydra sweep), the phase's ``budget_min`` (None: none) and the trials' training ``job_seed``."""
+
+    trials: int
+    space: dict[str, str]
+    seed: int = 0
+    budget_min: float | None = None
+    job_seed: int = JOB_SEED
+
+    @classmethod
+    def from_config(cls, tune: Mapping[str, Any] | None) -> TuneSpec | None:
+        """The spec of ``table.tune``; None where the table does not tune. One clear error per bad option."""
+        if not tune:
+            return None
+        unknown = set(tune) - {"trials", "space", "seed", "budget_min", "job_seed"}
+        if unknown:
+            raise ValueError(f"table.tune: unknown option(s) {', '.join(sorted(unknown))}")
+        trials = tune.get("trials")
+        if not isinstance(trials, int) or isinstance(trials, bool) or trials < 1:
+            raise ValueError(f"table.tune.trials: {trials!r} must be a positive integer (trial 0 is the recipe)")
+        space = dict(tune.get("space") or {})
+        if not space:
+            raise ValueError("table.tune.space: empty; give at least one parameter, e.g. the learning rate")
+        parse_space(space)  # every parameter parses, or one error naming it
+        budget = tune.get("budget_min")
+        if budget is not None and not float(budget) > 0:
+            raise ValueError(f"table.tune.budget_min: {budget} must be positive (or null: no budget)")
+        return cls(
+            trials,
+            {str(k): str(v) for k, v in space.items()},
+            int(tune.get("seed", 0)),
+            None if budget is None else float(budget),
+            int(tune.get("job_seed", JOB_SEED)),
+        )
+
+    def overrides(self, table: str, trial: int) -> list[str]:
+        """Trial ``trial``'s overrides: its draws (added where the config lacks the key), its seed, its number."""
+        drawn = [f"++{name}={value}" for name, value in draw(self.space, table, self.seed, trial).items()]
+        return [*drawn, f"seed={self.job_seed}", f"trial={trial}"]
+
+    def describe(self, metric: str) -> str:
+        """One sentence for a table's footer."""
+        space = ", ".join(f"{k} ~ {v}" for k, v in self.space.items())
+        return (
+            f"Tuning: {self.trials} trials per row (trial 0 the recipe; the same draws for every row, tuning seed "
+            f"{self.seed}), each trained at seed {self.job_seed} and judged on its best {metric} over the epochs, "
+            f"on validation only; space: {space}"
+        )
+
+
+@dataclass
+class Phase:
+    """A tuning phase in progress: the trials launched per row (all rows alike), why it stopped early, the seconds
+    it took."""
+
+    spec: TuneSpec
+    rows: list[str]
+    done: int = 0
+    stopped: str = ""
+    started: float = field(default_factory=time.monotonic)
+
+
+def run_phase(
+    spec: TuneSpec,
+    table: str,
+    jobs: Mapping[str, list[str]],
+    launch: Callable[[list[list[str]]], None],
+    clock: Callable[[], float] = time.monotonic,
+) -> Phase:
+    """Launch trial k of every row as one batch, k = 0 .. N-1, stopping between batches where the budget would be
+    passed (the mean batch so far taken for the next); ``launch`` runs a batch of jobs' overrides."""
+    phase = Phase(spec, list(jobs), started=clock())
+    for k in range(spec.trials):
+        elapsed = clock() - phase.started
+        per_batch = elapsed / k if k else 0.0
+        if spec.budget_min and k and elapsed + per_batch > spec.budget_min * 60:
+            phase.stopped = (
+                f"the tuning budget of {spec.budget_min:g} min stopped the phase after trial {k - 1} of every row "
+                f"({elapsed / 60:.1f} min spent, about {per_batch / 60:.1f} more a trial)"
+            )
+            break
+        log.info("Tuning trial %d of %d for %d row(s)", k, spec.trials, len(jobs))
+        launch([[*overrides, *spec.overrides(table, k)] for overrides in jobs.values()])
+        phase.done = k + 1
+    if phase.stopped:
+        log.info("Tuning stopped: %s", phase.stopped)
+    return phase
+
+
+def choose(objectives: Mapping[str, Mapping[int, float]], trials: int, higher_is_better: bool = True) -> dict[str, int]:
+    """Per row, the trial (of 0 .. ``trials``-1) with the best objective, the first of several that tie; a failed
+    trial (no objective, or NaN) is never chosen; a row none of whose trials has one races on the recipe (0)."""
+    out = {}
+    for row, values in objectives.items():
+        scored = [(k, v) for k, v in values.items() if k < trials and not math.isnan(v)]
+        if not scored:
+            out[row] = 0
+            continue
+        best = max(v for _, v in scored) if higher_is_better else min(v for _, v in scored)
+        out[row] = min(k for k, v in scored if v == best)
+    return out
+
+
+def tuned_overrides(spec: TuneSpec, table: str, trial: int) -> list[str]:
+    """What a raced job of a row tuned to ``trial`` adds to its overrides: the trial's draws and ``tuned=trial``."""
+    drawn = [f"++{name}={value}" for name, value in draw(spec.space, table, spec.seed, trial).items()]
+    return [*drawn, f"tuned={trial}"]

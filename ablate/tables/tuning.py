@@ -1,0 +1,156 @@
+"""What a table says of its tuning phase (:mod:`ablate.sweep.tuning`): per row, the trial it raced on, that trial's
+config and validation objective, the trials run and their CPU minutes; in its footer, the search space, N, the
+tuning seed and the validation metric; and ``<table>_tuning.png``, each row's expected validation performance
+against the number of trials (:mod:`ablate.tables.evp`), flagging rows whose curves cross ("the ranking depends on
+the budget").
+
+The trials are runs of kind ``trial`` (tags ``row``, ``trial``, ``trial_config``; metric ``val_best``), kept beside
+the table's records (``runs/<table>.trials.csv``) so that the section renders again without the store. A table
+whose runs of one row were tuned to different configs (tag ``tuned_config``) is refused: its seeds would not be
+seeds of one config.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from ablate.store import Tracker  # noqa: E402
+from ablate.tables.evp import crossing, expected_max  # noqa: E402
+from ablate.tables.records import RUNS_DIR  # noqa: E402
+
+KIND_TRIAL = "trial"
+COLUMNS = ["run_id", "row", "trial", "seed", "status", "val_best", "trial_config", "seconds", "cpu"]
+
+
+def trials_path(results_dir: str | Path, table: str) -> Path:
+    return Path(results_dir) / RUNS_DIR / f"{table}.trials.csv"
+
+
+def from_store(tracker: Tracker, table: str) -> pd.DataFrame:
+    """The tuning trials of ``table`` in the store, finished or failed (:data:`COLUMNS`); empty without any."""
+    exp = tracker.find_experiment(table)
+    if exp is None:
+        return pd.DataFrame(columns=COLUMNS)
+    out = []
+    for r in tracker.runs(exp, f"tags.kind = '{KIND_TRIAL}'"):
+        if r.info.status not in ("FINISHED", "FAILED"):
+            continue
+        tags = r.data.tags
+        seconds = ((r.info.end_time or r.info.start_time) - r.info.start_time) / 1000
+        value = r.data.metrics.get("val_best", np.nan) if r.info.status == "FINISHED" else np.nan
+        out.append([r.info.run_id, tags.get("row", "?"), int(tags.get("trial", -1)), tags.get("seed", "?"),
+                    r.info.status, value, tags.get("trial_config", "{}"), seconds, tags.get("cpu", "?")])  # fmt: skip
+    return pd.DataFrame(out, columns=COLUMNS)
+
+
+def write_trials(trials: pd.DataFrame, results_dir: str | Path, table: str) -> Path | None:
+    if trials.empty:
+        return None
+    path = trials_path(results_dir, table)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    trials.sort_values(["row", "trial"]).to_csv(path, index=False, lineterminator="\n")
+    return path
+
+
+def read_trials(results_dir: str | Path, table: str) -> pd.DataFrame:
+    path = trials_path(results_dir, table)
+    return pd.read_csv(path, dtype={"trial_config": str}) if path.exists() else pd.DataFrame(columns=COLUMNS)
+
+
+def check_tuned(runs: pd.DataFrame) -> None:
+    """Refuse runs of one row tuned to different configs (their ``tuned_config`` tags differ), in one line."""
+    if "tuned_config" not in runs:
+        return
+    for row, sel in runs.groupby("row"):
+        configs = sorted({str(c) for c in sel["tuned_config"].fillna("")})
+        if len(configs) > 1:
+            shown = "; ".join(c or "untuned" for c in configs)
+            raise ValueError(
+                f"row {row}: its runs were tuned to different configs ({shown}); race it again on one "
+                "(python -m ablate -m experiment=... force=true), or leave the other runs out of the store"
+            )
+
+
+def last_trials(trials: pd.DataFrame) -> pd.DataFrame:
+    """The latest run of each (row, trial): a trial run again (a resumed phase) counts once."""
+    return trials.drop_duplicates(["row", "trial"], keep="last") if len(trials) else trials
+
+
+def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> list[str]:
+    """The markdown lines on the tuning phase (none without trials): a table of the rows' chosen trials, the
+    footer's sentence, and whether the rows' curves cross."""
+    trials = last_trials(trials)
+    if trials.empty:
+        return []
+    lines = ["", "Tuning (validation only; the race ran on each row's chosen trial):", ""]
+    lines += [
+        "| Row | Trials | Chosen trial | Its config | Its validation objective | CPU min |",
+        "|:--|--:|--:|:--|--:|--:|",
+    ]
+    for row, sel in trials.groupby("row", sort=False):
+        scored = sel.dropna(subset=["val_best"])
+        best = scored.sort_values(["val_best", "trial"], ascending=[False, True]).iloc[0] if len(scored) else None
+        config = _config(best["trial_config"]) if best is not None else "—"
+        objective = f"{best['val_best']:.4g}" if best is not None else "—"
+        chosen = str(int(best["trial"])) if best is not None else "0 (no trial scored)"
+        lines.append(
+            f"| {names.get(str(row), row)} | {len(sel)} | {chosen} | {config} | {objective} | "
+            f"{sel['seconds'].sum() / 60:.1f} |"
+        )
+    tune = table.get("tune") or {}
+    space = ", ".join(f"{k} ~ {v}" for k, v in dict(tune.get("space") or {}).items())
+    lines += ["", f"Search space: {space}; N = {tune.get('trials')} per row, tuning seed {tune.get('seed', 0)}."]
+    curves = curves_of(trials)
+    if crossing(curves):
+        lines.append("**The rows' expected-validation curves cross: the ranking depends on the tuning budget.**")
+    return lines
+
+
+def _config(text: str) -> str:
+    values = json.loads(text or "{}")
+    return ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in values.items()) or "the recipe"
+
+
+def curves_of(trials: pd.DataFrame) -> dict[str, np.ndarray]:
+    """Each row's expected validation performance against the number of trials (:func:`expected_max`)."""
+    out = {}
+    for row, sel in trials.groupby("row", sort=False):
+        values = [float(v) for v in sel.sort_values("trial")["val_best"]]
+        if any(not np.isnan(v) for v in values):
+            out[str(row)] = expected_max(values)[0]
+    return out
+
+
+def write_figure(trials: pd.DataFrame, table: DictConfig, names: dict[str, str], out: Path) -> Path | None:
+    """``<table>_tuning.png``: each row's expected best validation value against the number of trials, with one
+    standard deviation as a band; None without trials."""
+    trials = last_trials(trials)
+    if trials.empty:
+        return None
+    fig, ax = plt.subplots(figsize=(6.0, 3.6))
+    for row, sel in trials.groupby("row", sort=False):
+        values = [float(v) for v in sel.sort_values("trial")["val_best"]]
+        if all(np.isnan(v) for v in values):
+            continue
+        mean, std = expected_max(values)
+        n = np.arange(1, len(mean) + 1)
+        ax.plot(n, mean, marker="o", label=names.get(str(row), str(row)))
+        ax.fill_between(n, mean - std, mean + std, alpha=0.15)
+    ax.set_xlabel("trials (random draws; trial 0 the recipe)")
+    ax.set_ylabel("expected best validation value")
+    ax.set_title(f"{table.title}: expected validation performance", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = out / f"{table.name}_tuning.png"
+    fig.savefig(path, dpi=100, metadata={"Software": None})
+    plt.close(fig)
+    return path
