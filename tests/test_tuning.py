@@ -86,3 +86,127 @@ def test_the_table_names_each_rows_chosen_trial_and_flags_crossing_curves(tmp_pa
     with pytest.raises(ValueError, match="row a: its runs were tuned to different configs"):
         check_tuned(runs)
     check_tuned(runs[runs["row"] == "b"])
+
+
+class TuningLauncher:
+    """Runs no job: a trial job (``trial=k``) gets ``val(row, lr)`` as its objective, a raced job
+    ``test(row, lr, seed)`` as its primary metric, where ``lr`` is the job's learning rate (the recipe's without a
+    draw); a trial ``fail`` names fails (no objective)."""
+
+    def __init__(self, val, test, fail=()):
+        self.val, self.test, self.fail = val, test, set(fail)
+        self.store: dict[str, dict[int, float]] = {}  # raced jobs: row -> seed -> metric
+        self.trials: dict[str, dict[int, float]] = {}  # trials: row -> trial -> objective
+        self.batches: list[list[dict[str, str]]] = []
+
+    def launch(self, job_overrides, initial_job_idx):
+        from hydra.core.utils import JobReturn, JobStatus
+
+        out = []
+        jobs = [dict(o.lstrip("+").split("=", 1) for o in overrides) for overrides in job_overrides]
+        self.batches.append(jobs)
+        for overrides, job in zip(job_overrides, jobs):
+            row, lr = job["row"], float(job.get("task.optimizer.lr", RECIPE_LR))
+            if "trial" in job:
+                failed = (row, int(job["trial"])) in self.fail
+                self.trials.setdefault(row, {})[int(job["trial"])] = math.nan if failed else self.val(row, lr)
+            else:
+                self.store.setdefault(row, {})[int(job["seed"])] = self.test(row, lr, int(job["seed"]))
+            ret = JobReturn(overrides=overrides, status=JobStatus.COMPLETED)
+            ret.return_value = "FINISHED"
+            out.append(ret)
+        return out
+
+
+RECIPE_LR = 1e-3  # chinet_table2's at the cpu scale (conf/recipe/semantic_cpu.yaml)
+
+
+def narrow(lr: float) -> float:
+    """Row A: a narrow optimum at lr = 0.008, far from the recipe; 90 elsewhere."""
+    return 90.0 + 8.0 * math.exp(-(((math.log10(lr) - math.log10(0.008)) / 0.25) ** 2))
+
+
+def tuned_sweep(tmp_path, monkeypatch, launcher, *overrides):
+    import pandas as pd
+
+    import hydra_plugins.ablate_racing_sweeper._impl as impl
+    from tests.test_racing import sweeper_for
+
+    sweeper, _ = sweeper_for(
+        tmp_path, monkeypatch, None, "tune=lr_wd", "table.tune.trials=16", *overrides, launcher=launcher
+    )
+    monkeypatch.setattr(impl, "trial_objectives", lambda tracker, table: launcher.trials)
+    monkeypatch.setattr(impl, "table_values", lambda runs, table: {r: pd.Series(v) for r, v in launcher.store.items()})
+    monkeypatch.setattr(impl.RacingSweeperImpl, "_tag_parent", lambda self, tags: None)
+    return sweeper
+
+
+def test_tuning_lets_the_row_with_a_narrow_optimum_win_where_the_recipe_favours_the_plateau(tmp_path, monkeypatch):
+    objective = {"chinet": narrow, "unet": lambda lr: 93.0}  # unet: a broad plateau
+    launcher = TuningLauncher(lambda r, lr: objective[r](lr), lambda r, lr, s: objective[r](lr) + 0.05 * s)
+    assert objective["unet"](RECIPE_LR) > objective["chinet"](RECIPE_LR)  # at the recipe the plateau wins
+    tuned_sweep(tmp_path, monkeypatch, launcher).sweep(["row=chinet,unet"])
+    trials = [b for b in launcher.batches if "trial" in b[0]]
+    assert len(trials) == 16 and all(sorted(j["row"] for j in b) == ["chinet", "unet"] for b in trials)
+    raced = [j for b in launcher.batches if "trial" not in b[0] for j in b]
+    chosen = {j["row"]: (int(j["tuned"]), float(j.get("task.optimizer.lr", RECIPE_LR))) for j in raced}
+    assert chosen["unet"][0] == 0  # the plateau: the recipe, the first of equals
+    assert chosen["chinet"][0] > 0 and abs(math.log10(chosen["chinet"][1] / 0.008)) < 0.25  # near its optimum
+    means = {r: sum(v.values()) / len(v) for r, v in launcher.store.items()}
+    assert means["chinet"] > means["unet"]  # after tuning, the row with the narrow optimum wins the race
+    assert all(int(j["seed"]) < 1000 for j in raced) and all(j["seed"] == "1000" for b in trials for j in b)
+
+
+def test_a_failed_trial_is_spent_and_validation_alone_chooses(tmp_path, monkeypatch):
+    # validation prefers lr near 0.008 for chinet; its test metric would prefer the recipe: validation decides
+    launcher = TuningLauncher(
+        lambda r, lr: narrow(lr) if r == "chinet" else 93.0,
+        lambda r, lr, s: 99.0 if (r == "chinet" and lr == RECIPE_LR) else 91.0,
+        fail={("chinet", 0), ("unet", 5)},
+    )
+    tuned_sweep(tmp_path, monkeypatch, launcher).sweep(["row=chinet,unet"])
+    assert {r: len(t) for r, t in launcher.trials.items()} == {"chinet": 16, "unet": 16}  # N each, failures spent
+    raced = [j for b in launcher.batches if "trial" not in b[0] for j in b]
+    assert {int(j["tuned"]) for j in raced if j["row"] == "chinet"} != {0}  # the failed recipe trial not chosen
+    assert all(float(j["task.optimizer.lr"]) != RECIPE_LR for j in raced if j["row"] == "chinet")
+
+
+def test_a_rerun_draws_the_same_trials_and_chooses_the_same(tmp_path, monkeypatch):
+    objective = {"chinet": narrow, "unet": lambda lr: 93.0}
+    runs = []
+    for _ in range(2):  # the second as a resumed phase: its jobs would be skipped by their config hash
+        launcher = TuningLauncher(lambda r, lr: objective[r](lr), lambda r, lr, s: objective[r](lr))
+        tuned_sweep(tmp_path, monkeypatch, launcher).sweep(["row=chinet,unet"])
+        runs.append(launcher.batches)
+    assert runs[0] == runs[1]
+
+
+def test_a_smoke_table_tunes_two_trials_per_row_on_validation_and_races_on_the_choice(tmp_path) -> None:
+    from tests.scaleout import SERIAL, TINY, ablate, output, runs
+
+    out = ablate(
+        tmp_path,
+        "-m",
+        "experiment=chinet_table2",
+        "row=unet,fusenet",
+        "tune=lr_wd",
+        "table.tune.trials=2",
+        SERIAL,
+        *TINY,
+    )
+    assert out.returncode == 0, output(out)
+    store = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    _, trials = runs(store, "chinet_table2", kind="trial")
+    assert sorted((r.data.tags["row"], r.data.tags["trial"]) for r in trials) == [
+        ("fusenet", "0"), ("fusenet", "1"), ("unet", "0"), ("unet", "1"),
+    ]  # fmt: skip
+    for run in trials:  # validation only: an objective, never a test metric; a seed no race reaches
+        assert "val_best" in run.data.metrics and "det_rate" not in run.data.metrics, run.data.metrics
+        assert run.data.tags["seed"] == "1000" and "task.optimizer.lr" in run.data.tags["trial_config"]
+    _, jobs = runs(store, "chinet_table2")
+    assert sorted(r.data.tags["row"] for r in jobs) == ["fusenet", "unet"]
+    assert all(r.data.tags["tuned"] in ("0", "1") and r.data.tags["tuned_config"] for r in jobs)
+    text = (tmp_path / "results" / "chinet_table2.md").read_text()
+    assert "Tuning (validation only; the race ran on each row's chosen trial):" in text and "| U-Net | 2 |" in text
+    assert (tmp_path / "results" / "runs" / "chinet_table2.trials.csv").is_file()
+    assert (tmp_path / "results" / "chinet_table2_tuning.png").is_file()

@@ -147,10 +147,20 @@ def run_tags(spec: JobSpec) -> dict[str, str]:
     }
     if cfg.table.get("seeds"):  # the race this run belongs to: its table replays that race (ablate.tables.racing)
         tags["race_plan"] = json.dumps(OmegaConf.to_container(cfg.table.seeds, resolve=True), sort_keys=True)
+    for key in ("trial", "tuned"):  # a tuning trial, or a raced job tuned to one (ablate.sweep.tuning)
+        if cfg.get(key) is not None:
+            tags |= {key: str(cfg[key]), f"{key}_config": tuned_values(cfg)}
     if spec.parent_run:
         tags.update({"mlflow.parentRunId": spec.parent_run, "sweep_id": spec.parent_run})
         tags["job_num"] = str(spec.context.job_num)
     return tags
+
+
+def tuned_values(cfg: DictConfig) -> str:
+    """The values in ``cfg`` of the parameters its table tunes (``table.tune.space``), as JSON: what a trial tried,
+    or what a raced job was tuned to."""
+    space = (cfg.table.get("tune") or {}).get("space") or {}
+    return json.dumps({k: OmegaConf.select(cfg, str(k)) for k in space}, sort_keys=True, default=str)
 
 
 def already_done(spec: JobSpec, tracker: Tracker, exp: str) -> Outcome | None:

@@ -16,7 +16,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from ablate import hardware
-from ablate.store import KIND_JOB, Outbox, SweepContext, config_hash, row_name
+from ablate.store import KIND_JOB, KIND_TRIAL, Outbox, SweepContext, config_hash, row_name
 from ablate.store.outbox import FILE as OUTBOX_FILE
 
 #: Where jobs keep their checkpoints, relative to the launch directory (a job runs there).
@@ -49,9 +49,10 @@ class JobSpec:
     outbox: Outbox = field(compare=False)  # one instance per job: it keeps what it has read of its file
 
     @classmethod
-    def of(cls, cfg: DictConfig, context: SweepContext, kind: str = KIND_JOB, row: str | None = None) -> JobSpec:
+    def of(cls, cfg: DictConfig, context: SweepContext, kind: str | None = None, row: str | None = None) -> JobSpec:
         """The spec of job config ``cfg`` in ``context``; ``row`` names it where the caller knows better than the
         overrides (an expert)."""
+        kind = kind or (KIND_TRIAL if cfg.get("trial") is not None else KIND_JOB)  # a tuning trial (table.tune)
         resolved = copy.deepcopy(cfg)
         numerics = hardware.resolve(resolved)
         name = row or row_name(context.overrides, context.swept, context.row_choice)
@@ -74,7 +75,7 @@ class JobSpec:
     @property
     def parent_run(self) -> str | None:
         """The sweep's run this job's run is a child of (an expert's run is not: it serves several sweeps)."""
-        return self.context.parent_run if self.kind == KIND_JOB else None
+        return self.context.parent_run if self.kind in (KIND_JOB, KIND_TRIAL) else None
 
     @property
     def note_name(self) -> str:

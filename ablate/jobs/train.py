@@ -33,7 +33,7 @@ from ablate.jobs.experts import feature_cache
 from ablate.jobs.preempt import STOP, SaveOnStop, Stopped
 from ablate.jobs.progress_lines import ProgressLines, progress_bar
 from ablate.jobs.spec import JobSpec
-from ablate.store import FRAME_COUNTS, SKIPPED_FRAMES, RunLogger, Tracker
+from ablate.store import FRAME_COUNTS, KIND_TRIAL, SKIPPED_FRAMES, RunLogger, Tracker
 
 log = logging.getLogger(__name__)
 # torchmetrics warns when a metric is computed before its first update: a validation epoch whose batches held no
@@ -73,7 +73,21 @@ def fit_and_test(
     if best is None:
         fit(spec, tracker, run_id, trainer, task, datamodule, on_stop)
         best = checkpoint.best_model_path or None
+    if spec.kind == KIND_TRIAL:  # a tuning trial: validation only, never the test split
+        return validated(tracker, run_id, checkpoint, task, trainer, logger)
     return test(spec, tracker, run_id, trainer, task, datamodule, best, logger)
+
+
+def validated(
+    tracker: Tracker, run_id: str, checkpoint: ModelCheckpoint, task: Any, trainer: L.Trainer, logger: RunLogger
+) -> dict[str, float]:
+    """A tuning trial's objective (ablate.sweep.tuning): the best value of the task's validation monitor over the
+    epochs, logged as ``val_best``; NaN where no validation ran."""
+    logger.deliver()
+    score = checkpoint.best_model_score
+    metrics = {"val_best": float(score) if score is not None else float("nan")}
+    tracker.log_metrics(run_id, metrics, step=trainer.global_step)
+    return metrics
 
 
 def build_trainer(cfg: DictConfig, logger: RunLogger, callbacks: list[Callback], ckpt_dir: Path) -> L.Trainer:

@@ -32,6 +32,7 @@ UNHASHED = (
     "force",
     "publish",
     "plan",
+    "tuned",
     "logger",
     "hydra",
     "table",

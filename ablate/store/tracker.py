@@ -48,6 +48,8 @@ T = TypeVar("T")
 
 #: Tags every job run carries; the report reads them.
 KIND_JOB, KIND_SWEEP = "job", "sweep"
+#: A tuning trial's run (ablate.sweep.tuning): it trains and validates, never tests, and is no table's row.
+KIND_TRIAL = "trial"
 #: The metric a job logs once its data module is set up: the bad frames it left out (``data.on_bad_frame=skip``).
 SKIPPED_FRAMES = "data/skipped_frames"
 #: A run's artifact of its test metric's counts per test frame (ablate.tables.frames).

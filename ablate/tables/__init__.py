@@ -31,6 +31,9 @@ from ablate.tables.provenance import Recompute, config_of, provenance
 from ablate.tables.records import read_records, records_path, write_records
 from ablate.tables.rows import write_rows
 from ablate.tables.spec import COSTS, table_spec
+from ablate.tables.tuning import check_tuned, read_trials, section, write_trials
+from ablate.tables.tuning import from_store as trials_from_store
+from ablate.tables.tuning import write_figure as write_tuning_figure
 
 LAYOUTS = {"rows": write_rows, "conditions": write_conditions}
 
@@ -62,9 +65,13 @@ def write_table(
     if publish and (kept := write_frames(frames, results_dir, str(table.name))) is not None:
         written.append(kept)
     runs.attrs["frames"] = frames  # the counts per test frame the verdicts resample (ablate.tables.frames)
+    trials = trials_from_store(tracker, str(table.name))
+    if publish and (kept := write_trials(trials, results_dir, str(table.name))) is not None:
+        written.append(kept)
     config = lambda run_id: config_of(tracker, run_id)  # noqa: E731
     footer = footer_lines(runs, fingerprint, config, running(tracker, table.name))
-    written += render(cfg, table, runs, results_dir, footer, tracker, parent_run)
+    written += render(cfg, table, runs, results_dir, footer, tracker, parent_run, tuning_section(trials, table))
+    written += tuning_figure(trials, table, results_dir)
     return written + curves_figure(table, results_dir, tracker, parent_run)
 
 
@@ -83,8 +90,24 @@ def render_records(
         return None
     runs = read_records(path)
     runs.attrs["frames"] = read_frames(results_dir, str(table.name))
+    trials = read_trials(results_dir, str(table.name))
     footer = footer_lines(runs, fingerprint, config(runs) if config is not None else None, 0)
-    return render(cfg, table, runs, results_dir, footer, None, None) + curves_figure(table, results_dir, None, None)
+    written = render(cfg, table, runs, results_dir, footer, None, None, tuning_section(trials, table))
+    written += tuning_figure(trials, table, results_dir)
+    return written + curves_figure(table, results_dir, None, None)
+
+
+def tuning_section(trials: pd.DataFrame, table: DictConfig) -> list[str]:
+    """The footer's lines on the table's tuning phase (:mod:`ablate.tables.tuning`); none without trials."""
+    return section(trials, table, {str(r.row): str(r.get("name", r.row)) for r in table.rows})
+
+
+def tuning_figure(trials: pd.DataFrame, table: DictConfig, results_dir: str | Path) -> list[Path]:
+    """``<table>_tuning.png`` where the table has trials."""
+    Path(results_dir).mkdir(parents=True, exist_ok=True)
+    names = {str(r.row): str(r.get("name", r.row)) for r in table.rows}
+    path = write_tuning_figure(trials, table, names, Path(results_dir))
+    return [path] if path is not None else []
 
 
 def curves_figure(
@@ -116,12 +139,18 @@ def render(
     footer: list[str],
     tracker: Tracker | None,
     parent_run: str | None,
+    after: list[str] | None = None,
 ) -> list[Path]:
-    """The table in its layout (``table.layout``) from its runs."""
+    """The table in its layout (``table.layout``) from its runs; ``after``: markdown lines put under the table's
+    footer (its tuning phase, :mod:`ablate.tables.tuning`)."""
+    check_tuned(runs)  # one row's seeds are seeds of one config
     layout = table.get("layout", "rows")
     if layout not in LAYOUTS:
         raise ValueError(f"table.layout: {layout!r} is not one of {', '.join(LAYOUTS)}")
     written = LAYOUTS[layout](cfg, table, runs, tracker, parent_run, results_dir, footer)
+    if after:
+        md = Path(results_dir) / f"{table.name}.md"
+        md.write_text(md.read_text().rstrip("\n") + "\n" + "\n".join(after) + "\n")
     forest = write_forest(table, runs, results_dir)  # the race's verdicts at a glance
     if forest is not None and parent_run and tracker is not None:
         tracker.log_artifact(parent_run, forest)

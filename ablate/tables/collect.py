@@ -53,6 +53,7 @@ def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
             "cpu_isa": r.data.tags.get("cpu_isa", "?"),
             "sweep_id": r.data.tags.get("sweep_id", ""),
             "race_plan": r.data.tags.get("race_plan", ""),
+            "tuned_config": r.data.tags.get("tuned_config", ""),  # the config a tuning phase chose for its row
             "reused_from": r.data.tags.get("reused_from", ""),
             "started": r.info.start_time,
             "ended": r.info.end_time or r.info.start_time,

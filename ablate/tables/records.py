@@ -6,7 +6,8 @@ One line per run the table uses (:func:`ablate.tables.collect.collect`: per row 
 at the latest scale): who it is (``table``, ``row``, ``seed``, ``status``, ``scale``, ``config_hash``), the code
 that made it (``git_commit``, its ``fingerprint``, ``evaluator``, ``targets``), where and how (``made_cpu``,
 ``cpu_isa``, ``made_precision``, ``made_threads``), when (``started``, ``ended`` in ms, ``seconds``), the race and
-sweep it belongs to (``race_plan``, ``sweep_id``, ``job_num``, ``reused_from``, ``run_id``), and one column per
+sweep it belongs to (``race_plan``, ``sweep_id``, ``job_num``, ``reused_from``, ``run_id``), the config a tuning
+phase chose for its row (``tuned_config``, empty where the row was not tuned), and one column per
 final metric: the test metrics the table shows (per condition and difficulty where it has them), latency and
 costs. No per-step history, no checkpoints. Numbers are written as Python's shortest round-trip form, so a table
 rendered from the records is the table rendered from the store, byte for byte.
@@ -41,6 +42,7 @@ TEXT = (
     "made_threads",
     "sweep_id",
     "race_plan",
+    "tuned_config",
     "reused_from",
 )
 #: The whole-number columns: the job's number in its sweep, its start and end (ms since the epoch).

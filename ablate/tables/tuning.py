@@ -28,7 +28,7 @@ from ablate.tables.evp import crossing, expected_max  # noqa: E402
 from ablate.tables.records import RUNS_DIR  # noqa: E402
 
 KIND_TRIAL = "trial"
-COLUMNS = ["run_id", "row", "trial", "seed", "status", "val_best", "trial_config", "seconds", "cpu"]
+COLUMNS = ["run_id", "row", "trial", "seed", "status", "val_best", "trial_config", "seconds", "cpu", "started"]
 
 
 def trials_path(results_dir: str | Path, table: str) -> Path:
@@ -48,8 +48,9 @@ def from_store(tracker: Tracker, table: str) -> pd.DataFrame:
         seconds = ((r.info.end_time or r.info.start_time) - r.info.start_time) / 1000
         value = r.data.metrics.get("val_best", np.nan) if r.info.status == "FINISHED" else np.nan
         out.append([r.info.run_id, tags.get("row", "?"), int(tags.get("trial", -1)), tags.get("seed", "?"),
-                    r.info.status, value, tags.get("trial_config", "{}"), seconds, tags.get("cpu", "?")])  # fmt: skip
-    return pd.DataFrame(out, columns=COLUMNS)
+                    r.info.status, value, tags.get("trial_config", "{}"), seconds, tags.get("cpu", "?"),
+                    r.info.start_time])  # fmt: skip
+    return pd.DataFrame(out, columns=COLUMNS).sort_values("started", kind="stable").reset_index(drop=True)
 
 
 def write_trials(trials: pd.DataFrame, results_dir: str | Path, table: str) -> Path | None:
@@ -81,8 +82,11 @@ def check_tuned(runs: pd.DataFrame) -> None:
 
 
 def last_trials(trials: pd.DataFrame) -> pd.DataFrame:
-    """The latest run of each (row, trial): a trial run again (a resumed phase) counts once."""
-    return trials.drop_duplicates(["row", "trial"], keep="last") if len(trials) else trials
+    """The latest run of each (row, trial), a trial run again (a resumed phase) counted once, by row and trial: the
+    same from the store as from the records."""
+    if not len(trials):
+        return trials
+    return trials.drop_duplicates(["row", "trial"], keep="last").sort_values(["row", "trial"], kind="stable")
 
 
 def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> list[str]:
@@ -96,7 +100,8 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
         "| Row | Trials | Chosen trial | Its config | Its validation objective | CPU min |",
         "|:--|--:|--:|:--|--:|--:|",
     ]
-    for row, sel in trials.groupby("row", sort=False):
+    order = {row: i for i, row in enumerate(names)}  # the table's rows in its order
+    for row, sel in sorted(trials.groupby("row"), key=lambda kv: (order.get(str(kv[0]), len(order)), str(kv[0]))):
         scored = sel.dropna(subset=["val_best"])
         best = scored.sort_values(["val_best", "trial"], ascending=[False, True]).iloc[0] if len(scored) else None
         config = _config(best["trial_config"]) if best is not None else "—"
@@ -107,8 +112,15 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
             f"{sel['seconds'].sum() / 60:.1f} |"
         )
     tune = table.get("tune") or {}
-    space = ", ".join(f"{k} ~ {v}" for k, v in dict(tune.get("space") or {}).items())
-    lines += ["", f"Search space: {space}; N = {tune.get('trials')} per row, tuning seed {tune.get('seed', 0)}."]
+    space = dict(tune.get("space") or {})
+    tuned = sorted(json.loads(str(trials["trial_config"].iloc[0]) or "{}"))
+    n = int(trials.groupby("row")["trial"].count().max())
+    said = (
+        "; ".join(f"{k} ~ {v}" for k, v in space.items()) + f", tuning seed {tune.get('seed', 0)}"
+        if space
+        else ", ".join(tuned)
+    )
+    lines += ["", f"Tuned: {said}; N = {n} trials per row (trial 0 the recipe; the same draws for every row)."]
     curves = curves_of(trials)
     if crossing(curves):
         lines.append("**The rows' expected-validation curves cross: the ranking depends on the tuning budget.**")
@@ -117,7 +129,8 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
 
 def _config(text: str) -> str:
     values = json.loads(text or "{}")
-    return ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in values.items()) or "the recipe"
+    shown = [f"{k.rsplit('.', 1)[-1]}={'default' if v is None else v}" for k, v in values.items()]
+    return ", ".join(shown) or "the recipe"
 
 
 def curves_of(trials: pd.DataFrame) -> dict[str, np.ndarray]:

@@ -36,12 +36,25 @@ from omegaconf import DictConfig, OmegaConf
 from ablate.store import AccessDenied, ServerUnreachable, SweepContext, Tracker, row_name
 from ablate.store.context import SWEPT_FILE
 from ablate.sweep import progress
+from ablate.sweep.tuning import TuneSpec, choose, run_phase, tuned_overrides
 from ablate.tables import table_spec
 from ablate.tables.collect import job_runs, row_seconds
 from ablate.tables.racing import RacePlan, RaceState, race, table_values
 from ablate.tables.spec import LOWER_IS_BETTER, sweep_params
+from ablate.tables.tuning import from_store as tuning_runs
+from ablate.tables.tuning import last_trials
 
 log = logging.getLogger(__name__)
+
+
+def trial_objectives(tracker: Tracker, table: str) -> dict[str, dict[int, float]]:
+    """Per row, each tuning trial's objective in the store (its latest run's ``val_best``; NaN where it failed)."""
+    trials = last_trials(tuning_runs(tracker, table))
+    out: dict[str, dict[int, float]] = {}
+    for row, trial, value in zip(trials.get("row", []), trials.get("trial", []), trials.get("val_best", [])):
+        out.setdefault(str(row), {})[int(trial)] = float(value)
+    return out
+
 
 #: What a job returns (``ablate.jobs.job.main``) when the store already held its run and nothing trained.
 SKIPPED = "SKIPPED"
@@ -166,6 +179,7 @@ class RacingSweeperImpl:
     def _race(self, plan: RacePlan, combos: list[list[str]], swept: set[str], sdir: Path) -> list[list[JobReturn]]:
         """Launch look after look until every comparison is decided, the looks run out or the budget stops it."""
         race_ = self._start_race(plan, combos, swept)
+        self._tune(race_, sdir)
         while not race_.state.over:
             look, n, batch, rows = race_.next_look()
             if race_.over_budget(look, rows):
@@ -187,6 +201,48 @@ class RacingSweeperImpl:
         tags = {"race_looks": str(race_.state.looks_done), "race_jobs": str(race_.launched), "race": outcome}
         self._tag_parent(tags)
         return race_.returns
+
+    def _tune(self, race_: Race, sdir: Path) -> None:
+        """The tuning phase where the table has one (``table.tune``, :mod:`ablate.sweep.tuning`): every row's trials,
+        one trial index a batch, then each row's jobs race on its chosen trial's config; the race's own budget
+        counts from there."""
+        assert self.config is not None
+        table = table_spec(self.config)
+        name = str(table.name)
+        try:
+            tune = table.get("tune")
+            spec = TuneSpec.from_config(OmegaConf.to_container(tune, resolve=True) if tune else None)  # type: ignore[arg-type]
+            if spec is not None and self.config.get("experts"):
+                raise ValueError(
+                    "table.tune: rows on frozen experts (two-stage training, SMoE §4.3) are not tuned yet: the trials "
+                    "would train the experts again at every draw; race this table on its recipe"
+                )
+        except ValueError as err:  # one line naming the option, before any job runs
+            print(f"error: {err}", file=sys.stderr)
+            raise SystemExit(1) from None
+        if spec is None:
+            return
+
+        def launch(batch: list[list[str]]) -> None:
+            progress.replan(sdir, race_.launched + len(batch))
+            race_.returns.append(self._launch(batch, race_.launched))
+            race_.launched += len(batch)
+
+        phase = run_phase(spec, name, race_.jobs, launch)
+        try:
+            objectives = trial_objectives(self._tracker(), name)
+        except (ServerUnreachable, AccessDenied) as err:
+            print(f"error: {err}; the tuning phase stopped: the same command resumes it", file=sys.stderr)
+            raise SystemExit(1) from None
+        chosen = choose(objectives, phase.done)
+        for row in race_.jobs:
+            race_.jobs[row] = [*race_.jobs[row], *tuned_overrides(spec, name, chosen.get(row, 0))]
+            value = objectives.get(row, {}).get(chosen.get(row, 0), float("nan"))
+            log.info("Tuned %s: trial %d of %d (validation %.4g)", row, chosen.get(row, 0), phase.done, value)
+        self._tag_parent(
+            {"tune_trials": str(phase.done), "tune_chosen": " ".join(f"{r}={k}" for r, k in chosen.items())}
+        )
+        race_.started = time.monotonic()
 
     def _start_race(self, plan: RacePlan, combos: list[list[str]], swept: set[str]) -> Race:
         """The race before its first look: every row racing, its reference the table's (or the first row)."""
