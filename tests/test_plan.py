@@ -106,3 +106,14 @@ def test_without_time_to_measure_the_eta_waits_for_the_first_job_and_one_job_is_
     plan = items(sweep_config("task=semantic", "model=unet,fusenet", "scale=smoke"))
     estimate(plan, measure_s=1, measure=clock.measure, clock=clock)
     assert len(clock.measured) == 1 and [item.how for item in plan] == ["measured", "as the measured"]
+
+
+def test_a_tuned_table_plans_its_trials_before_its_first_look(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from ablate.sweep.progress import planned_jobs
+
+    monkeypatch.chdir(tmp_path)
+    config = sweep_config("experiment=chinet_table2", "tune=lr_wd", "table.tune.trials=2")
+    assert planned_jobs(config) == 3 * 2 + 3 * 3  # 2 trials of each row, then 3 seeds of each
+    plan = items(config)
+    assert [i.name for i in plan[:3]] == ["chinet seed 1000", "unet seed 1000", "fusenet seed 1000"]  # rows in order
+    assert [i.config.trial for i in plan[:6]] == [0, 0, 0, 1, 1, 1] and plan[6].config.trial is None

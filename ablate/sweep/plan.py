@@ -126,7 +126,7 @@ def seconds(cfg: DictConfig, times: StepTimes) -> float:
     """A job's or expert's estimated seconds: its fit (none for a single-modal row of two-stage training, which is
     tested from its expert) and its test."""
     conditions = len(cfg.task.get("eval_conditions") or {}) if "task" in cfg else 0
-    test = times.test_seconds(conditions or 1)
+    test = times.test_seconds(conditions or 1) if cfg.get("trial") is None else 0.0  # a tuning trial never tests
     if cfg.get("experts") and cfg.stage.name == "single":
         return test
     epochs = int(cfg.trainer.get("max_epochs") or -1)

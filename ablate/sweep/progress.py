@@ -17,6 +17,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
 from ablate.store import file_lock
+from ablate.sweep.tuning import TuneSpec
 from ablate.tables.spec import sweep_params
 
 PLANNED_FILE = ".planned"
@@ -27,7 +28,7 @@ def job_overrides(config: DictConfig) -> list[list[str]]:
     """Every job's overrides, as the multirun of ``config`` launches them: the product of its swept values (the
     sweeper's ``params``, a table's rows and the command line together, a key on the command line winning), as
     Hydra's basic sweeper splits them; for a table that races its seeds (``table.seeds``), each with the seeds of its
-    first look."""
+    first look, after its tuning trials where it tunes (``table.tune``, :mod:`ablate.sweep.tuning`)."""
     params = OmegaConf.select(config, "hydra.sweeper.params", default=None) or {}
     arguments = list(config.hydra.overrides.task)
     params = sweep_params(params, arguments, config.table)  # a table's rows (ablate.tables.spec.run_rows)
@@ -38,7 +39,11 @@ def job_overrides(config: DictConfig) -> list[list[str]]:
     seeded = any(o.get_key_element().lstrip("+~") == "seed" for o in overrides)
     if not looks or seeded:
         return jobs
-    return [[*job, f"seed={seed}"] for job in jobs for seed in range(int(looks[0]))]
+    tune = OmegaConf.select(config, "table.tune", default=None)
+    spec = TuneSpec.from_config(OmegaConf.to_container(tune, resolve=True) if tune else None)  # type: ignore[arg-type]
+    name = str(OmegaConf.select(config, "table.name", default=""))
+    trials = [[*job, *spec.overrides(name, k)] for k in range(spec.trials) for job in jobs] if spec else []
+    return trials + [[*job, f"seed={seed}"] for job in jobs for seed in range(int(looks[0]))]
 
 
 def planned_jobs(config: DictConfig) -> int:
