@@ -6,8 +6,8 @@ two-stage row, SMoE §4.3, loaded from freshly built ones: what is frozen is wha
 a job would use on the CPU. :func:`step_times` times, on one training batch of the job's batch size: a training step
 with the experts run (every step of a job without a feature cache, the first epoch of one with it), a training step
 with the experts' features read from the cache (the later epochs), and a validation step. Each is the fastest of
-``repeats`` after one untimed step, with the job's ``trainer.threads``, in fp32: the cpu scale's recipes train in
-fp32 (conf/recipe/*_cpu.yaml), and a bf16 job runs faster than this says.
+``repeats`` after one untimed step, with the job's ``trainer.threads`` and its precision (bf16 autocast where its
+resolved ``trainer.precision`` is bf16, as Lightning's ``bf16-mixed`` runs it on the CPU).
 """
 
 from __future__ import annotations
@@ -100,7 +100,9 @@ def step_times(cfg: DictConfig, repeats: int = 2, clock: Callable[[], float] = t
     try:
         with warnings.catch_warnings():  # the task's self.log without a trainer: logged nowhere, as meant
             warnings.filterwarnings("ignore", ".*self.trainer.* reference is not registered.*")
-            built, train_s, cached_s, eval_s = _timed(cfg, repeats, clock)
+            bf16 = "bf16" in str(cfg.trainer.get("precision", "32"))  # the job's numerics, resolved (ablate.hardware)
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                built, train_s, cached_s, eval_s = _timed(cfg, repeats, clock)
     finally:
         torch.set_num_threads(threads)
     splits, batch_size = built["splits"], int(cfg.data.batch_size)
