@@ -174,7 +174,10 @@ def log_plan(config: DictConfig, parallel: int, done: Callable[[DictConfig], boo
     """Compose, estimate and log the sweep's plan (``plan.measure_s`` seconds of step timing at most; 0: none)."""
     measure_s = float(OmegaConf.select(config, "plan.measure_s", default=MEASURE_S))
     plan = items(config, done)
-    estimate(plan, measure_s)
     race = bool(OmegaConf.select(config, "table.seeds.looks", default=None))
-    for line in lines(plan, parallel, race):
+    said = lines(plan, parallel, race)
+    if measure_s > 0:  # the plan at once; its estimates once the steps are timed (the dataset made first if missing)
+        log.info("%s; timing their steps for an ETA (plan.measure_s = %g s)", said[0], measure_s)
+    estimate(plan, measure_s)
+    for line in lines(plan, parallel, race)[1 if measure_s > 0 else 0 :]:
         log.info(line)
