@@ -21,7 +21,7 @@ def test_every_row_gets_the_same_trials_one_batch_per_trial_index() -> None:
     assert batches[0] == [["row=a", "seed=1000", "trial=0"], ["row=b", "seed=1000", "trial=0"]]  # the recipe
     for k, batch in enumerate(batches[1:], start=1):
         (a_lr, a_rest), (b_lr, b_rest) = [(job[1], job[2:]) for job in batch]
-        assert a_lr == b_lr and a_lr.startswith("++task.optimizer.lr=")  # common random numbers
+        assert a_lr == b_lr and a_lr.startswith("++draws.task.optimizer.lr=")  # common random numbers
         assert a_rest == b_rest == ["seed=1000", f"trial={k}"]
 
 
@@ -106,7 +106,7 @@ class TuningLauncher:
         jobs = [dict(o.lstrip("+").split("=", 1) for o in overrides) for overrides in job_overrides]
         self.batches.append(jobs)
         for overrides, job in zip(job_overrides, jobs):
-            row, lr = job["row"], float(job.get("task.optimizer.lr", RECIPE_LR))
+            row, lr = job["row"], float(job.get("draws.task.optimizer.lr", RECIPE_LR))
             if "trial" in job:
                 failed = (row, int(job["trial"])) in self.fail
                 self.trials.setdefault(row, {})[int(job["trial"])] = math.nan if failed else self.val(row, lr)
@@ -149,7 +149,7 @@ def test_tuning_lets_the_row_with_a_narrow_optimum_win_where_the_recipe_favours_
     trials = [b for b in launcher.batches if "trial" in b[0]]
     assert len(trials) == 16 and all(sorted(j["row"] for j in b) == ["chinet", "unet"] for b in trials)
     raced = [j for b in launcher.batches if "trial" not in b[0] for j in b]
-    chosen = {j["row"]: (int(j["tuned"]), float(j.get("task.optimizer.lr", RECIPE_LR))) for j in raced}
+    chosen = {j["row"]: (int(j["tuned"]), float(j.get("draws.task.optimizer.lr", RECIPE_LR))) for j in raced}
     assert chosen["unet"][0] == 0  # the plateau: the recipe, the first of equals
     assert chosen["chinet"][0] > 0 and abs(math.log10(chosen["chinet"][1] / 0.008)) < 0.25  # near its optimum
     means = {r: sum(v.values()) / len(v) for r, v in launcher.store.items()}
@@ -168,7 +168,7 @@ def test_a_failed_trial_is_spent_and_validation_alone_chooses(tmp_path, monkeypa
     assert {r: len(t) for r, t in launcher.trials.items()} == {"chinet": 16, "unet": 16}  # N each, failures spent
     raced = [j for b in launcher.batches if "trial" not in b[0] for j in b]
     assert {int(j["tuned"]) for j in raced if j["row"] == "chinet"} != {0}  # the failed recipe trial not chosen
-    assert all(float(j["task.optimizer.lr"]) != RECIPE_LR for j in raced if j["row"] == "chinet")
+    assert all(float(j["draws.task.optimizer.lr"]) != RECIPE_LR for j in raced if j["row"] == "chinet")
 
 
 def test_a_rerun_draws_the_same_trials_and_chooses_the_same(tmp_path, monkeypatch):
@@ -181,32 +181,31 @@ def test_a_rerun_draws_the_same_trials_and_chooses_the_same(tmp_path, monkeypatc
     assert runs[0] == runs[1]
 
 
-def test_a_smoke_table_tunes_two_trials_per_row_on_validation_and_races_on_the_choice(tmp_path) -> None:
+def test_a_smoke_table_on_experts_tunes_two_trials_per_row_on_validation_and_races_on_the_choice(tmp_path) -> None:
     from tests.scaleout import SERIAL, TINY, ablate, output, runs
 
-    out = ablate(
-        tmp_path,
-        "-m",
-        "experiment=chinet_table2",
-        "row=unet,fusenet",
-        "tune=lr_wd",
-        "table.tune.trials=2",
-        SERIAL,
-        *TINY,
-    )
+    rows = "row=bifnet_bev,bifnet_dst_sum"  # the LiDAR expert's row, and a fused row on frozen experts
+    out = ablate(tmp_path, "-m", "experiment=bifnet_table4", rows, "tune=lr_wd", "table.tune.trials=2", SERIAL, *TINY)
     assert out.returncode == 0, output(out)
     store = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    _, trials = runs(store, "chinet_table2", kind="trial")
+    _, trials = runs(store, "bifnet_table4", kind="trial")
     assert sorted((r.data.tags["row"], r.data.tags["trial"]) for r in trials) == [
-        ("fusenet", "0"), ("fusenet", "1"), ("unet", "0"), ("unet", "1"),
+        ("bifnet_bev", "0"), ("bifnet_bev", "1"), ("bifnet_dst_sum", "0"), ("bifnet_dst_sum", "1"),
     ]  # fmt: skip
     for run in trials:  # validation only: an objective, never a test metric; a seed no race reaches
-        assert "val_best" in run.data.metrics and "det_rate" not in run.data.metrics, run.data.metrics
+        assert "val_best" in run.data.metrics and "max_f" not in run.data.metrics, run.data.metrics
         assert run.data.tags["seed"] == "1000" and "task.optimizer.lr" in run.data.tags["trial_config"]
-    _, jobs = runs(store, "chinet_table2")
-    assert sorted(r.data.tags["row"] for r in jobs) == ["fusenet", "unet"]
+    fused = [r for r in trials if r.data.tags["row"] == "bifnet_dst_sum"]
+    assert all(r.data.metrics["val_best"] > 0 for r in fused)  # the expert's own row trains nothing: no objective
+    _, experts = runs(store, "experts", kind="expert")  # one per modality and seed: the trials share theirs
+    assert sorted((r.data.tags["row"], r.data.tags["seed"]) for r in experts) == [
+        ("expert bev", "0"), ("expert bev", "1000"), ("expert rgb", "0"), ("expert rgb", "1000"),
+    ]  # fmt: skip
+    _, jobs = runs(store, "bifnet_table4")
+    assert sorted(r.data.tags["row"] for r in jobs) == ["bifnet_bev", "bifnet_dst_sum"]
     assert all(r.data.tags["tuned"] in ("0", "1") and r.data.tags["tuned_config"] for r in jobs)
-    text = (tmp_path / "results" / "chinet_table2.md").read_text()
-    assert "Tuning (validation only; the race ran on each row's chosen trial):" in text and "| U-Net | 2 |" in text
-    assert (tmp_path / "results" / "runs" / "chinet_table2.trials.csv").is_file()
-    assert (tmp_path / "results" / "chinet_table2_tuning.png").is_file()
+    text = (tmp_path / "results" / "bifnet_table4.md").read_text()
+    assert "Tuning (validation only; the race ran on each row's chosen trial):" in text
+    assert "| LiDAR BEV | 2 | 0 (no trial scored) |" in text
+    assert (tmp_path / "results" / "runs" / "bifnet_table4.trials.csv").is_file()
+    assert (tmp_path / "results" / "bifnet_table4_tuning.png").is_file()

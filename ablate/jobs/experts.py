@@ -50,6 +50,7 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
         ecfg.fusion = None
         ecfg.experts = None
         ecfg.force = False
+        ecfg.trial = ecfg.tuned = ecfg.draws = None  # a tuning trial's row shares its experts with every trial
         ecfg.table = {
             "name": EXPERTS_TABLE,
             "title": "Single-modal experts",

@@ -205,7 +205,7 @@ def prepare_experts(spec: JobSpec, tracker: Tracker, exp: str) -> dict[str, tupl
     from ablate.jobs.experts import prepare  # torch: imported once a job trains
 
     try:
-        return prepare(spec.cfg, lambda ecfg, kind, row: run(JobSpec.of(ecfg, spec.context, kind, row)))
+        return prepare(spec.experts_cfg, lambda ecfg, kind, row: run(JobSpec.of(ecfg, spec.context, kind, row)))
     except JobFailed as err:
         run_id = tracker.start(exp, f"{spec.row} seed={spec.seed}", run_tags(spec))
         message = f"an expert failed: {err}"

@@ -12,8 +12,9 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from ablate import hardware
 from ablate.store import KIND_JOB, KIND_TRIAL, Outbox, SweepContext, config_hash, row_name
@@ -21,6 +22,25 @@ from ablate.store.outbox import FILE as OUTBOX_FILE
 
 #: Where jobs keep their checkpoints, relative to the launch directory (a job runs there).
 CHECKPOINTS = Path("checkpoints")
+
+
+def apply_draws(cfg: DictConfig) -> None:
+    """Apply a tuning trial's draws (``draws``: the config's own keys, nested, set by the racing sweeper,
+    :mod:`ablate.sweep.tuning`) over ``cfg``, in place; ``draws`` stays, so that the config hash tells trials apart.
+    A key the config lacks (a weight decay the recipe's optimiser does not set) is added."""
+    draws = cfg.get("draws")
+    if not draws:
+        return
+    with open_dict(cfg):
+        for key, value in flatten_leaves(OmegaConf.to_container(draws, resolve=True)):
+            OmegaConf.update(cfg, key, value, force_add=True)
+
+
+def flatten_leaves(tree: Any, prefix: str = "") -> list[tuple[str, Any]]:
+    """(dotted key, value) of every leaf of nested dicts."""
+    if not isinstance(tree, dict):
+        return [(prefix, tree)]
+    return [leaf for k, v in tree.items() for leaf in flatten_leaves(v, f"{prefix}.{k}" if prefix else str(k))]
 
 
 def checkpoint_dir(table: str, chash: str) -> Path:
@@ -47,6 +67,7 @@ class JobSpec:
     config_hash: str
     context: SweepContext
     outbox: Outbox = field(compare=False)  # one instance per job: it keeps what it has read of its file
+    base: DictConfig | None = field(default=None, compare=False)  # the config before its draws (table.tune)
 
     @classmethod
     def of(cls, cfg: DictConfig, context: SweepContext, kind: str | None = None, row: str | None = None) -> JobSpec:
@@ -55,10 +76,18 @@ class JobSpec:
         kind = kind or (KIND_TRIAL if cfg.get("trial") is not None else KIND_JOB)  # a tuning trial (table.tune)
         resolved = copy.deepcopy(cfg)
         numerics = hardware.resolve(resolved)
+        base = copy.deepcopy(resolved) if resolved.get("draws") else None
+        apply_draws(resolved)
         name = row or row_name(context.overrides, context.swept, context.row_choice)
         chash = config_hash(resolved)
         outbox = Outbox(checkpoint_dir(str(resolved.table.name), chash) / OUTBOX_FILE)
-        return cls(resolved, numerics, kind, name, chash, context, outbox)
+        return cls(resolved, numerics, kind, name, chash, context, outbox, base)
+
+    @property
+    def experts_cfg(self) -> DictConfig:
+        """The config the job's experts are derived from (:func:`ablate.jobs.experts.expert_config`): its own,
+        without a tuning trial's draws, so that every trial of a row on experts shares them."""
+        return self.base if self.base is not None else self.cfg
 
     @property
     def table(self) -> str:

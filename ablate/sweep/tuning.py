@@ -18,6 +18,10 @@ chose:
   failed trial counts as spent: it has no objective and is never chosen.
 * **Resuming**: the same command draws the same configs; a trial whose config has a FINISHED run is skipped by the
   jobs' config hash, and its objective read back from the store.
+* **Draws as config**: a trial's values go under ``draws`` (``++draws.task.optimizer.lr=...``), which the job applies
+  over its config (:func:`ablate.jobs.spec.apply_draws`); its experts (SMoE §4.3, BiFNet's frozen experts) are
+  derived from the config without them, so every trial of a row shares one pair of experts, trained on the recipe
+  at the trials' seed, and only stage 2 is tuned.
 * **Choice**: each row races on its trial with the best objective (the first such trial where several tie: the
   recipe before any draw). The raced jobs carry ``tuned=k`` and record the tuned parameters' values
   (``tuned_config``); a table refuses to mix runs of one row tuned to different configs.
@@ -79,7 +83,7 @@ class TuneSpec:
 
     def overrides(self, table: str, trial: int) -> list[str]:
         """Trial ``trial``'s overrides: its draws (added where the config lacks the key), its seed, its number."""
-        drawn = [f"++{name}={value}" for name, value in draw(self.space, table, self.seed, trial).items()]
+        drawn = [f"++draws.{name}={value}" for name, value in draw(self.space, table, self.seed, trial).items()]
         return [*drawn, f"seed={self.job_seed}", f"trial={trial}"]
 
     def describe(self, metric: str) -> str:
@@ -147,5 +151,5 @@ def choose(objectives: Mapping[str, Mapping[int, float]], trials: int, higher_is
 
 def tuned_overrides(spec: TuneSpec, table: str, trial: int) -> list[str]:
     """What a raced job of a row tuned to ``trial`` adds to its overrides: the trial's draws and ``tuned=trial``."""
-    drawn = [f"++{name}={value}" for name, value in draw(spec.space, table, spec.seed, trial).items()]
+    drawn = [f"++draws.{name}={value}" for name, value in draw(spec.space, table, spec.seed, trial).items()]
     return [*drawn, f"tuned={trial}"]

@@ -121,6 +121,11 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
         else ", ".join(tuned)
     )
     lines += ["", f"Tuned: {said}; N = {n} trials per row (trial 0 the recipe; the same draws for every row)."]
+    if trials["val_best"].isna().groupby(trials["row"]).all().any():
+        lines.append(
+            "A row with no scored trial raced on its recipe: an expert's own row trains nothing in a trial (rows on "
+            "experts tune their stage 2 only), or its trials failed."
+        )
     curves = curves_of(trials)
     if crossing(curves):
         lines.append("**The rows' expected-validation curves cross: the ranking depends on the tuning budget.**")

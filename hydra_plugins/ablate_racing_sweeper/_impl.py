@@ -212,11 +212,6 @@ class RacingSweeperImpl:
         try:
             tune = table.get("tune")
             spec = TuneSpec.from_config(OmegaConf.to_container(tune, resolve=True) if tune else None)  # type: ignore[arg-type]
-            if spec is not None and self.config.get("experts"):
-                raise ValueError(
-                    "table.tune: rows on frozen experts (two-stage training, SMoE §4.3) are not tuned yet: the trials "
-                    "would train the experts again at every draw; race this table on its recipe"
-                )
         except ValueError as err:  # one line naming the option, before any job runs
             print(f"error: {err}", file=sys.stderr)
             raise SystemExit(1) from None
