@@ -5,8 +5,8 @@ For each experiment (or those named), the sweep's plan (:mod:`ablate.sweep.plan`
 step time measured here (``plan.measure_s`` seconds of timing per table, the first row and expert whatever the time),
 then scheduled on the sweep's workers. Prints, per table, the rows, the estimated wall time of the trials and of the
 first look, and the N that fits the regeneration's budget of about 3 h for tuning plus racing (the first look's
-wall time counted three times over: later looks add seeds where rows are undecided). A two-stage table (SMoE) is
-refused tuning by the sweeper; it is listed with its first look alone.
+wall time counted three times over: later looks add seeds where rows are undecided). In a table on experts a
+trial trains stage 2 only (its experts, at the trials' seed, are trained once and counted once).
 
 Usage: ``python bench/tuning_cost.py [--trials 8] [--budget-h 3] [experiment ...]``.
 """
@@ -42,16 +42,15 @@ def main() -> None:
         plain = items(sweep_config(f"experiment={name}"))
         estimate(plain, args.measure_s)
         look = wall_seconds(plain, 2)
-        two_stage = any(i.key.startswith("expert") for i in plain)
         rows = len({i.key for i in plain if not i.key.startswith("expert")})
-        if two_stage or look is None:
-            shown = "—" if look is None else f"{look / 3600:.2f}"
-            print(f"{name:24} {rows:>4} {'refused':>10} {shown:>14} {'—':>15}")
+        if look is None:
+            print(f"{name:24} {rows:>4} {'—':>10} {'—':>14} {'—':>15}")
             continue
         per_trial = _trial_seconds(plain)
-        trials = args.trials * per_trial
+        experts = wall_seconds(list({i.key: i for i in plain if i.key.startswith("expert")}.values()), 2) or 0.0
+        trials = args.trials * per_trial + experts
         left = args.budget_h * 3600 - 3 * look
-        fits = max(0, int(left // per_trial)) if per_trial > 0 else 0
+        fits = max(0, int((left - experts) // per_trial)) if per_trial > 0 else 0
         print(f"{name:24} {rows:>4} {trials / 3600:>10.2f} {look / 3600:>14.2f} {fits:>15}")
 
 

@@ -62,8 +62,19 @@ warnings.filterwarnings("ignore", ".*GPU available but not used.*")
 #: Config keys that are not a job's params (the run's ``config.yaml`` artifact keeps the whole config): the table it
 #: fills (its title, rows and the paper's numbers), the options that change no number (ablate.store.UNHASHED), the
 #: metrics' labels, the scale's knobs and the task's modalities and targets (each already in the model's and the data's
-#: own params, which they resolve into), and the side-by-side timing's options.
-NOT_PARAMS = (*UNHASHED, "metrics", "primary", "modalities", "targets", "comp_time", "recipe")
+#: own params, which they resolve into), the side-by-side timing's options, and a tuning trial's number (a tag) and
+#: draws (applied over the config: their values are its params).
+NOT_PARAMS = (
+    *UNHASHED,
+    "metrics",
+    "primary",
+    "modalities",
+    "targets",
+    "comp_time",
+    "recipe",
+    "trial",
+    "draws",
+)
 #: Config keys of Hydra's instantiation or of display alone, in any group: not params either.
 DISPLAY = ("._partial_", "trainer.enable_model_summary", "task.figure_frames")
 
