@@ -25,12 +25,12 @@ from ablate.tables.collect import collect, made_lines, running, state_lines
 from ablate.tables.conditions import write_conditions
 from ablate.tables.curves import curves_path, from_store, read_curves, write_curves, write_figure
 from ablate.tables.forest import write_forest
+from ablate.tables.frames import FROM_COUNTS, read_frames, write_frames
 from ablate.tables.frames import from_store as frames_from_store
-from ablate.tables.frames import read_frames, write_frames
 from ablate.tables.provenance import Recompute, config_of, provenance
 from ablate.tables.records import read_records, records_path, write_records
 from ablate.tables.rows import write_rows
-from ablate.tables.spec import COSTS, table_spec
+from ablate.tables.spec import COSTS, row_names, table_spec
 from ablate.tables.tuning import check_tuned, read_trials, section, write_trials
 from ablate.tables.tuning import from_store as trials_from_store
 from ablate.tables.tuning import write_figure as write_tuning_figure
@@ -61,7 +61,8 @@ def write_table(
         written.append(write_records(runs, str(table.name), results_dir))
         runs = read_records(written[-1])
         written.append(write_curves(from_store(tracker, runs, table), results_dir, str(table.name)))
-    frames = frames_from_store(tracker, runs) if len(runs) else pd.DataFrame()
+    decomposes = str(table.primary) in FROM_COUNTS  # a task that keeps counts per test frame (ablate.tables.frames)
+    frames = frames_from_store(tracker, runs) if len(runs) and decomposes else pd.DataFrame()
     if publish and (kept := write_frames(frames, results_dir, str(table.name))) is not None:
         written.append(kept)
     runs.attrs["frames"] = frames  # the counts per test frame the verdicts resample (ablate.tables.frames)
@@ -99,14 +100,13 @@ def render_records(
 
 def tuning_section(trials: pd.DataFrame, table: DictConfig) -> list[str]:
     """The footer's lines on the table's tuning phase (:mod:`ablate.tables.tuning`); none without trials."""
-    return section(trials, table, {str(r.row): str(r.get("name", r.row)) for r in table.rows})
+    return section(trials, table, row_names(table))
 
 
 def tuning_figure(trials: pd.DataFrame, table: DictConfig, results_dir: str | Path) -> list[Path]:
     """``<table>_tuning.png`` where the table has trials."""
     Path(results_dir).mkdir(parents=True, exist_ok=True)
-    names = {str(r.row): str(r.get("name", r.row)) for r in table.rows}
-    path = write_tuning_figure(trials, table, names, Path(results_dir))
+    path = write_tuning_figure(trials, table, row_names(table), Path(results_dir))
     return [path] if path is not None else []
 
 

@@ -86,17 +86,23 @@ def rope_line(table: DictConfig, label: str) -> list[str]:
 
 def replayed_race(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, key: str) -> RaceState | None:
     """The race's own decisions, replayed from the runs (ablate.tables.racing); None without a race plan or rows."""
-    plan = RacePlan.from_config(recorded_plan(runs) or table.get("seeds"))
-    if plan is None:
-        return None
-    plan = plan.with_rope(table)  # the table's δ (table.rope), fixed before its first run
     rows = [str(r) for r in summary["row"] if r in set(runs.get("row", []))]
+    return replay(runs, table, rows, seed_values(runs, key), key)
+
+
+def replay(
+    runs: pd.DataFrame, table: DictConfig, rows: list[str], values: dict[str, pd.Series], key: str
+) -> RaceState | None:
+    """The race of ``rows`` on their ``values`` of ``key`` as the table reports it: the plan the runs ran under,
+    the table's δ (table.rope) and reference, judged on the seeds and the test frames where the runs kept counts
+    per frame (:func:`ablate.tables.frames.judged`); None without a race plan or rows."""
+    plan = RacePlan.from_config(recorded_plan(runs) or table.get("seeds"))
+    if plan is None or not rows:
+        return None
     named = table.get("reference")
     candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
-    if not rows:
-        return None
-    state = race(seed_values(runs, key), rows, candidates or rows[0], plan, key not in LOWER_IS_BETTER)
-    return judged(state, runs, table)  # on the seeds and the test frames where the runs kept counts per frame
+    state = race(values, rows, candidates or rows[0], plan.with_rope(table), key not in LOWER_IS_BETTER)
+    return judged(state, runs, table)
 
 
 def _ci_and_delta(

@@ -23,6 +23,7 @@ from omegaconf import DictConfig  # noqa: E402
 
 from ablate.store import Tracker  # noqa: E402
 from ablate.tables.records import RUNS_DIR  # noqa: E402
+from ablate.tables.spec import row_names  # noqa: E402
 
 COLUMNS = ["run_id", "row", "seed", "metric", "epoch", "value"]
 #: The training loss's name in a run's history.
@@ -68,7 +69,7 @@ def plot(curves: pd.DataFrame, table: DictConfig) -> Figure:
     """Two panels, the validation metric and the training loss per epoch: per row its mean over seeds, and a band
     from its lowest to its highest seed."""
     monitor = f"val/{table.primary}"
-    names = {str(r["row"]): str(r.get("name", r["row"])) for r in table.rows}
+    names = row_names(table)
     order = [r for r in names if r in set(curves["row"])] or sorted(set(curves["row"]))
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.4))
     for ax, metric, label in (

@@ -19,9 +19,9 @@ import pandas as pd  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from ablate.tables.frames import judged  # noqa: E402
-from ablate.tables.racing import Comparison, RacePlan, RaceState, race, recorded_plan, table_values  # noqa: E402
-from ablate.tables.spec import LOWER_IS_BETTER  # noqa: E402
+from ablate.tables.columns import replay  # noqa: E402
+from ablate.tables.racing import Comparison, RaceState, table_values  # noqa: E402
+from ablate.tables.spec import row_names  # noqa: E402
 from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, UNDECIDED, WORSE, words  # noqa: E402
 
 COLOURS = {BETTER: "tab:green", WORSE: "tab:red", EQUIVALENT: "tab:blue", DIFFERENT: "tab:orange", UNDECIDED: "grey"}
@@ -29,24 +29,15 @@ COLOURS = {BETTER: "tab:green", WORSE: "tab:red", EQUIVALENT: "tab:blue", DIFFER
 
 def table_race(table: DictConfig, runs: pd.DataFrame) -> RaceState | None:
     """The race of ``table``'s runs replayed, with the table's δ; None without a race plan or runs."""
-    plan = RacePlan.from_config(recorded_plan(runs) or table.get("seeds"))
-    if plan is None or not len(runs):
+    if not len(runs):
         return None
     values = table_values(runs, table)
-    rows = [str(r.row) for r in table.rows if str(r.row) in values]
-    if not rows:
-        return None
-    named = table.get("reference")
-    candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
-    key = str(table.primary)
-    return judged(
-        race(values, rows, candidates or rows[0], plan.with_rope(table), key not in LOWER_IS_BETTER), runs, table
-    )
+    return replay(runs, table, [str(r.row) for r in table.rows if str(r.row) in values], values, str(table.primary))
 
 
 def plot(state: RaceState, table: DictConfig) -> Figure:
     """The forest plot of ``state``'s comparisons (see the module)."""
-    names = {str(r.row): str(r.get("name", r.row)) for r in table.rows}
+    names = row_names(table)
     comparisons: list[Comparison] = list(state.comparisons.values())
     label = table.metrics.get(table.primary, table.primary)
     fig, ax = plt.subplots(figsize=(7.0, 0.55 * len(comparisons) + 1.6))

@@ -37,3 +37,8 @@ def sweep_params(params: Mapping[str, Any], arguments: Sequence[str], table: Dic
     named = {a.split("=", 1)[0].lstrip("+~") for a in arguments} | set(params)
     rows = run_rows(table)
     return {**params, "row": ",".join(rows)} if rows and "row" not in named else dict(params)
+
+
+def row_names(table: DictConfig) -> dict[str, str]:
+    """Each row of ``table`` and the name its table shows."""
+    return {str(r.row): str(r.get("name", r.row)) for r in table.rows}
