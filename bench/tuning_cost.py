@@ -5,8 +5,9 @@ For each experiment (or those named), the sweep's plan (:mod:`ablate.sweep.plan`
 step time measured here (``plan.measure_s`` seconds of timing per table, the first row and expert whatever the time),
 then scheduled on the sweep's workers. Prints, per table, the rows, the estimated wall time of the trials and of the
 first look, and the N that fits the regeneration's budget of about 3 h for tuning plus racing (the first look's
-wall time counted three times over: later looks add seeds where rows are undecided). In a table on experts a
-trial trains stage 2 only (its experts, at the trials' seed, are trained once and counted once).
+wall time counted three times over: later looks add seeds where rows are undecided). In a table on experts each
+trial index first trains every expert once (the experts' own trials, side by side), then stage 2 of every fused row
+on the chosen experts (trained once more at the trials' seed, counted once); a single-modal row is its expert.
 
 Usage: ``python bench/tuning_cost.py [--trials 8] [--budget-h 3] [experiment ...]``.
 """
@@ -46,8 +47,8 @@ def main() -> None:
         if look is None:
             print(f"{name:24} {rows:>4} {'—':>10} {'—':>14} {'—':>15}")
             continue
-        per_trial = _trial_seconds(plain)
         experts = wall_seconds(list({i.key: i for i in plain if i.key.startswith("expert")}.values()), 2) or 0.0
+        per_trial = _trial_seconds(plain) + experts  # the experts' trials, then stage 2's, per trial index
         trials = args.trials * per_trial + experts
         left = args.budget_h * 3600 - 3 * look
         fits = max(0, int((left - experts) // per_trial)) if per_trial > 0 else 0
@@ -60,7 +61,8 @@ def _trial_seconds(plan: list) -> float:
 
     seen: dict[str, Item] = {}
     for item in plan:
-        if not item.key.startswith("expert") and item.key not in seen:
+        single = item.config.get("experts") and item.config.stage.name == "single"  # its expert's trials tune it
+        if not item.key.startswith("expert") and not single and item.key not in seen:
             seen[item.key] = item
     return wall_seconds(list(seen.values()), 2) or 0.0
 

@@ -107,6 +107,7 @@ class TuningLauncher:
         self.batches.append(jobs)
         for overrides, job in zip(job_overrides, jobs):
             row, lr = job["row"], float(job.get("draws.task.optimizer.lr", RECIPE_LR))
+            row = f"expert {job['experts.tune']}" if "experts.tune" in job else row  # an expert's own trial
             if "trial" in job:
                 failed = (row, int(job["trial"])) in self.fail
                 self.trials.setdefault(row, {})[int(job["trial"])] = math.nan if failed else self.val(row, lr)
@@ -145,7 +146,7 @@ def test_tuning_lets_the_row_with_a_narrow_optimum_win_where_the_recipe_favours_
     objective = {"chinet": narrow, "unet": lambda lr: 93.0}  # unet: a broad plateau
     launcher = TuningLauncher(lambda r, lr: objective[r](lr), lambda r, lr, s: objective[r](lr) + 0.05 * s)
     assert objective["unet"](RECIPE_LR) > objective["chinet"](RECIPE_LR)  # at the recipe the plateau wins
-    tuned_sweep(tmp_path, monkeypatch, launcher).sweep(["row=chinet,unet"])
+    tuned_sweep(tmp_path, monkeypatch, launcher).sweep(["experiment=chinet_table2", "row=chinet,unet"])
     trials = [b for b in launcher.batches if "trial" in b[0]]
     assert len(trials) == 16 and all(sorted(j["row"] for j in b) == ["chinet", "unet"] for b in trials)
     raced = [j for b in launcher.batches if "trial" not in b[0] for j in b]
@@ -164,7 +165,7 @@ def test_a_failed_trial_is_spent_and_validation_alone_chooses(tmp_path, monkeypa
         lambda r, lr, s: 99.0 if (r == "chinet" and lr == RECIPE_LR) else 91.0,
         fail={("chinet", 0), ("unet", 5)},
     )
-    tuned_sweep(tmp_path, monkeypatch, launcher).sweep(["row=chinet,unet"])
+    tuned_sweep(tmp_path, monkeypatch, launcher).sweep(["experiment=chinet_table2", "row=chinet,unet"])
     assert {r: len(t) for r, t in launcher.trials.items()} == {"chinet": 16, "unet": 16}  # N each, failures spent
     raced = [j for b in launcher.batches if "trial" not in b[0] for j in b]
     assert {int(j["tuned"]) for j in raced if j["row"] == "chinet"} != {0}  # the failed recipe trial not chosen
@@ -176,12 +177,52 @@ def test_a_rerun_draws_the_same_trials_and_chooses_the_same(tmp_path, monkeypatc
     runs = []
     for _ in range(2):  # the second as a resumed phase: its jobs would be skipped by their config hash
         launcher = TuningLauncher(lambda r, lr: objective[r](lr), lambda r, lr, s: objective[r](lr))
-        tuned_sweep(tmp_path, monkeypatch, launcher).sweep(["row=chinet,unet"])
+        tuned_sweep(tmp_path, monkeypatch, launcher).sweep(["experiment=chinet_table2", "row=chinet,unet"])
         runs.append(launcher.batches)
     assert runs[0] == runs[1]
 
 
-def test_a_smoke_table_on_experts_tunes_two_trials_per_row_on_validation_and_races_on_the_choice(tmp_path) -> None:
+def test_experts_are_tuned_first_as_rows_of_their_own_and_stay_fixed_while_stage_2_is_tuned(tmp_path, monkeypatch):
+    # BiFNet Table IV: two single-modal rows (each its expert) and two fused rows on the frozen rgb and bev experts;
+    # the bev expert has a narrow optimum away from the recipe, the rgb expert a plateau
+    expert = {"expert rgb": lambda lr: 90.0, "expert bev": narrow}
+    fused = {"bifnet_dst_sum": lambda lr: 94.0, "bifnet_dst_cbf": narrow}
+    launcher = TuningLauncher(lambda r, lr: {**expert, **fused}[r](lr), lambda r, lr, s: 95.0 + 0.01 * s)
+    rows = "row=bifnet_image,bifnet_bev,bifnet_dst_sum,bifnet_dst_cbf"
+    tuned_sweep(tmp_path, monkeypatch, launcher, "table.tune.trials=6").sweep(["experiment=bifnet_table4", rows])
+    trials = [b for b in launcher.batches if "trial" in b[0]]
+    assert len(trials) == 12  # 6 trial indices of the experts, then 6 of the fused rows
+    assert all(sorted(j["experts.tune"] for j in b) == ["bev", "rgb"] for b in trials[:6])
+    assert all(sorted(j["row"] for j in b) == ["bifnet_dst_cbf", "bifnet_dst_sum"] for b in trials[6:])
+    assert [int(b[0]["trial"]) for b in trials] == [*range(6), *range(6)]  # the same draws for experts and rows
+    bev = max(range(6), key=lambda k: (launcher.trials["expert bev"][k], -k))  # the bev expert's validation winner
+    assert bev > 0
+    drawn = {k[len("draws.") :]: v for k, v in trials[bev][0].items() if k.startswith("draws.")}
+    fixed = {f"experts.draws.bev.{k}": v for k, v in drawn.items()}  # rgb's recipe: nothing to fix
+    for job in [j for b in launcher.batches[6:] for j in b]:  # the fused rows' trials and every raced job
+        assert {k: v for k, v in job.items() if k.startswith("experts.draws.")} == fixed
+    raced = {j["row"]: j for b in launcher.batches if "trial" not in b[0] for j in b}
+    assert raced["bifnet_bev"]["tuned"] == str(bev) and raced["bifnet_image"]["tuned"] == "0"  # as their experts
+    assert not any(k.startswith("draws.") for r in ("bifnet_bev", "bifnet_image") for k in raced[r])
+    assert raced["bifnet_dst_sum"]["tuned"] == "0" and int(raced["bifnet_dst_cbf"]["tuned"]) > 0
+
+
+def test_a_budget_spent_on_the_experts_leaves_stage_2_its_recipe_trial_at_least() -> None:
+    from ablate.sweep.tuning import Experts, tune
+
+    clock = iter(range(0, 10_000, 60))  # every call a minute later
+    spec = TuneSpec(4, SPACE, budget_min=5.0)
+    batches: list[list[list[str]]] = []
+    experts = Experts({"rgb": ["row=a"], "bev": ["row=a"]}, {"b": "bev"})
+    tuned = tune(
+        spec, "t", {"a": ["row=a"], "b": ["row=b"]}, experts, batches.append, lambda: {}, clock=lambda: next(clock)
+    )
+    assert tuned.experts_done < 4 and tuned.done == 1 and len(tuned.stopped) == 2
+    assert [len(b) for b in batches] == [2] * tuned.experts_done + [1]  # the single row b is tuned as its expert
+    assert tuned.overrides["b"] == ["tuned=0"] and tuned.overrides["a"] == ["tuned=0"]
+
+
+def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_and_races_on_the_choice(tmp_path):
     from tests.scaleout import SERIAL, TINY, ablate, output, runs
 
     rows = "row=bifnet_bev,bifnet_dst_sum"  # the LiDAR expert's row, and a fused row on frozen experts
@@ -190,22 +231,26 @@ def test_a_smoke_table_on_experts_tunes_two_trials_per_row_on_validation_and_rac
     store = f"sqlite:///{tmp_path / 'mlflow.db'}"
     _, trials = runs(store, "bifnet_table4", kind="trial")
     assert sorted((r.data.tags["row"], r.data.tags["trial"]) for r in trials) == [
-        ("bifnet_bev", "0"), ("bifnet_bev", "1"), ("bifnet_dst_sum", "0"), ("bifnet_dst_sum", "1"),
+        ("bifnet_dst_sum", "0"), ("bifnet_dst_sum", "1"),
+        ("expert bev", "0"), ("expert bev", "1"), ("expert rgb", "0"), ("expert rgb", "1"),
     ]  # fmt: skip
     for run in trials:  # validation only: an objective, never a test metric; a seed no race reaches
-        assert "val_best" in run.data.metrics and "max_f" not in run.data.metrics, run.data.metrics
+        assert run.data.metrics["val_best"] > 0 and "max_f" not in run.data.metrics, run.data.metrics
         assert run.data.tags["seed"] == "1000" and "task.optimizer.lr" in run.data.tags["trial_config"]
-    fused = [r for r in trials if r.data.tags["row"] == "bifnet_dst_sum"]
-    assert all(r.data.metrics["val_best"] > 0 for r in fused)  # the expert's own row trains nothing: no objective
+    first = min(r.info.start_time for r in trials if r.data.tags["row"] == "bifnet_dst_sum")
+    assert all(r.info.end_time <= first for r in trials if r.data.tags["row"].startswith("expert "))
     _, experts = runs(store, "experts", kind="expert")  # one per modality and seed: the trials share theirs
     assert sorted((r.data.tags["row"], r.data.tags["seed"]) for r in experts) == [
         ("expert bev", "0"), ("expert bev", "1000"), ("expert rgb", "0"), ("expert rgb", "1000"),
     ]  # fmt: skip
+    bev = max(
+        (r.data.metrics["val_best"], -int(r.data.tags["trial"])) for r in trials if r.data.tags["row"] == "expert bev"
+    )
     _, jobs = runs(store, "bifnet_table4")
-    assert sorted(r.data.tags["row"] for r in jobs) == ["bifnet_bev", "bifnet_dst_sum"]
-    assert all(r.data.tags["tuned"] in ("0", "1") and r.data.tags["tuned_config"] for r in jobs)
+    tuned = {r.data.tags["row"]: r.data.tags["tuned"] for r in jobs}
+    assert tuned["bifnet_bev"] == str(-bev[1]) and tuned["bifnet_dst_sum"] in ("0", "1")  # the LiDAR row: its expert's
     text = (tmp_path / "results" / "bifnet_table4.md").read_text()
     assert "Tuning (validation only; the race ran on each row's chosen trial):" in text
-    assert "| LiDAR BEV | 2 | 0 (no trial scored) |" in text
+    assert "| expert bev | 2 |" in text and "The experts' own recipe was tuned first" in text
     assert (tmp_path / "results" / "runs" / "bifnet_table4.trials.csv").is_file()
     assert (tmp_path / "results" / "bifnet_table4_tuning.png").is_file()

@@ -24,7 +24,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from ablate.jobs.spec import checkpoint_dir
+from ablate.jobs.spec import apply_draws, checkpoint_dir
 from ablate.store import Tracker, config_hash, file_lock
 
 log = logging.getLogger(__name__)
@@ -35,12 +35,14 @@ KIND_EXPERT = "expert"
 def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
     """The stage-1 config of ``modality``'s expert, derived from a job's config: its trainer with the experts' own
     ``experts.max_epochs`` and ``experts.max_steps`` where the job sets them (SMoE §4.3 at scale=paper: 80k steps
-    for each stage, conf/recipe/instance_paper.yaml)."""
+    for each stage, conf/recipe/instance_paper.yaml), and the values its table's tuning chose for this expert
+    (``experts.draws.<modality>``, :mod:`ablate.sweep.tuning`), applied and kept under ``draws``."""
     if modality not in cfg.modalities:
         raise KeyError(f"no modality {modality!r} to train an expert on; modalities are {list(cfg.modalities)}")
     ecfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
     experts = cfg.get("experts") or {}
     epochs, steps = experts.get("max_epochs"), experts.get("max_steps")  # resolved here, where `table` is the row's
+    tuned = (experts.get("draws") or {}).get(modality)
     with open_dict(ecfg):
         if epochs is not None:  # the experts' own epochs (stage 1), where the recipe sets them
             ecfg.trainer.max_epochs = int(epochs)
@@ -50,7 +52,8 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
         ecfg.fusion = None
         ecfg.experts = None
         ecfg.force = False
-        ecfg.trial = ecfg.tuned = ecfg.draws = None  # a tuning trial's row shares its experts with every trial
+        ecfg.trial = ecfg.tuned = None  # a tuning trial's row shares its experts with every trial
+        ecfg.draws = OmegaConf.to_container(tuned, resolve=True) if tuned else None  # the expert's own, if tuned
         ecfg.table = {
             "name": EXPERTS_TABLE,
             "title": "Single-modal experts",
@@ -58,7 +61,21 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
             "metrics": None,
             "rows": [],
         }
+    apply_draws(cast(DictConfig, ecfg))
     return cast(DictConfig, ecfg)
+
+
+def trial_config(cfg: DictConfig) -> tuple[DictConfig, str]:
+    """A tuning trial of an expert's own recipe (``experts.tune=<modality>``, set by the racing sweeper,
+    :mod:`ablate.sweep.tuning`): the expert's config (:func:`expert_config`) with the trial's number and draws (not
+    yet applied) and the job's table, so that it is a trial of that table, under its sweep; and its row name,
+    ``expert <modality>``."""
+    modality = str(cfg.experts.tune)
+    ecfg = expert_config(cfg, modality)
+    with open_dict(ecfg):
+        ecfg.trial, ecfg.table = cfg.trial, OmegaConf.to_container(cfg.table, resolve=False)
+        ecfg.draws = OmegaConf.to_container(cfg.draws, resolve=True) if cfg.get("draws") else None
+    return ecfg, f"expert {modality}"
 
 
 #: How stage 1 runs an expert's job: ``run(cfg, kind=..., row=...) -> Outcome`` with ``ckpt_dir`` and ``run_id``

@@ -41,7 +41,7 @@ from omegaconf.errors import OmegaConfBaseException, ValidationError
 from ablate import hardware
 from ablate.jobs.preempt import SETTLE_S, STOP, Stopped, exit_status, loky_worker
 from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unreachable
-from ablate.jobs.spec import JobSpec, checkpoint_dir
+from ablate.jobs.spec import JobSpec, checkpoint_dir, flatten_leaves
 from ablate.store import (
     KIND_JOB,
     UNHASHED,
@@ -169,9 +169,12 @@ def run_tags(spec: JobSpec) -> dict[str, str]:
 
 def tuned_values(cfg: DictConfig) -> str:
     """The values in ``cfg`` of the parameters its table tunes (``table.tune.space``), as JSON: what a trial tried,
-    or what a raced job was tuned to."""
+    or what a raced job was tuned to, with the values its experts were tuned to (``experts.<modality>.<key>``)."""
     space = (cfg.table.get("tune") or {}).get("space") or {}
-    return json.dumps({k: OmegaConf.select(cfg, str(k)) for k in space}, sort_keys=True, default=str)
+    values = {str(k): OmegaConf.select(cfg, str(k)) for k in space}
+    for modality, drawn in ((cfg.get("experts") or {}).get("draws") or {}).items():
+        values |= {f"experts.{modality}.{k}": v for k, v in flatten_leaves(OmegaConf.to_container(drawn))}
+    return json.dumps(values, sort_keys=True, default=str)
 
 
 def already_done(spec: JobSpec, tracker: Tracker, exp: str) -> Outcome | None:

@@ -16,8 +16,9 @@ from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
+from ablate.config import compose
 from ablate.store import file_lock
-from ablate.sweep.tuning import TuneSpec
+from ablate.sweep.tuning import Experts, TuneSpec
 from ablate.tables.spec import sweep_params
 
 PLANNED_FILE = ".planned"
@@ -42,7 +43,12 @@ def job_overrides(config: DictConfig) -> list[list[str]]:
     tune = OmegaConf.select(config, "table.tune", default=None)
     spec = TuneSpec.from_config(OmegaConf.to_container(tune, resolve=True) if tune else None)  # type: ignore[arg-type]
     name = str(OmegaConf.select(config, "table.name", default=""))
-    trials = [[*job, *spec.overrides(name, k)] for k in range(spec.trials) for job in jobs] if spec else []
+    trials = []
+    if spec is not None:  # the experts' trials first, where rows sit on experts; a single-modal row is its expert
+        keyed = {str(i): job for i, job in enumerate(jobs)}
+        experts = Experts.of(keyed, compose) if spec.experts else Experts()
+        tuned = [*experts.trials().values(), *(job for i, job in keyed.items() if i not in experts.single)]
+        trials = [[*job, *spec.overrides(name, k)] for k in range(spec.trials) for job in tuned]
     return trials + [[*job, f"seed={seed}"] for job in jobs for seed in range(int(looks[0]))]
 
 

@@ -22,6 +22,12 @@ chose:
   over its config (:func:`ablate.jobs.spec.apply_draws`); its experts (SMoE §4.3, BiFNet's frozen experts) are
   derived from the config without them, so every trial of a row shares one pair of experts, trained on the recipe
   at the trials' seed, and only stage 2 is tuned.
+* **Experts' own recipe** (SMoE §4.3, BiFNet's frozen experts): where rows sit on single-modal experts, each expert
+  is tuned first, once, as a row of its own (``expert <modality>``: ``experts.tune=<modality>`` makes a trial of it,
+  :func:`ablate.jobs.experts.trial_config`), with the same N and draws; its chosen values go under
+  ``experts.draws.<modality>`` of every later job, so the experts stay fixed while stage 2 is tuned (its trials sit
+  on the chosen experts, trained at the trials' seed), and a single-modal row, which *is* its expert, races on its
+  expert's choice. A budget that stops the experts' trials leaves the rest of it to stage 2.
 * **Choice**: each row races on its trial with the best objective (the first such trial where several tie: the
   recipe before any draw). The raced jobs carry ``tuned=k`` and record the tuned parameters' values
   (``tuned_config``); a table refuses to mix runs of one row tuned to different configs.
@@ -33,7 +39,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from ablate.sweep.draws import draw, parse_space
@@ -47,20 +53,22 @@ JOB_SEED = 1000
 @dataclass(frozen=True)
 class TuneSpec:
     """``table.tune``: ``trials`` per row (N, trial 0 the recipe), the draws' ``seed``, the ``space`` (parameter ->
-    Hydra sweep), the phase's ``budget_min`` (None: none) and the trials' training ``job_seed``."""
+    Hydra sweep), the phase's ``budget_min`` (None: none), the trials' training ``job_seed``, and whether rows on
+    experts have their ``experts`` tuned first."""
 
     trials: int
     space: dict[str, str]
     seed: int = 0
     budget_min: float | None = None
     job_seed: int = JOB_SEED
+    experts: bool = True  # tune the experts' own recipe first, where rows sit on experts
 
     @classmethod
     def from_config(cls, tune: Mapping[str, Any] | None) -> TuneSpec | None:
         """The spec of ``table.tune``; None where the table does not tune. One clear error per bad option."""
         if not tune:
             return None
-        unknown = set(tune) - {"trials", "space", "seed", "budget_min", "job_seed"}
+        unknown = set(tune) - {"trials", "space", "seed", "budget_min", "job_seed", "experts"}
         if unknown:
             raise ValueError(f"table.tune: unknown option(s) {', '.join(sorted(unknown))}")
         trials = tune.get("trials")
@@ -73,12 +81,16 @@ class TuneSpec:
         budget = tune.get("budget_min")
         if budget is not None and not float(budget) > 0:
             raise ValueError(f"table.tune.budget_min: {budget} must be positive (or null: no budget)")
+        experts = tune.get("experts", True)
+        if not isinstance(experts, bool):
+            raise ValueError(f"table.tune.experts: {experts!r} must be true or false")
         return cls(
             trials,
             {str(k): str(v) for k, v in space.items()},
             int(tune.get("seed", 0)),
             None if budget is None else float(budget),
             int(tune.get("job_seed", JOB_SEED)),
+            experts,
         )
 
     def overrides(self, table: str, trial: int) -> list[str]:
@@ -153,3 +165,103 @@ def tuned_overrides(spec: TuneSpec, table: str, trial: int) -> list[str]:
     """What a raced job of a row tuned to ``trial`` adds to its overrides: the trial's draws and ``tuned=trial``."""
     drawn = [f"++draws.{name}={value}" for name, value in draw(spec.space, table, spec.seed, trial).items()]
     return [*drawn, f"tuned={trial}"]
+
+
+def expert_overrides(spec: TuneSpec, table: str, chosen: Mapping[str, int]) -> list[str]:
+    """What every job of a table on experts adds once its experts' trials have chosen (``chosen``: modality ->
+    trial): each expert's chosen draws under ``experts.draws.<modality>`` (none for the recipe, trial 0)."""
+    return [
+        f"++experts.draws.{modality}.{name}={value}"
+        for modality, trial in chosen.items()
+        for name, value in draw(spec.space, table, spec.seed, trial).items()
+    ]
+
+
+def expert_row(modality: str) -> str:
+    """The tuning row of ``modality``'s expert, as its trials' runs name it (:func:`ablate.jobs.experts.trial_config`)."""
+    return f"expert {modality}"
+
+
+@dataclass(frozen=True)
+class Experts:
+    """Where a table's rows sit on experts: per modality, the overrides of a row its expert is derived from
+    (``base``), and the single-modal rows, each its modality's expert (``single``: row -> modality)."""
+
+    base: dict[str, list[str]] = field(default_factory=dict)
+    single: dict[str, str] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, jobs: Mapping[str, list[str]], compose: Callable[[list[str]], Any]) -> Experts:
+        """From the rows' overrides, each composed with ``compose`` (:func:`ablate.config.compose`)."""
+        from ablate.jobs.experts import needed  # torch: the sweeper plans the experts anyway
+
+        base: dict[str, list[str]] = {}
+        single: dict[str, str] = {}
+        for row, overrides in jobs.items():
+            cfg = compose(list(overrides))
+            if not cfg.get("experts"):
+                continue
+            for modality in needed(cfg):
+                base.setdefault(str(modality), list(overrides))
+            if cfg.stage.name == "single":
+                single[row] = str(cfg.stage.modality)
+        return cls(base, single)
+
+    def trials(self) -> dict[str, list[str]]:
+        """The experts' tuning rows and their jobs' overrides (but the trial's)."""
+        return {expert_row(m): [*o, f"++experts.tune={m}"] for m, o in self.base.items()}
+
+
+@dataclass
+class Tuned:
+    """What a tuning phase chose: per row, what its raced jobs add (``overrides``) and its chosen trial (``chosen``,
+    the experts' rows too); the trials run per row of stage 2 and of the experts; why a phase stopped early."""
+
+    overrides: dict[str, list[str]]
+    chosen: dict[str, int]
+    done: int
+    experts_done: int = 0
+    stopped: list[str] = field(default_factory=list)
+
+
+def tune(
+    spec: TuneSpec,
+    table: str,
+    jobs: Mapping[str, list[str]],
+    experts: Experts,
+    launch: Callable[[list[list[str]]], None],
+    objectives: Callable[[], Mapping[str, Mapping[int, float]]],
+    higher_is_better: bool = True,
+    clock: Callable[[], float] = time.monotonic,
+) -> Tuned:
+    """The whole tuning phase of a table: its experts' trials first where rows sit on experts (and
+    ``spec.experts``), then every other row's on the chosen experts; ``objectives`` reads the trials' objectives
+    back (row -> trial -> value) after each part. Single-modal rows on experts are tuned as their experts."""
+    started = clock()
+    fixed: list[str] = []
+    chosen: dict[str, int] = {}
+    out = Tuned({}, chosen, 0)
+    experts = experts if spec.experts else Experts()
+    if experts.base:
+        phase = run_phase(spec, table, experts.trials(), launch, clock)
+        out.experts_done, out.stopped = phase.done, [phase.stopped] if phase.stopped else []
+        got = choose(objectives(), phase.done, higher_is_better)
+        by_modality = {m: got.get(expert_row(m), 0) for m in experts.base}
+        chosen |= {expert_row(m): k for m, k in by_modality.items()}
+        fixed = expert_overrides(spec, table, by_modality)
+    stage2 = {row: [*o, *fixed] for row, o in jobs.items() if row not in experts.single}
+    if stage2:
+        left = spec.budget_min - (clock() - started) / 60 if spec.budget_min else None
+        part = replace(spec, budget_min=None if left is None else max(left, 1e-3))
+        phase = run_phase(part, table, stage2, launch, clock)
+        out.done = phase.done
+        out.stopped += [phase.stopped] if phase.stopped else []
+        chosen |= choose({r: v for r, v in objectives().items() if r in stage2}, phase.done, higher_is_better)
+    for row in jobs:
+        if row in experts.single:
+            chosen[row] = chosen.get(expert_row(experts.single[row]), 0)
+            out.overrides[row] = [*fixed, f"tuned={chosen[row]}"]
+        else:
+            chosen.setdefault(row, 0)
+            out.overrides[row] = [*fixed, *tuned_overrides(spec, table, chosen[row])]
+    return out

@@ -28,6 +28,8 @@ from ablate.tables.evp import crossing, expected_max  # noqa: E402
 from ablate.tables.records import RUNS_DIR  # noqa: E402
 
 KIND_TRIAL = "trial"
+#: How an expert's tuning row is named (ablate.sweep.tuning.expert_row): ``expert <modality>``.
+EXPERT_ROW = "expert "
 COLUMNS = ["run_id", "row", "trial", "seed", "status", "val_best", "trial_config", "seconds", "cpu", "started"]
 
 
@@ -90,18 +92,24 @@ def last_trials(trials: pd.DataFrame) -> pd.DataFrame:
 
 
 def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> list[str]:
-    """The markdown lines on the tuning phase (none without trials): a table of the rows' chosen trials, the
-    footer's sentence, and whether the rows' curves cross."""
+    """The markdown lines on the tuning phase: a table of the rows' chosen trials, the footer's sentence, and whether
+    the rows' curves cross; without trials, why the table races on the recipe where it says (``table.untuned``),
+    else none."""
     trials = last_trials(trials)
     if trials.empty:
-        return []
+        untuned = table.get("untuned")  # a table that races on the recipe says why (docs/tuning.md)
+        return ["", f"No tuning phase: every row raced on the recipe, because {untuned}."] if untuned else []
     lines = ["", "Tuning (validation only; the race ran on each row's chosen trial):", ""]
     lines += [
         "| Row | Trials | Chosen trial | Its config | Its validation objective | CPU min |",
         "|:--|--:|--:|:--|--:|--:|",
     ]
-    order = {row: i for i, row in enumerate(names)}  # the table's rows in its order
-    for row, sel in sorted(trials.groupby("row"), key=lambda kv: (order.get(str(kv[0]), len(order)), str(kv[0]))):
+    order = {row: i for i, row in enumerate(names)}  # the experts first (tuned first), then the table's rows in order
+
+    def place(row: str) -> tuple[int, int, str]:
+        return (0 if row.startswith(EXPERT_ROW) else 1, order.get(row, len(order)), row)
+
+    for row, sel in sorted(trials.groupby("row"), key=lambda kv: place(str(kv[0]))):
         scored = sel.dropna(subset=["val_best"])
         best = scored.sort_values(["val_best", "trial"], ascending=[False, True]).iloc[0] if len(scored) else None
         config = _config(best["trial_config"]) if best is not None else "—"
@@ -121,10 +129,16 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
         else ", ".join(tuned)
     )
     lines += ["", f"Tuned: {said}; N = {n} trials per row (trial 0 the recipe; the same draws for every row)."]
+    experts = sorted({str(r) for r in trials["row"] if str(r).startswith(EXPERT_ROW)})
+    if experts:
+        lines.append(
+            f"The experts' own recipe was tuned first, as rows of their own ({', '.join(experts)}), and kept fixed "
+            "while stage 2 was tuned on them; a single-modal row is its expert and raced on its expert's choice."
+        )
     if trials["val_best"].isna().groupby(trials["row"]).all().any():
         lines.append(
-            "A row with no scored trial raced on its recipe: an expert's own row trains nothing in a trial (rows on "
-            "experts tune their stage 2 only), or its trials failed."
+            "A row with no scored trial raced on its recipe: its trials failed, or (tuned with the experts' recipe "
+            "untuned) it is an expert's own row, which trains nothing in a trial."
         )
     curves = curves_of(trials)
     if crossing(curves):

@@ -33,10 +33,11 @@ from hydra.plugins.launcher import Launcher
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf
 
+from ablate.config import compose
 from ablate.store import AccessDenied, ServerUnreachable, SweepContext, Tracker, row_name
 from ablate.store.context import SWEPT_FILE
 from ablate.sweep import progress
-from ablate.sweep.tuning import TuneSpec, choose, run_phase, tuned_overrides
+from ablate.sweep.tuning import Experts, TuneSpec, expert_row, tune
 from ablate.tables import table_spec
 from ablate.tables.collect import job_runs, row_seconds
 from ablate.tables.racing import RacePlan, RaceState, race, table_values
@@ -203,15 +204,15 @@ class RacingSweeperImpl:
         return race_.returns
 
     def _tune(self, race_: Race, sdir: Path) -> None:
-        """The tuning phase where the table has one (``table.tune``, :mod:`ablate.sweep.tuning`): every row's trials,
-        one trial index a batch, then each row's jobs race on its chosen trial's config; the race's own budget
-        counts from there."""
+        """The tuning phase where the table has one (``table.tune``, :mod:`ablate.sweep.tuning`): the experts' trials
+        where rows sit on experts, then every other row's, one trial index a batch; then each row's jobs race on its
+        chosen trial's config; the race's own budget counts from there."""
         assert self.config is not None
         table = table_spec(self.config)
         name = str(table.name)
         try:
-            tune = table.get("tune")
-            spec = TuneSpec.from_config(OmegaConf.to_container(tune, resolve=True) if tune else None)  # type: ignore[arg-type]
+            given = table.get("tune")
+            spec = TuneSpec.from_config(OmegaConf.to_container(given, resolve=True) if given else None)  # type: ignore[arg-type]
         except ValueError as err:  # one line naming the option, before any job runs
             print(f"error: {err}", file=sys.stderr)
             raise SystemExit(1) from None
@@ -223,20 +224,26 @@ class RacingSweeperImpl:
             race_.returns.append(self._launch(batch, race_.launched))
             race_.launched += len(batch)
 
-        phase = run_phase(spec, name, race_.jobs, launch)
-        try:
-            objectives = trial_objectives(self._tracker(), name)
-        except (ServerUnreachable, AccessDenied) as err:
-            print(f"error: {err}; the tuning phase stopped: the same command resumes it", file=sys.stderr)
-            raise SystemExit(1) from None
-        chosen = choose(objectives, phase.done)
+        def objectives() -> dict[str, dict[int, float]]:
+            try:
+                return trial_objectives(self._tracker(), name)
+            except (ServerUnreachable, AccessDenied) as err:
+                print(f"error: {err}; the tuning phase stopped: the same command resumes it", file=sys.stderr)
+                raise SystemExit(1) from None
+
+        experts = Experts.of(race_.jobs, compose) if spec.experts else Experts()
+        tuned = tune(spec, name, race_.jobs, experts, launch, objectives)
+        values = objectives()
+        for row, k in tuned.chosen.items():
+            as_expert = expert_row(experts.single[row]) if row in experts.single else ""
+            value = values.get(as_expert or row, {}).get(k, float("nan"))
+            n = tuned.experts_done if row.startswith("expert ") or as_expert else tuned.done
+            said = " (its expert's)" if as_expert else ""
+            log.info("Tuned %s: trial %d of %d%s (validation %.4g)", row, k, n, said, value)
         for row in race_.jobs:
-            race_.jobs[row] = [*race_.jobs[row], *tuned_overrides(spec, name, chosen.get(row, 0))]
-            value = objectives.get(row, {}).get(chosen.get(row, 0), float("nan"))
-            log.info("Tuned %s: trial %d of %d (validation %.4g)", row, chosen.get(row, 0), phase.done, value)
-        self._tag_parent(
-            {"tune_trials": str(phase.done), "tune_chosen": " ".join(f"{r}={k}" for r, k in chosen.items())}
-        )
+            race_.jobs[row] = [*race_.jobs[row], *tuned.overrides[row]]
+        chosen = " ".join(f"{r}={k}" for r, k in tuned.chosen.items()).replace("expert ", "expert_")
+        self._tag_parent({"tune_trials": str(tuned.done), "tune_chosen": chosen})
         race_.started = time.monotonic()
 
     def _start_race(self, plan: RacePlan, combos: list[list[str]], swept: set[str]) -> Race:
