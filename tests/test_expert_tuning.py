@@ -9,7 +9,7 @@ import json
 from omegaconf import open_dict
 
 from ablate.config import compose
-from ablate.jobs.experts import expert_config
+from ablate.jobs.experts import expert_config, job_config
 from ablate.jobs.job import tuned_values
 from ablate.jobs.spec import JobSpec
 from ablate.store import KIND_TRIAL, SweepContext, config_hash
@@ -34,13 +34,14 @@ def test_a_tuned_experts_values_reach_its_config_and_hash_and_the_other_expert_i
 
 def test_an_expert_trial_is_a_validation_trial_of_the_experts_config_in_its_table(tmp_path) -> None:
     cfg = compose([*FUSED, "++experts.tune=rgb", "++draws.task.optimizer.lr=0.0031", "seed=1000", "trial=3"])
-    spec = JobSpec.of(cfg, SweepContext(launch_dir=tmp_path))
+    trial, row = job_config(cfg)  # what the job runs (ablate.jobs.job.main)
+    spec = JobSpec.of(trial, SweepContext(launch_dir=tmp_path), row=row)
     assert (spec.kind, spec.row, spec.table, spec.seed) == (KIND_TRIAL, "expert rgb", "bifnet_table4", 1000)
     assert spec.cfg.stage.name == "single" and spec.cfg.stage.modality == "rgb" and not spec.cfg.get("experts")
     assert spec.cfg.task.optimizer.lr == 0.0031 and spec.cfg.trial == 3
     assert spec.cfg.trainer.max_epochs == compose(FUSED).experts.max_epochs != compose(FUSED).trainer.max_epochs
     other = compose([*FUSED, "++experts.tune=rgb", "++draws.task.optimizer.lr=0.0017", "seed=1000", "trial=4"])
-    assert JobSpec.of(other, SweepContext(launch_dir=tmp_path)).config_hash != spec.config_hash
+    assert JobSpec.of(job_config(other)[0], SweepContext(launch_dir=tmp_path)).config_hash != spec.config_hash
     with open_dict(cfg):
         cfg.trial = 3
     # the trial and the expert of the same values are different jobs: a trial never tests, an expert does

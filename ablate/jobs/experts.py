@@ -65,6 +65,12 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
     return cast(DictConfig, ecfg)
 
 
+def job_config(cfg: DictConfig) -> tuple[DictConfig, str | None]:
+    """The config a job runs and its row name where the config says better than the overrides: an expert's tuning
+    trial where ``experts.tune`` is set (:func:`trial_config`), else ``cfg`` itself and None."""
+    return trial_config(cfg) if (cfg.get("experts") or {}).get("tune") else (cfg, None)
+
+
 def trial_config(cfg: DictConfig) -> tuple[DictConfig, str]:
     """A tuning trial of an expert's own recipe (``experts.tune=<modality>``, set by the racing sweeper,
     :mod:`ablate.sweep.tuning`): the expert's config (:func:`expert_config`) with the trial's number and draws (not

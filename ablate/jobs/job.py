@@ -346,7 +346,10 @@ def main(cfg: DictConfig) -> str:
     context = SweepContext.current()
     try:
         with STOP.installed(), in_launch_dir(context.launch_dir):
-            return run(JobSpec.of(cfg, context)).status
+            from ablate.jobs.experts import job_config  # torch: the job trains
+
+            cfg, row = job_config(cfg)  # an expert's tuning trial (table.tune) is the expert's config
+            return run(JobSpec.of(cfg, context, row=row)).status
     except Stopped as stop:
         reason = stop.reason
         if loky_worker():  # a sweep's worker goes with its parent, which is stopping too

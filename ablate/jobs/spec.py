@@ -73,10 +73,6 @@ class JobSpec:
     def of(cls, cfg: DictConfig, context: SweepContext, kind: str | None = None, row: str | None = None) -> JobSpec:
         """The spec of job config ``cfg`` in ``context``; ``row`` names it where the caller knows better than the
         overrides (an expert)."""
-        if (cfg.get("experts") or {}).get("tune"):  # a tuning trial of an expert's own recipe (table.tune)
-            from ablate.jobs.experts import trial_config  # torch: imported once a job trains
-
-            cfg, row = trial_config(cfg)
         kind = kind or (KIND_TRIAL if cfg.get("trial") is not None else KIND_JOB)  # a tuning trial (table.tune)
         resolved = copy.deepcopy(cfg)
         numerics = hardware.resolve(resolved)

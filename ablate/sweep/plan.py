@@ -29,7 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from ablate import hardware
 from ablate.config import compose
-from ablate.jobs.experts import expert_config, needed, trial_config
+from ablate.jobs.experts import expert_config, job_config, needed
 from ablate.jobs.spec import best_checkpoint
 from ablate.jobs.steptime import StepTimes, step_times
 from ablate.store import config_hash, row_name
@@ -73,9 +73,7 @@ def items(config: DictConfig, done: Callable[[DictConfig], bool] = lambda cfg: F
     experts: dict[str, Item] = {}
     planned: list[Item] = []
     for overrides in jobs:
-        cfg = copy.deepcopy(compose(overrides))
-        if (cfg.get("experts") or {}).get("tune"):  # a tuning trial of an expert: the expert's config, no experts
-            cfg = trial_config(cfg)[0]
+        cfg = job_config(copy.deepcopy(compose(overrides)))[0]  # an expert's tuning trial: the expert's config
         hardware.resolve(cfg)
         row = row_name(overrides, swept)
         key = " ".join(sorted(o for o in overrides if not o.lstrip("+~").startswith("seed=")))
