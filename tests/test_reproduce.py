@@ -71,3 +71,28 @@ def test_the_prediction_interval_is_wider_than_the_mean_by_sqrt_1_plus_1_over_n(
     # t(0.975, 2) = 4.303; s = 0.1201; sqrt(1 + 1/3) = 1.1547
     assert (hi - lo) / 2 == pytest.approx(4.303 * np.std(values, ddof=1) * 1.1547, rel=1e-3)
     assert np.isnan(prediction_interval([97.0])[0])
+
+
+def test_a_tuned_row_is_rerun_on_the_config_it_was_tuned_to() -> None:
+    import json
+
+    import pandas as pd
+    import pytest
+
+    from ablate.analysis.reproduce import tuned_config
+    from ablate.config import compose
+
+    cfg = compose(["experiment=bifnet_table4", "row=bifnet_dst_sum", "scale=cpu"])
+    recipe = cfg.task.optimizer.lr
+    tuned = {"task.optimizer.lr": 0.0042, "task.optimizer.weight_decay": None, "experts.bev.task.optimizer.lr": 7e-4}
+    runs = pd.DataFrame({"seed": [0, 1], "tuned_config": [json.dumps(tuned)] * 2})
+    assert tuned_config(runs, cfg) == [
+        "++draws.task.optimizer.lr=0.0042",
+        "++experts.draws.bev.task.optimizer.lr=0.0007",
+    ]
+    recipe_only = {"task.optimizer.lr": recipe, "task.optimizer.weight_decay": None}  # tuned to trial 0: the recipe
+    assert tuned_config(pd.DataFrame({"tuned_config": [json.dumps(recipe_only)]}), cfg) == []
+    assert tuned_config(pd.DataFrame({"tuned_config": ["", None]}), cfg) == []  # raced untuned
+    mixed = pd.DataFrame({"tuned_config": [json.dumps(tuned), json.dumps(recipe_only)]})
+    with pytest.raises(ValueError, match="tuned to different configs"):
+        tuned_config(mixed, cfg)

@@ -11,22 +11,27 @@ being the same files), and says:
 * where this machine, the precision or the thread count differ from the recorded runs' own: the numerics are a
   source of variation of their own (Bouthillier et al. 2021).
 
+A row raced on the config a tuning phase chose for it (its records' ``tuned_config``, :mod:`ablate.sweep.tuning`)
+is rerun on that config: each tuned value that differs from the composed config's is set again, under ``draws``
+(the experts' under ``experts.draws.<modality>``), as the sweep set it.
+
 The recorded runs are the table's published records (``results/runs/<table>.csv``, :mod:`ablate.tables.records`)
 where it has them, so the check works on a fresh clone; else the runs of the store the config names.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from ablate.store import Tracker
 from ablate.tables import collect, table_spec
@@ -49,6 +54,7 @@ class Reproduction:
     values: list[float]  # every recorded seed of the row
     interval: tuple[float, float]
     differences: list[str]  # the numerics that differ from the recorded runs'
+    tuned: list[str] = field(default_factory=list)  # the overrides that put the rerun on the row's tuned config
 
     @property
     def inside(self) -> bool:
@@ -69,6 +75,8 @@ class Reproduction:
                 f"[{lo:.2f}, {hi:.2f}] (mean {np.mean(self.values):.2f} over {n} recorded seeds)"
             )
         out = [head, verdict]
+        if self.tuned:
+            out.append(f"rerun on the row's tuned config: {' '.join(self.tuned)}")
         out += [f"differs from the recorded runs: {d}" for d in self.differences] or [
             "same CPU, precision and threads as the recorded runs"
         ]
@@ -87,6 +95,24 @@ def differences(recorded: list[dict[str, str]], now: dict[str, str]) -> list[str
         before = sorted({r.get(key, "?") for r in recorded})
         if before != [now.get(key, "?")]:
             out.append(f"{key}: {' / '.join(before)} -> {now.get(key, '?')}")
+    return out
+
+
+def tuned_config(runs: pd.DataFrame, cfg: DictConfig) -> list[str]:
+    """The overrides that put a rerun of a row on the config its recorded ``runs`` were tuned to: each tuned value
+    that differs from ``cfg``'s (an unset value, a recipe's default, is left as the recipe has it); a row whose runs
+    were tuned to different configs is refused (:func:`ablate.tables.tuning.check_tuned`)."""
+    if "tuned_config" not in runs:
+        return []
+    configs = sorted({str(c) for c in runs["tuned_config"].fillna("") if str(c)})
+    if len(configs) > 1:
+        raise ValueError(f"the row's recorded runs were tuned to different configs: {'; '.join(configs)}")
+    out = []
+    for key, value in json.loads(configs[0]).items() if configs else []:
+        modality, name = key.split(".", 2)[1:] if key.startswith("experts.") else (None, key)
+        if value is None or value == OmegaConf.select(cfg, name):
+            continue
+        out.append(f"++experts.draws.{modality}.{name}={value}" if modality else f"++draws.{name}={value}")
     return out
 
 
@@ -130,9 +156,10 @@ def reproduce(
     given = [o for o in overrides if o.startswith("seed=")]
     seed = int(given[0].split("=", 1)[1]) if given else min(by_seed)
     rest = [o for o in overrides if not o.startswith("seed=")]
+    tuned = tuned_config(mine, cfg)
     with tempfile.TemporaryDirectory(prefix="ablate-reproduce-") as tmp:
         scratch = keep or Path(tmp)
-        rerun([*rest, f"seed={seed}"], Path.cwd(), scratch)
+        rerun([*rest, *tuned, f"seed={seed}"], Path.cwd(), scratch)
         fresh = Tracker(f"sqlite:///{scratch / 'mlflow.db'}")
         new = under_condition(collect(fresh, str(table.name)), table)
         new = new[(new["row"] == row) & (new["seed"].astype(str) == str(seed))]
@@ -148,4 +175,5 @@ def reproduce(
         values,
         prediction_interval(values),
         differences([numerics(r) for _, r in mine.iterrows()], numerics(new.iloc[0])),
+        tuned,
     )
