@@ -3,6 +3,7 @@ between batches, the choice on validation, and a table's tune spec checked optio
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -81,6 +82,10 @@ def test_the_table_names_each_rows_chosen_trial_and_flags_crossing_curves(tmp_pa
     assert "| Row A | 4 | 2 | lr=0.008 | 0.95 | 4.0 |" in text
     assert "| Row B | 4 | 0 | lr=0.001 | 0.62 | 4.0 |" in text  # its failed trial counts as spent
     assert "the ranking depends on the tuning budget" in text
+    assert "Tuned: task.optimizer.lr; N = 4" in text  # records without their search: the tuned keys alone
+    trials["search"] = json.dumps({"space": SPACE, "seed": 3})  # the trials' own record of their search
+    text = "\n".join(section(trials, table, {"a": "Row A", "b": "Row B"}))
+    assert f"Tuned: task.optimizer.lr ~ {SPACE['task.optimizer.lr']}, tuning seed 3; N = 4" in text
     assert write_figure(trials, table, {}, tmp_path) == tmp_path / "t_tuning.png"
     runs = pd.DataFrame({"row": ["a", "a", "b"], "tuned_config": [lr(0.008), lr(0.001), lr(0.001)]})
     with pytest.raises(ValueError, match="row a: its runs were tuned to different configs"):
@@ -252,5 +257,6 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     text = (tmp_path / "results" / "bifnet_table4.md").read_text()
     assert "Tuning (validation only; the race ran on each row's chosen trial):" in text
     assert "| expert bev | 2 |" in text and "The experts' own recipe was tuned first" in text
+    assert "task.optimizer.lr ~ tag(log, interval(1e-4, 1e-2))" in text and "tuning seed 0; N = 2" in text
     assert (tmp_path / "results" / "runs" / "bifnet_table4.trials.csv").is_file()
     assert (tmp_path / "results" / "bifnet_table4_tuning.png").is_file()

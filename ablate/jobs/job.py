@@ -161,6 +161,10 @@ def run_tags(spec: JobSpec) -> dict[str, str]:
     for key in ("trial", "tuned"):  # a tuning trial, or a raced job tuned to one (ablate.sweep.tuning)
         if cfg.get(key) is not None:
             tags |= {key: str(cfg[key]), f"{key}_config": tuned_values(cfg)}
+    if cfg.get("trial") is not None:  # the search it is a draw of, for the table's footer (ablate.tables.tuning)
+        tune = OmegaConf.to_container(cfg.table.get("tune") or {}, resolve=True)
+        assert isinstance(tune, dict)
+        tags["tune_search"] = json.dumps({"space": tune.get("space") or {}, "seed": tune.get("seed", 0)})
     if spec.parent_run:
         tags.update({"mlflow.parentRunId": spec.parent_run, "sweep_id": spec.parent_run})
         tags["job_num"] = str(spec.context.job_num)

@@ -4,7 +4,8 @@ tuning seed and the validation metric; and ``<table>_tuning.png``, each row's ex
 against the number of trials (:mod:`ablate.tables.evp`), flagging rows whose curves cross ("the ranking depends on
 the budget").
 
-The trials are runs of kind ``trial`` (tags ``row``, ``trial``, ``trial_config``; metric ``val_best``), kept beside
+The trials are runs of kind ``trial`` (tags ``row``, ``trial``, ``trial_config``, ``tune_search``: the space and
+the tuning seed; metric ``val_best``), kept beside
 the table's records (``runs/<table>.trials.csv``) so that the section renders again without the store. A table
 whose runs of one row were tuned to different configs (tag ``tuned_config``) is refused: its seeds would not be
 seeds of one config.
@@ -30,7 +31,9 @@ from ablate.tables.records import RUNS_DIR  # noqa: E402
 KIND_TRIAL = "trial"
 #: How an expert's tuning row is named (ablate.sweep.tuning.expert_row): ``expert <modality>``.
 EXPERT_ROW = "expert "
-COLUMNS = ["run_id", "row", "trial", "seed", "status", "val_best", "trial_config", "seconds", "cpu", "started"]
+COLUMNS = [
+    "run_id", "row", "trial", "seed", "status", "val_best", "trial_config", "seconds", "cpu", "started", "search",
+]  # fmt: skip
 
 
 def trials_path(results_dir: str | Path, table: str) -> Path:
@@ -51,7 +54,7 @@ def from_store(tracker: Tracker, table: str) -> pd.DataFrame:
         value = r.data.metrics.get("val_best", np.nan) if r.info.status == "FINISHED" else np.nan
         out.append([r.info.run_id, tags.get("row", "?"), int(tags.get("trial", -1)), tags.get("seed", "?"),
                     r.info.status, value, tags.get("trial_config", "{}"), seconds, tags.get("cpu", "?"),
-                    r.info.start_time])  # fmt: skip
+                    r.info.start_time, tags.get("tune_search", "")])  # fmt: skip
     return pd.DataFrame(out, columns=COLUMNS).sort_values("started", kind="stable").reset_index(drop=True)
 
 
@@ -66,7 +69,10 @@ def write_trials(trials: pd.DataFrame, results_dir: str | Path, table: str) -> P
 
 def read_trials(results_dir: str | Path, table: str) -> pd.DataFrame:
     path = trials_path(results_dir, table)
-    return pd.read_csv(path, dtype={"trial_config": str}) if path.exists() else pd.DataFrame(columns=COLUMNS)
+    if not path.exists():
+        return pd.DataFrame(columns=COLUMNS)
+    trials = pd.read_csv(path, dtype={"trial_config": str, "search": str}, keep_default_na=False, na_values=[""])
+    return trials.reindex(columns=[*COLUMNS, *(c for c in trials if c not in COLUMNS)])  # older records: no search
 
 
 def check_tuned(runs: pd.DataFrame) -> None:
@@ -119,12 +125,13 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
             f"| {names.get(str(row), row)} | {len(sel)} | {chosen} | {config} | {objective} | "
             f"{sel['seconds'].sum() / 60:.1f} |"
         )
-    tune = table.get("tune") or {}
-    space = dict(tune.get("space") or {})
+    searches = [str(s) for s in trials.get("search", pd.Series(dtype=str)).dropna() if str(s)]
+    search = json.loads(searches[0]) if searches else {}  # the records' own: older records have none
+    space = dict(search.get("space") or {})
     tuned = sorted(json.loads(str(trials["trial_config"].iloc[0]) or "{}"))
     n = int(trials.groupby("row")["trial"].count().max())
     said = (
-        "; ".join(f"{k} ~ {v}" for k, v in space.items()) + f", tuning seed {tune.get('seed', 0)}"
+        "; ".join(f"{k} ~ {v}" for k, v in space.items()) + f", tuning seed {search.get('seed', 0)}"
         if space
         else ", ".join(tuned)
     )
