@@ -77,12 +77,14 @@ def test_the_table_names_each_rows_chosen_trial_and_flags_crossing_curves(tmp_pa
         columns=["row", "trial", "val_best", "trial_config"],
     )  # fmt: skip
     trials["seconds"] = 60.0
+    trials["started"] = [i * 30_000 for i in range(len(trials))]  # two at a time: a trial every 30 s
     table = OmegaConf.create({"name": "t", "title": "T", "tune": {"trials": 4, "space": SPACE, "seed": 0}})
     text = "\n".join(section(trials, table, {"a": "Row A", "b": "Row B"}))
     assert "| Row A | 4 | 2 | lr=0.008 | 0.95 | 4.0 |" in text
     assert "| Row B | 4 | 0 | lr=0.001 | 0.62 | 4.0 |" in text  # its failed trial counts as spent
     assert "the ranking depends on the tuning budget" in text
     assert "Tuned: task.optimizer.lr; N = 4" in text  # records without their search: the tuned keys alone
+    assert "The tuning phase: 8 trials, 8 CPU min, 4 min of wall time" in text  # 7 x 30 s + the last one's 60 s
     trials["search"] = json.dumps({"space": SPACE, "seed": 3})  # the trials' own record of their search
     text = "\n".join(section(trials, table, {"a": "Row A", "b": "Row B"}))
     assert f"Tuned: task.optimizer.lr ~ {SPACE['task.optimizer.lr']}, tuning seed 3; N = 4" in text

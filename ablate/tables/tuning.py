@@ -136,6 +136,12 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
         else ", ".join(tuned)
     )
     lines += ["", f"Tuned: {said}; N = {n} trials per row (trial 0 the recipe; the same draws for every row)."]
+    ends = trials["started"].astype(float) + 1000 * trials["seconds"].astype(float)
+    wall = (ends.max() - trials["started"].astype(float).min()) / 60000
+    lines.append(
+        f"The tuning phase: {len(trials)} trials, {trials['seconds'].sum() / 60:.0f} CPU min, {wall:.0f} min of wall "
+        "time from the first trial's start to the last one's end (before the race)."
+    )
     experts = sorted({str(r) for r in trials["row"] if str(r).startswith(EXPERT_ROW)})
     if experts:
         lines.append(
