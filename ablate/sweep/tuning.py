@@ -20,8 +20,8 @@ chose:
   jobs' config hash, and its objective read back from the store.
 * **Draws as config**: a trial's values go under ``draws`` (``++draws.task.optimizer.lr=...``), which the job applies
   over its config (:func:`ablate.jobs.spec.apply_draws`); its experts (SMoE §4.3, BiFNet's frozen experts) are
-  derived from the config without them, so every trial of a row shares one pair of experts, trained on the recipe
-  at the trials' seed, and only stage 2 is tuned.
+  derived from the config without them, so every trial of a row shares one pair of experts, trained at the trials'
+  seed on their own values (below), and only stage 2 is tuned.
 * **Experts' own recipe** (SMoE §4.3, BiFNet's frozen experts): where rows sit on single-modal experts, each expert
   is tuned first, once, as a row of its own (``expert <modality>``: ``experts.tune=<modality>`` makes a trial of it,
   :func:`ablate.jobs.experts.trial_config`), with the same N and draws; its chosen values go under
@@ -93,10 +93,14 @@ class TuneSpec:
             experts,
         )
 
+    def drawn(self, table: str, trial: int, under: str = "draws") -> list[str]:
+        """Trial ``trial``'s draws as overrides under ``under`` (added where the config lacks the key); none for
+        trial 0, the recipe."""
+        return [f"++{under}.{name}={value}" for name, value in draw(self.space, table, self.seed, trial).items()]
+
     def overrides(self, table: str, trial: int) -> list[str]:
-        """Trial ``trial``'s overrides: its draws (added where the config lacks the key), its seed, its number."""
-        drawn = [f"++draws.{name}={value}" for name, value in draw(self.space, table, self.seed, trial).items()]
-        return [*drawn, f"seed={self.job_seed}", f"trial={trial}"]
+        """Trial ``trial``'s overrides: its draws, its seed, its number."""
+        return [*self.drawn(table, trial), f"seed={self.job_seed}", f"trial={trial}"]
 
     def describe(self, metric: str) -> str:
         """One sentence for a table's footer."""
@@ -163,18 +167,13 @@ def choose(objectives: Mapping[str, Mapping[int, float]], trials: int, higher_is
 
 def tuned_overrides(spec: TuneSpec, table: str, trial: int) -> list[str]:
     """What a raced job of a row tuned to ``trial`` adds to its overrides: the trial's draws and ``tuned=trial``."""
-    drawn = [f"++draws.{name}={value}" for name, value in draw(spec.space, table, spec.seed, trial).items()]
-    return [*drawn, f"tuned={trial}"]
+    return [*spec.drawn(table, trial), f"tuned={trial}"]
 
 
 def expert_overrides(spec: TuneSpec, table: str, chosen: Mapping[str, int]) -> list[str]:
     """What every job of a table on experts adds once its experts' trials have chosen (``chosen``: modality ->
     trial): each expert's chosen draws under ``experts.draws.<modality>`` (none for the recipe, trial 0)."""
-    return [
-        f"++experts.draws.{modality}.{name}={value}"
-        for modality, trial in chosen.items()
-        for name, value in draw(spec.space, table, spec.seed, trial).items()
-    ]
+    return [o for modality, trial in chosen.items() for o in spec.drawn(table, trial, f"experts.draws.{modality}")]
 
 
 def expert_row(modality: str) -> str:
@@ -215,13 +214,15 @@ class Experts:
 @dataclass
 class Tuned:
     """What a tuning phase chose: per row, what its raced jobs add (``overrides``) and its chosen trial (``chosen``,
-    the experts' rows too); the trials run per row of stage 2 and of the experts; why a phase stopped early."""
+    the experts' rows too); the trials run per row of stage 2 and of the experts; why a phase stopped early; the
+    trials' objectives as last read (row -> trial -> value)."""
 
     overrides: dict[str, list[str]]
     chosen: dict[str, int]
     done: int
     experts_done: int = 0
     stopped: list[str] = field(default_factory=list)
+    objectives: Mapping[str, Mapping[int, float]] = field(default_factory=dict)
 
 
 def tune(
@@ -245,7 +246,8 @@ def tune(
     if experts.base:
         phase = run_phase(spec, table, experts.trials(), launch, clock)
         out.experts_done, out.stopped = phase.done, [phase.stopped] if phase.stopped else []
-        got = choose(objectives(), phase.done, higher_is_better)
+        out.objectives = objectives()
+        got = choose(out.objectives, phase.done, higher_is_better)
         by_modality = {m: got.get(expert_row(m), 0) for m in experts.base}
         chosen |= {expert_row(m): k for m, k in by_modality.items()}
         fixed = expert_overrides(spec, table, by_modality)
@@ -256,7 +258,8 @@ def tune(
         phase = run_phase(part, table, stage2, launch, clock)
         out.done = phase.done
         out.stopped += [phase.stopped] if phase.stopped else []
-        chosen |= choose({r: v for r, v in objectives().items() if r in stage2}, phase.done, higher_is_better)
+        out.objectives = objectives()
+        chosen |= choose({r: v for r, v in out.objectives.items() if r in stage2}, phase.done, higher_is_better)
     for row in jobs:
         if row in experts.single:
             chosen[row] = chosen.get(expert_row(experts.single[row]), 0)

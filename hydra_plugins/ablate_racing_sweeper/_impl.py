@@ -233,7 +233,7 @@ class RacingSweeperImpl:
 
         experts = Experts.of(race_.jobs, compose) if spec.experts else Experts()
         tuned = tune(spec, name, race_.jobs, experts, launch, objectives)
-        values = objectives()
+        values = tuned.objectives
         for row, k in tuned.chosen.items():
             as_expert = expert_row(experts.single[row]) if row in experts.single else ""
             value = values.get(as_expert or row, {}).get(k, float("nan"))
