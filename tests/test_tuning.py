@@ -55,6 +55,7 @@ def test_the_choice_is_the_best_validation_trial_and_a_failed_trial_is_never_cho
         ({"trials": 3}, r"table\.tune\.space: empty"),
         ({"trials": 3, "space": {"task.optimizer.lr": "1e-3"}}, r"table\.tune\.space\.task\.optimizer\.lr: .* a value"),
         ({"trials": 3, "space": SPACE, "budget": 5}, r"table\.tune: unknown option\(s\) budget"),
+        ({"trials": 3, "space": SPACE, "experts": "yes"}, r"table\.tune\.experts: 'yes' must be true or false"),
     ],
 )
 def test_a_bad_tune_spec_is_one_clear_error_naming_the_option(tune: dict, message: str) -> None:
