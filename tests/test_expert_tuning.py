@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import json
 
+import pandas as pd
 from omegaconf import open_dict
 
+from ablate.analysis.reproduce import tuned_config
 from ablate.config import compose
 from ablate.jobs.experts import expert_config, job_config
 from ablate.jobs.job import tuned_values
@@ -30,6 +32,9 @@ def test_a_tuned_experts_values_reach_its_config_and_hash_and_the_other_expert_i
     assert job.config_hash == config_hash(expert_config(tuned, "bev")) and job.cfg.task.optimizer.lr == 0.0042
     values = json.loads(tuned_values(tuned))  # what a raced job records it was tuned to
     assert values["experts.bev.task.optimizer.lr"] == 0.0042 and "task.optimizer.lr" in values
+    # ... and what the reproduction check reads back from it: the rerun's expert trains on the same value
+    rerun = tuned_config(pd.DataFrame({"tuned_config": [tuned_values(tuned)]}), plain)
+    assert rerun == ["++experts.draws.bev.task.optimizer.lr=0.0042"]
 
 
 def test_an_expert_trial_is_a_validation_trial_of_the_experts_config_in_its_table(tmp_path) -> None:

@@ -90,6 +90,11 @@ def test_a_tuned_row_is_rerun_on_the_config_it_was_tuned_to() -> None:
         "++draws.task.optimizer.lr=0.0042",
         "++experts.draws.bev.task.optimizer.lr=0.0007",
     ]
+    # an expert's value is set again even where it equals stage 2's own (the sweep set it: it is in the expert's hash)
+    same = {"task.optimizer.lr": recipe, "experts.rgb.task.optimizer.lr": recipe}
+    assert tuned_config(pd.DataFrame({"tuned_config": [json.dumps(same)]}), cfg) == [
+        f"++experts.draws.rgb.task.optimizer.lr={recipe}"
+    ]
     recipe_only = {"task.optimizer.lr": recipe, "task.optimizer.weight_decay": None}  # tuned to trial 0: the recipe
     assert tuned_config(pd.DataFrame({"tuned_config": [json.dumps(recipe_only)]}), cfg) == []
     assert tuned_config(pd.DataFrame({"tuned_config": ["", None]}), cfg) == []  # raced untuned

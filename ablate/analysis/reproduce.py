@@ -33,7 +33,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
-from ablate.store import Tracker
+from ablate.store import Tracker, split_tuned_key
 from ablate.tables import collect, table_spec
 from ablate.tables.collect import under_condition
 from ablate.tables.records import read_records, records_path
@@ -100,7 +100,8 @@ def differences(recorded: list[dict[str, str]], now: dict[str, str]) -> list[str
 
 def tuned_config(runs: pd.DataFrame, cfg: DictConfig) -> list[str]:
     """The overrides that put a rerun of a row on the config its recorded ``runs`` were tuned to: each tuned value
-    that differs from ``cfg``'s (an unset value, a recipe's default, is left as the recipe has it); a row whose runs
+    that differs from ``cfg``'s (an unset value, a recipe's default, is left as the recipe has it), and each value
+    its experts were tuned to (:func:`ablate.store.split_tuned_key`); a row whose runs
     were tuned to different configs is refused (:func:`ablate.tables.tuning.check_tuned`)."""
     if "tuned_config" not in runs:
         return []
@@ -109,9 +110,9 @@ def tuned_config(runs: pd.DataFrame, cfg: DictConfig) -> list[str]:
         raise ValueError(f"the row's recorded runs were tuned to different configs: {'; '.join(configs)}")
     out = []
     for key, value in json.loads(configs[0]).items() if configs else []:
-        modality, name = key.split(".", 2)[1:] if key.startswith("experts.") else (None, key)
-        if value is None or value == OmegaConf.select(cfg, name):
-            continue
+        modality, name = split_tuned_key(key)
+        if value is None or (modality is None and value == OmegaConf.select(cfg, name)):
+            continue  # an expert's value is recorded only where the sweep set it: always set again
         out.append(f"++experts.draws.{modality}.{name}={value}" if modality else f"++draws.{name}={value}")
     return out
 

@@ -52,6 +52,7 @@ from ablate.store import (
     flatten,
     provenance_tags,
     row_name,
+    tuned_key,
 )
 
 log = logging.getLogger(__name__)
@@ -177,7 +178,7 @@ def tuned_values(cfg: DictConfig) -> str:
     space = (cfg.table.get("tune") or {}).get("space") or {}
     values = {str(k): OmegaConf.select(cfg, str(k)) for k in space}
     for modality, drawn in ((cfg.get("experts") or {}).get("draws") or {}).items():
-        values |= {f"experts.{modality}.{k}": v for k, v in flatten_leaves(OmegaConf.to_container(drawn))}
+        values |= {tuned_key(k, modality): v for k, v in flatten_leaves(OmegaConf.to_container(drawn))}
     return json.dumps(values, sort_keys=True, default=str)
 
 

@@ -24,6 +24,8 @@ from ablate.store.identity import (
     provenance_tags,
     resolve_path,
     row_name,
+    split_tuned_key,
+    tuned_key,
 )
 from ablate.store.locks import file_lock
 from ablate.store.outage import DEFAULT_OUTAGE_S, ServerUnreachable
@@ -70,5 +72,7 @@ __all__ = [
     "resolve_path",
     "row_name",
     "runs_link",
+    "split_tuned_key",
     "tracking_uri",
+    "tuned_key",
 ]

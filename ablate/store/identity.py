@@ -80,6 +80,26 @@ def row_name(overrides: Iterable[str], swept: Iterable[str] | None, choice: str 
     return " ".join(sorted(own)) or "default"
 
 
+#: How a run's ``tuned_config`` tag names a value one of the job's experts was tuned to (``experts.<modality>.<key>``),
+#: beside the job's own tuned values (the config's keys).
+EXPERT_TUNED = "experts."
+
+
+def tuned_key(name: str, modality: str | None = None) -> str:
+    """The key of a tuned value in a run's ``tuned_config`` tag: the config's own key ``name``
+    (``task.optimizer.lr``), or ``experts.<modality>.<name>`` for the value the job's ``modality`` expert was tuned to
+    (the job's ``experts.draws.<modality>``, :mod:`ablate.sweep.tuning`). :func:`split_tuned_key` reads it back."""
+    return f"{EXPERT_TUNED}{modality}.{name}" if modality else name
+
+
+def split_tuned_key(key: str) -> tuple[str | None, str]:
+    """(the expert's modality or None, the config's key) of a ``tuned_config`` key made by :func:`tuned_key`."""
+    if not key.startswith(EXPERT_TUNED):
+        return None, key
+    modality, name = key.removeprefix(EXPERT_TUNED).split(".", 1)
+    return modality, name
+
+
 def config_hash(cfg: DictConfig) -> str:
     """A short, stable hash of the resolved config without the keys in :data:`UNHASHED`, its numerics resolved
     for this machine (:func:`ablate.hardware.resolved`: ``auto`` is hashed as what it becomes here)."""
