@@ -4,6 +4,7 @@ between batches, the choice on validation, and a table's tune spec checked optio
 from __future__ import annotations
 
 import json
+import logging
 import math
 
 import pytest
@@ -26,7 +27,7 @@ def test_every_row_gets_the_same_trials_one_batch_per_trial_index() -> None:
         assert a_rest == b_rest == ["seed=1000", f"trial={k}"]
 
 
-def test_the_budget_stops_the_phase_only_between_trial_indices() -> None:
+def test_the_budget_stops_the_phase_only_between_trial_indices(caplog: pytest.LogCaptureFixture) -> None:
     spec = TuneSpec.from_config({"trials": 10, "space": SPACE, "budget_min": 1.0})
     assert spec is not None
     now = [0.0]
@@ -36,8 +37,15 @@ def test_the_budget_stops_the_phase_only_between_trial_indices() -> None:
         launched.append(len(batch))
         now[0] += 25.0  # a trial index takes 25 s: the third would end at 75 s, past the minute
 
-    phase = run_phase(spec, "t", {"a": [], "b": [], "c": []}, launch, clock=lambda: now[0])
+    with caplog.at_level(logging.INFO, logger="ablate.sweep.tuning"):
+        phase = run_phase(spec, "t", {"a": [], "b": [], "c": []}, launch, clock=lambda: now[0])
     assert phase.done == 2 and launched == [3, 3] and "after trial 1 of every row" in phase.stopped
+    # the progress line before each trial index: none before the first has ended, then the ETA for the rest
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("Tuning trial")]
+    assert lines == [
+        "Tuning trial 0 of 10 for 3 row(s)",
+        "Tuning trial 1 of 10 for 3 row(s); 0.4 min spent, ETA 3.8 min (0.4 min a trial index)",
+    ]
 
 
 def test_the_choice_is_the_best_validation_trial_and_a_failed_trial_is_never_chosen() -> None:

@@ -143,12 +143,21 @@ def run_phase(
                 f"({elapsed / 60:.1f} min spent, about {per_batch / 60:.1f} more a trial)"
             )
             break
-        log.info("Tuning trial %d of %d for %d row(s)", k, spec.trials, len(jobs))
+        log.info("Tuning trial %d of %d for %d row(s)%s", k, spec.trials, len(jobs), _eta(k, spec.trials, elapsed))
         launch([[*overrides, *spec.overrides(table, k)] for overrides in jobs.values()])
         phase.done = k + 1
     if phase.stopped:
         log.info("Tuning stopped: %s", phase.stopped)
     return phase
+
+
+def _eta(k: int, trials: int, elapsed: float) -> str:
+    """The phase's progress before trial ``k``: the minutes spent, and an ETA taking the mean trial index so far for
+    each one to go (this one included); nothing before the first has ended."""
+    if not k:
+        return ""
+    per = elapsed / k
+    return f"; {elapsed / 60:.1f} min spent, ETA {per * (trials - k) / 60:.1f} min ({per / 60:.1f} min a trial index)"
 
 
 def choose(objectives: Mapping[str, Mapping[int, float]], trials: int, higher_is_better: bool = True) -> dict[str, int]:
