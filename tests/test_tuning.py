@@ -98,6 +98,13 @@ def test_the_table_names_each_rows_chosen_trial_and_flags_crossing_curves(tmp_pa
     text = "\n".join(section(trials, table, {"a": "Row A", "b": "Row B"}))
     assert f"Tuned: task.optimizer.lr ~ {SPACE['task.optimizer.lr']}, tuning seed 3; N = 4" in text
     assert write_figure(trials, table, {}, tmp_path) == tmp_path / "t_tuning.png"
+    # a stage-2 row's trials record the experts' values too: named as the experts', not listed as its own
+    fused = (
+        '{"experts.bev.task.optimizer.lr": 0.0049, "experts.rgb.task.optimizer.lr": 0.0011, "task.optimizer.lr": 3e-4}'
+    )
+    trials.loc[trials["row"] == "b", "trial_config"] = fused
+    text = "\n".join(section(trials, table, {"a": "Row A", "b": "Row B"}))
+    assert "| Row B | 4 | 0 | lr=0.0003 (on the experts' chosen trials: bev, rgb) | 0.62 | 4.0 |" in text
     runs = pd.DataFrame({"row": ["a", "a", "b"], "tuned_config": [lr(0.008), lr(0.001), lr(0.001)]})
     with pytest.raises(ValueError, match="row a: its runs were tuned to different configs"):
         check_tuned(runs)

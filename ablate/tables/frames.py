@@ -119,10 +119,8 @@ def from_store(tracker: Tracker, runs: pd.DataFrame) -> pd.DataFrame:
         with tempfile.TemporaryDirectory() as folder:
             path = tracker.download_artifact(source, FRAME_COUNTS, folder)
             counts = _read(path)
-        counts.insert(0, "seed", run["seed"])
-        counts.insert(0, "row", run["row"])
-        counts.insert(0, "run_id", run["run_id"])
-        parts.append(counts)
+        ids = pd.DataFrame({"run_id": run["run_id"], "row": run["row"], "seed": run["seed"]}, index=counts.index)
+        parts.append(pd.concat([ids, counts], axis=1))  # one concat: 514 columns inserted one by one fragment
     return pd.concat(parts, ignore_index=True).fillna(0) if parts else pd.DataFrame()
 
 

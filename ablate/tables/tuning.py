@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from ablate.store import Tracker  # noqa: E402
+from ablate.store import Tracker, split_tuned_key  # noqa: E402
 from ablate.tables.evp import crossing, expected_max  # noqa: E402
 from ablate.tables.records import RUNS_DIR  # noqa: E402
 
@@ -160,9 +160,13 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
 
 
 def _config(text: str) -> str:
-    values = json.loads(text or "{}")
-    shown = [f"{k.rsplit('.', 1)[-1]}={'default' if v is None else v}" for k, v in values.items()]
-    return ", ".join(shown) or "the recipe"
+    """A trial's own tuned values, short; a stage-2 trial's experts' values (``experts.<modality>.<key>``,
+    :func:`ablate.store.tuned_key`) are their own rows' chosen trials, so they are named, not repeated."""
+    values = [(split_tuned_key(k), v) for k, v in json.loads(text or "{}").items()]
+    shown = [f"{name.rsplit('.', 1)[-1]}={'default' if v is None else v}" for (m, name), v in values if m is None]
+    experts = sorted({m for (m, _), _ in values if m is not None})
+    on = f" (on the experts' chosen trials: {', '.join(experts)})" if experts else ""
+    return (", ".join(shown) or "the recipe") + on
 
 
 def curves_of(trials: pd.DataFrame) -> dict[str, np.ndarray]:
