@@ -81,4 +81,8 @@ def test_your_seeds_are_placed_in_the_published_rows_prediction_interval() -> No
     line = compare(ours, theirs, table).splitlines()[-1]
     # published: mean 95, s = 1, n = 3: 95 ± 4.30 · 1 · sqrt(4/3) = [90.03, 99.97]
     assert line.startswith("| U-Net | 97.25 (2) | 95.00 (3) | [90.03, 99.97] | 2 of 2 |"), line
-    assert "ISA: avx512f -> avx2" in line and "CPU" not in line
+    assert "ISA: avx512f -> avx2" in line and "CPU" not in line and "tuned config" not in line
+    # a published row raced on its tuned config, yours on the recipe: said, with the published values
+    tuned = '{"task.optimizer.lr": 0.0008727, "task.optimizer.weight_decay": null}'
+    line = compare(ours, theirs.assign(tuned_config=tuned), table).splitlines()[-1]
+    assert line.endswith("; tuned config: lr=0.0008727, weight_decay=default -> the recipe |"), line

@@ -4,7 +4,8 @@
 for each row, the user's mean of the table's primary metric beside the published mean (from the committed records,
 :mod:`ablate.tables.records`), how many of the user's seeds lie inside the published row's 95 % prediction interval
 for a new seed (:func:`ablate.tables.significance.prediction_interval`: the range one new run should fall in), and
-which of CPU, ISA, precision and threads differ from the published runs'. Results follow the instruction set's
+which of CPU, ISA, precision, threads and the tuned config differ from the published runs' (a published row
+raced on the config a tuning phase chose for it, :mod:`ablate.sweep.tuning`, while ``make run`` races the recipe). Results follow the instruction set's
 kernels and the thread count (a reduction adds in another order), so a machine of another ISA is expected to give
 other numbers for the same seed, inside the interval rather than equal to it.
 """
@@ -20,6 +21,7 @@ from omegaconf import DictConfig
 from ablate.tables.collect import under_condition
 from ablate.tables.records import read_records, records_path
 from ablate.tables.significance import prediction_interval
+from ablate.tables.tuning import config_text
 
 #: The record columns that say how a number was computed, beside the config.
 NUMERICS = {"made_cpu": "CPU", "cpu_isa": "ISA", "made_precision": "precision", "made_threads": "threads"}
@@ -53,13 +55,20 @@ def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> s
 
 
 def differing(mine: pd.DataFrame, published: pd.DataFrame) -> str:
-    """``name: published -> yours`` for each of :data:`NUMERICS` whose values differ."""
+    """``name: published -> yours`` for each of :data:`NUMERICS` whose values differ, then the tuned configs where
+    they differ (``the recipe`` for an untuned row, :func:`ablate.tables.tuning.config_text`)."""
     out = []
     for column, name in NUMERICS.items():
         before = sorted({str(v) for v in published.get(column, pd.Series(["?"]))})
         now = sorted({str(v) for v in mine.get(column, pd.Series(["?"]))})
         if before != now:
             out.append(f"{name}: {' / '.join(before)} -> {' / '.join(now)}")
+    before, now = (
+        sorted({config_text(str(c)) for c in runs.get("tuned_config", pd.Series([""])).fillna("")})
+        for runs in (published, mine)
+    )
+    if before != now:
+        out.append(f"tuned config: {' / '.join(before)} -> {' / '.join(now)}")
     return "; ".join(out)
 
 

@@ -118,7 +118,7 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
     for row, sel in sorted(trials.groupby("row"), key=lambda kv: place(str(kv[0]))):
         scored = sel.dropna(subset=["val_best"])
         best = scored.sort_values(["val_best", "trial"], ascending=[False, True]).iloc[0] if len(scored) else None
-        config = _config(best["trial_config"]) if best is not None else "—"
+        config = config_text(best["trial_config"]) if best is not None else "—"
         objective = f"{best['val_best']:.4g}" if best is not None else "—"
         chosen = str(int(best["trial"])) if best is not None else "0 (no trial scored)"
         lines.append(
@@ -159,7 +159,7 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
     return lines
 
 
-def _config(text: str) -> str:
+def config_text(text: str) -> str:
     """A trial's own tuned values, short; a stage-2 trial's experts' values (``experts.<modality>.<key>``,
     :func:`ablate.store.tuned_key`) are their own rows' chosen trials, so they are named, not repeated."""
     values = [(split_tuned_key(k), v) for k, v in json.loads(text or "{}").items()]
