@@ -29,12 +29,12 @@ NUMERICS = {"made_cpu": "CPU", "cpu_isa": "ISA", "made_precision": "precision", 
 
 def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> str:
     """Markdown: per row of ``table`` that both have, the means of the primary metric, the user's seeds inside the
-    published prediction interval, and the numerics that differ."""
+    published prediction interval, and the numerics or tuned config that differ."""
     key = str(table.primary)
     mine, published = under_condition(mine, table), under_condition(published, table)
     lines = [
         "| Row | Yours (mean, n) | Published (mean, n) | Published 95 % PI for a new seed | Your seeds inside | "
-        "Numerics that differ |",
+        "Numerics or tuned config that differ |",
         "|:--|--:|--:|:--|--:|:--|",
     ]
     for spec in table.rows:
