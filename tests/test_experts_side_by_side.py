@@ -74,3 +74,25 @@ def test_a_job_holds_no_running_run_while_it_waits_for_its_experts(
     runs = tracker.runs(tracker.experiment_id(spec.table))  # its failure is recorded, naming the expert
     assert [r.info.status for r in runs] == ["FAILED"]
     assert runs[0].data.tags["error"].startswith("an expert failed: expert rgb")
+
+
+def test_a_jobs_run_records_when_the_job_began_training_its_experts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from ablate.jobs import experts, job
+    from ablate.jobs.spec import JobSpec
+    from ablate.store import SweepContext, Tracker
+    from tests.stores import seed_store
+
+    monkeypatch.chdir(tmp_path)
+    seed_store(tmp_path)
+    cfg = compose(["experiment=smoe_table1", "row=smoe_fpn", "scale=smoke"])
+    spec = JobSpec.of(cfg, SweepContext(launch_dir=tmp_path))
+    tracker = Tracker.from_config(spec.cfg, spec.context)
+    monkeypatch.setattr(experts, "prepare", lambda cfg, run: time.sleep(0.5) or {})  # its experts: 0.5 s
+    monkeypatch.setattr(job, "train", lambda *args: {"mask_ap": 1.0})
+    monkeypatch.setattr(job, "attach_logs", lambda *args: None)
+    job.run(spec)
+    (run,) = tracker.runs(tracker.experiment_id(spec.table))
+    # the table's footer counts the job's wall time from here (ablate.tables.collect.made_lines)
+    assert run.info.start_time - int(run.data.tags["job_started"]) >= 500

@@ -171,3 +171,22 @@ def test_the_results_summary_reads_a_tables_numbers_as_it_read_its_markdown(tmp_
     from_numbers = summarise_numbers(spec, pd.read_csv(tmp_path / "a" / "t2.csv"))
     from_markdown = summarise_table(spec, (tmp_path / "a" / "t2.md").read_text())
     assert from_numbers == from_markdown and from_numbers.ours == "ChiNet"
+
+
+def test_the_footers_wall_time_starts_where_a_job_began_training_its_experts(tmp_path: Path) -> None:
+    from ablate.tables.collect import made_lines
+
+    tracker = store(tmp_path)
+    exp = tracker.experiment_id("t2")
+    tags = {"kind": KIND_JOB, "row": "chinet", "seed": "3", "scale": "cpu", "config_hash": "chinet3", "sweep_id": "s"}
+    run = tracker.start(exp, "chinet", tags | {"cpu": "AMD EPYC", "precision": "32-true", "threads": "1"})
+    began = tracker.get_run(run).info.start_time - 20 * 60000  # its experts took 20 min before its run
+    tracker.set_tags(run, {"job_started": str(began)})
+    tracker.log_metrics(run, {"det_rate": 96.5})
+    tracker.end(run, "FINISHED")
+    write_table(CFG, tracker, results_dir=tmp_path / "a", publish=True)
+    records = read_records(records_path(tmp_path / "a", "t2"))
+    assert records["job_started"].min() == began  # kept in the records, to the millisecond
+    assert "wall time 20 min over 1 sweep(s), 20 min of job time" in made_lines(records)[0]
+    # records written before the column: the runs' own spans, as those tables were rendered
+    assert "wall time 0 min over 1 sweep(s), 0 min of job time" in made_lines(records.drop(columns="job_started"))[0]

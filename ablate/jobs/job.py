@@ -131,8 +131,9 @@ def run(spec: JobSpec) -> Outcome:
         return done
     if stale := tracker.close_stale(exp, spec.config_hash):
         log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, spec.config_hash)
+    began = str(int(time.time() * 1000))  # the job's own start, before the experts it trains or waits for
     experts = prepare_experts(spec, tracker, exp)  # before the job's run: no RUNNING run while it waits for one
-    run_id = tracker.start(exp, f"{spec.row} seed={spec.seed}", run_tags(spec))
+    run_id = tracker.start(exp, f"{spec.row} seed={spec.seed}", run_tags(spec) | {"job_started": began})
     log.info("MLflow run %s: %s, seed %s, config %s", run_id, spec.row, spec.seed, spec.config_hash)
     log.info("Numerics: %s; %s intra-op thread(s)", spec.numerics, spec.cfg.trainer.get("threads") or "all")
     metrics = train(spec, tracker, run_id, experts)

@@ -56,6 +56,8 @@ def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
             "tuned_config": r.data.tags.get("tuned_config", ""),  # the config a tuning phase chose for its row
             "reused_from": r.data.tags.get("reused_from", ""),
             "started": r.info.start_time,
+            # the job's start before its experts were trained (tag ``job_started``; older runs: the run's start)
+            "job_started": int(r.data.tags.get("job_started") or r.info.start_time),
             "ended": r.info.end_time or r.info.start_time,
             **r.data.metrics,
         }
@@ -91,7 +93,8 @@ def made_lines(runs: pd.DataFrame) -> list[str]:
     """The footer's line on how the rows were made: the CPU, precision and threads of the runs (each set with its
     run count where they differ: the numerics are a source of variation of their own), and the wall time: per
     sweep the runs came from, its first job's start to its last job's end, added up (from the runs alone, so the
-    same runs give the same line), beside the jobs' own time added up."""
+    same runs give the same line), beside the jobs' own time added up. A job starts where it began training or
+    waiting for its experts (``job_started``), before its run; records without that column start at the run."""
     if not len(runs) or "made_cpu" not in runs:
         return []
     kinds = runs.groupby([f"made_{k}" for k in MADE]).size()
@@ -99,12 +102,13 @@ def made_lines(runs: pd.DataFrame) -> list[str]:
         f"{cpu}, precision {precision}, {threads} thread(s) per job" + (f" ({n} runs)" if len(kinds) > 1 else "")
         for (cpu, precision, threads), n in kinds.items()
     ]
-    spans = runs.groupby("sweep_id").agg(first=("started", "min"), last=("ended", "max"))
+    began = runs["job_started"] if "job_started" in runs else runs["started"]
+    spans = runs.assign(began=began).groupby("sweep_id").agg(first=("began", "min"), last=("ended", "max"))
     wall = float((spans["last"] - spans["first"]).sum()) / 60000
     head = "Made on " if len(kinds) == 1 else "**Mixed machines or numerics**: made on "
     return [
         f"{head}{'; '.join(made)}; wall time {wall:.0f} min over {len(spans)} sweep(s), "
-        f"{(runs['ended'] - runs['started']).sum() / 60000:.0f} min of job time."
+        f"{(runs['ended'] - began).sum() / 60000:.0f} min of job time."
     ]
 
 

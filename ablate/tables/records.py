@@ -5,7 +5,8 @@ from which the report renders the table again on any machine, with no store (Dom
 One line per run the table uses (:func:`ablate.tables.collect.collect`: per row and seed the latest FINISHED run,
 at the latest scale): who it is (``table``, ``row``, ``seed``, ``status``, ``scale``, ``config_hash``), the code
 that made it (``git_commit``, its ``fingerprint``, ``evaluator``, ``targets``), where and how (``made_cpu``,
-``cpu_isa``, ``made_precision``, ``made_threads``), when (``started``, ``ended`` in ms, ``seconds``), the race and
+``cpu_isa``, ``made_precision``, ``made_threads``), when (``started``, ``ended`` in ms, ``seconds``, and
+``job_started``, the job's start before its experts), the race and
 sweep it belongs to (``race_plan``, ``sweep_id``, ``job_num``, ``reused_from``, ``run_id``), the config a tuning
 phase chose for its row (``tuned_config``, empty where the row was not tuned), and one column per
 final metric: the test metrics the table shows (per condition and difficulty where it has them), latency and
@@ -45,8 +46,9 @@ TEXT = (
     "tuned_config",
     "reused_from",
 )
-#: The whole-number columns: the job's number in its sweep, its start and end (ms since the epoch).
-WHOLE = ("job_num", "started", "ended")
+#: The whole-number columns: the job's number in its sweep, its run's start and end (ms since the epoch), and the
+#: job's start before the experts it trained first (``job_started``; absent from records written before it).
+WHOLE = ("job_num", "started", "ended", "job_started")
 #: Metrics a record leaves out: the per-epoch ones (their last values) and the test metrics' second names.
 HISTORY = ("train/", "val/", "test/", "epoch", "lr")
 
