@@ -7,6 +7,7 @@ import json
 import logging
 import math
 
+import pandas as pd
 import pytest
 
 from ablate.sweep.tuning import TuneSpec, choose, run_phase, tuned_overrides
@@ -278,3 +279,19 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     assert "task.optimizer.lr ~ tag(log, interval(1e-4, 1e-2))" in text and "tuning seed 0; N = 2" in text
     assert (tmp_path / "results" / "runs" / "bifnet_table4.trials.csv").is_file()
     assert (tmp_path / "results" / "bifnet_table4_tuning.png").is_file()
+
+
+def test_a_phase_resumed_by_a_later_sweep_counts_each_sweeps_span_not_the_time_between() -> None:
+    from ablate.tables.tuning import phase_wall
+
+    minute = 60000
+    trials = pd.DataFrame(
+        {
+            "started": [0, 0, 10 * minute, 600 * minute],  # the second sweep ten hours later, the same command
+            "seconds": [300.0, 360.0, 240.0, 120.0],
+            "sweep_id": ["a", "a", "a", "b"],
+        }
+    )
+    assert phase_wall(trials) == (14.0 + 2.0, 2)  # 0 -> 14 min, then 600 -> 602 min
+    older = trials.drop(columns="sweep_id")  # records written before trials kept their sweep: one span
+    assert phase_wall(older) == (602.0, 1)

@@ -33,6 +33,7 @@ KIND_TRIAL = "trial"
 EXPERT_ROW = "expert "
 COLUMNS = [
     "run_id", "row", "trial", "seed", "status", "val_best", "trial_config", "seconds", "cpu", "started", "search",
+    "sweep_id",
 ]  # fmt: skip
 
 
@@ -54,7 +55,7 @@ def from_store(tracker: Tracker, table: str) -> pd.DataFrame:
         value = r.data.metrics.get("val_best", np.nan) if r.info.status == "FINISHED" else np.nan
         out.append([r.info.run_id, tags.get("row", "?"), int(tags.get("trial", -1)), tags.get("seed", "?"),
                     r.info.status, value, tags.get("trial_config", "{}"), seconds, tags.get("cpu", "?"),
-                    r.info.start_time, tags.get("tune_search", "")])  # fmt: skip
+                    r.info.start_time, tags.get("tune_search", ""), tags.get("sweep_id", "")])  # fmt: skip
     return pd.DataFrame(out, columns=COLUMNS).sort_values("started", kind="stable").reset_index(drop=True)
 
 
@@ -72,7 +73,7 @@ def read_trials(results_dir: str | Path, table: str) -> pd.DataFrame:
     if not path.exists():
         return pd.DataFrame(columns=COLUMNS)
     trials = pd.read_csv(path, dtype={"trial_config": str, "search": str}, keep_default_na=False, na_values=[""])
-    return trials.reindex(columns=[*COLUMNS, *(c for c in trials if c not in COLUMNS)])  # older records: no search
+    return trials.reindex(columns=[*COLUMNS, *(c for c in trials if c not in COLUMNS)])  # older: no search, sweep
 
 
 def check_tuned(runs: pd.DataFrame) -> None:
@@ -87,6 +88,18 @@ def check_tuned(runs: pd.DataFrame) -> None:
                 f"row {row}: its runs were tuned to different configs ({shown}); race it again on one "
                 "(python -m ablate -m experiment=... force=true), or leave the other runs out of the store"
             )
+
+
+def phase_wall(trials: pd.DataFrame) -> tuple[float, int]:
+    """The tuning phase's wall time in minutes, and over how many sweeps: a phase resumed by a later sweep (the same
+    command again, its finished trials skipped, :mod:`ablate.sweep.tuning`) counts each sweep's span, from its first
+    trial's start to its last one's end, never the time between sweeps. Trials without a sweep (older records) are
+    one span."""
+    started = trials["started"].astype(float)
+    ends = started + 1000 * trials["seconds"].astype(float)
+    sweep = trials["sweep_id"].fillna("").astype(str) if "sweep_id" in trials else pd.Series("", index=trials.index)
+    spans = pd.DataFrame({"sweep": sweep, "first": started, "last": ends}).groupby("sweep")
+    return float((spans["last"].max() - spans["first"].min()).sum()) / 60000, int(spans.ngroups)
 
 
 def last_trials(trials: pd.DataFrame) -> pd.DataFrame:
@@ -136,11 +149,15 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
         else ", ".join(tuned)
     )
     lines += ["", f"Tuned: {said}; N = {n} trials per row (trial 0 the recipe; the same draws for every row)."]
-    ends = trials["started"].astype(float) + 1000 * trials["seconds"].astype(float)
-    wall = (ends.max() - trials["started"].astype(float).min()) / 60000
+    wall, sweeps = phase_wall(trials)
+    span = (
+        "each sweep's first trial's start to its last one's end, added up"
+        if sweeps > 1
+        else "the first trial's start to the last one's end"
+    )
     lines.append(
         f"The tuning phase: {len(trials)} trials, {trials['seconds'].sum() / 60:.0f} CPU min, {wall:.0f} min of wall "
-        "time from the first trial's start to the last one's end (before the race)."
+        f"time{f' over {sweeps} sweeps' if sweeps > 1 else ''} from {span} (before the race)."
     )
     experts = sorted({str(r) for r in trials["row"] if str(r).startswith(EXPERT_ROW)})
     if experts:
