@@ -190,3 +190,12 @@ def test_the_footers_wall_time_starts_where_a_job_began_training_its_experts(tmp
     assert "wall time 20 min over 1 sweep(s), 20 min of job time" in made_lines(records)[0]
     # records written before the column: the runs' own spans, as those tables were rendered
     assert "wall time 0 min over 1 sweep(s), 0 min of job time" in made_lines(records.drop(columns="job_started"))[0]
+
+
+def test_a_run_copied_from_another_table_starts_when_it_is_copied(tmp_path: Path) -> None:
+    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}", str(tmp_path / "artifacts"))
+    tags = {"kind": KIND_JOB, "row": "unet", "seed": "0", "sweep_id": "a", "job_started": "1000"}  # long ago
+    source = tracker.start(tracker.experiment_id("t1"), "unet", tags)
+    tracker.end(source, "FINISHED")
+    copy = tracker.get_run(tracker.copy_run(tracker.get_run(source), tracker.experiment_id("t2"), {"table": "t2"}))
+    assert "job_started" not in copy.data.tags and "sweep_id" not in copy.data.tags  # its own sweep's wall time

@@ -199,7 +199,8 @@ class Tracker:
     def copy_run(self, source: Run, experiment_id: str, tags: dict[str, str]) -> str:
         """A FINISHED copy of ``source`` (params, final metrics, tags) in ``experiment_id``, tagged
         ``reused_from``; artifacts stay with the source run."""
-        keep = {k: v for k, v in source.data.tags.items() if not k.startswith("mlflow.") and k != "sweep_id"}
+        own = ("sweep_id", "job_started")  # the copy belongs to its own sweep and starts when it is made
+        keep = {k: v for k, v in source.data.tags.items() if not k.startswith("mlflow.") and k not in own}
         origin = source.data.tags.get("reused_from", source.info.run_id)
         run_id = self.start(experiment_id, source.info.run_name or "reused", {**keep, **tags, "reused_from": origin})
         self.log_params(run_id, dict(source.data.params))
