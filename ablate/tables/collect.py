@@ -89,6 +89,15 @@ def row_seconds(tracker: Tracker, runs: pd.DataFrame) -> dict[str, float]:
     return {str(row): float(value) for row, value in medians.items()}
 
 
+def sweep_wall(began: pd.Series, ended: pd.Series, sweep: pd.Series | None) -> tuple[float, int]:
+    """Wall time in minutes and over how many sweeps: per sweep (the same command run again after a stop is a
+    sweep of its own), its first start to its last end, added up, never the time between sweeps. Epoch
+    milliseconds in; rows without a sweep (older records) are one span."""
+    sweep = pd.Series("", index=began.index) if sweep is None else sweep.fillna("").astype(str)
+    spans = pd.DataFrame({"sweep": sweep, "first": began, "last": ended}).groupby("sweep")
+    return float((spans["last"].max() - spans["first"].min()).sum()) / 60000, int(spans.ngroups)
+
+
 def made_lines(runs: pd.DataFrame) -> list[str]:
     """The footer's line on how the rows were made: the CPU, precision and threads of the runs (each set with its
     run count where they differ: the numerics are a source of variation of their own), and the wall time: per
@@ -103,11 +112,10 @@ def made_lines(runs: pd.DataFrame) -> list[str]:
         for (cpu, precision, threads), n in kinds.items()
     ]
     began = runs["job_started"] if "job_started" in runs else runs["started"]
-    spans = runs.assign(began=began).groupby("sweep_id").agg(first=("began", "min"), last=("ended", "max"))
-    wall = float((spans["last"] - spans["first"]).sum()) / 60000
+    wall, sweeps = sweep_wall(began, runs["ended"], runs.get("sweep_id"))
     head = "Made on " if len(kinds) == 1 else "**Mixed machines or numerics**: made on "
     return [
-        f"{head}{'; '.join(made)}; wall time {wall:.0f} min over {len(spans)} sweep(s), "
+        f"{head}{'; '.join(made)}; wall time {wall:.0f} min over {sweeps} sweep(s), "
         f"{(runs['ended'] - began).sum() / 60000:.0f} min of job time."
     ]
 

@@ -25,6 +25,7 @@ import pandas as pd  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
 from ablate.store import Tracker, split_tuned_key  # noqa: E402
+from ablate.tables.collect import sweep_wall  # noqa: E402
 from ablate.tables.evp import crossing, expected_max  # noqa: E402
 from ablate.tables.records import RUNS_DIR  # noqa: E402
 
@@ -96,10 +97,7 @@ def phase_wall(trials: pd.DataFrame) -> tuple[float, int]:
     trial's start to its last one's end, never the time between sweeps. Trials without a sweep (older records) are
     one span."""
     started = trials["started"].astype(float)
-    ends = started + 1000 * trials["seconds"].astype(float)
-    sweep = trials["sweep_id"].fillna("").astype(str) if "sweep_id" in trials else pd.Series("", index=trials.index)
-    spans = pd.DataFrame({"sweep": sweep, "first": started, "last": ends}).groupby("sweep")
-    return float((spans["last"].max() - spans["first"].min()).sum()) / 60000, int(spans.ngroups)
+    return sweep_wall(started, started + 1000 * trials["seconds"].astype(float), trials.get("sweep_id"))
 
 
 def last_trials(trials: pd.DataFrame) -> pd.DataFrame:
