@@ -52,6 +52,10 @@ def test_an_expert_trial_is_a_validation_trial_of_the_experts_config_in_its_tabl
     # the trial and the expert of the same values are different jobs: a trial never tests, an expert does
     expert = JobSpec.of(expert_config(cfg, "rgb"), SweepContext(launch_dir=tmp_path), "expert", "expert rgb")
     assert expert.config_hash != spec.config_hash
+    # ... but the trial names the expert it trains: stage 2, once the trial is chosen, copies it instead of training
+    chosen = compose([*FUSED, "++experts.draws.rgb.task.optimizer.lr=0.0031", "seed=1000"])
+    stage2 = JobSpec.of(expert_config(chosen, "rgb"), SweepContext(launch_dir=tmp_path), "expert", "expert rgb")
+    assert spec.expert_hash == stage2.config_hash != expert.config_hash and expert.expert_hash is None
 
 
 def test_a_tables_n_is_its_familys_and_a_table_that_races_on_the_recipe_says_why() -> None:

@@ -117,3 +117,15 @@ def test_a_tuned_table_plans_its_trials_before_its_first_look(tmp_path: Path, mo
     plan = items(config)
     assert [i.name for i in plan[:3]] == ["chinet seed 1000", "unet seed 1000", "fusenet seed 1000"]  # rows in order
     assert [i.config.trial for i in plan[:6]] == [0, 0, 0, 1, 1, 1] and plan[6].config.trial is None
+
+
+def test_stage_2_trials_plan_no_experts_they_copy_them_from_the_experts_chosen_trials(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    plan = items(sweep_config("experiment=bifnet_table4", "tune=lr_wd", "table.tune.trials=2"))
+    trials = [i for i in plan if i.config.get("trial") is not None]
+    assert {i.config.seed for i in trials} == {1000} and any(i.config.get("experts") for i in trials)
+    experts = [i for i in plan if i.key.startswith("expert ") and i.name.startswith("expert ")]
+    assert experts and all(i.config.seed != 1000 for i in experts if not i.done)  # the race's experts alone
+    assert all(not i.needs for i in trials)

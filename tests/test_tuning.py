@@ -267,6 +267,19 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     assert sorted((r.data.tags["row"], r.data.tags["seed"]) for r in experts) == [
         ("expert bev", "0"), ("expert bev", "1000"), ("expert rgb", "0"), ("expert rgb", "1000"),
     ]  # fmt: skip
+    chosen = {  # per expert, its trial with the best validation objective, the first of several that tie
+        row: max(
+            (r for r in trials if r.data.tags["row"] == row),
+            key=lambda r: (r.data.metrics["val_best"], -int(r.data.tags["trial"])),
+        )
+        for row in ("expert bev", "expert rgb")
+    }
+    for expert in (r for r in experts if r.data.tags["seed"] == "1000"):  # stage 2's: copied from the chosen trial
+        trial = chosen[expert.data.tags["row"]]
+        assert expert.data.tags["reused_from"] == trial.info.run_id, expert.data.tags
+        assert expert.data.tags["config_hash"] == trial.data.tags["expert_hash"] != trial.data.tags["config_hash"]
+        assert "trial" not in expert.data.tags and "race_plan" not in expert.data.tags
+        assert (tmp_path / "checkpoints" / "experts" / expert.data.tags["config_hash"] / "best.ckpt").is_file()
     bev = max(
         (r.data.metrics["val_best"], -int(r.data.tags["trial"])) for r in trials if r.data.tags["row"] == "expert bev"
     )

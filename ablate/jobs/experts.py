@@ -4,7 +4,9 @@ Stage 1 trains one expert per modality: the job's own config with stage ``single
 operator and no ``experts`` key. That config's hash names the expert, so it is trained once per (modality, seed,
 scale, data, backbone, head, trainer) and tracked as a run of the MLflow experiment ``experts`` (tag
 ``kind=expert``); its best checkpoint lives in ``checkpoints/experts/<hash>/``. Every stage-2 job that needs it
-reuses it; a file lock keeps two parallel jobs from training the same expert twice.
+reuses it; a file lock keeps two parallel jobs from training the same expert twice. An expert that one of its
+table's tuning trials already trained (the trial chosen, at the trials' seed, which stage 2's trials train on) is
+copied from that trial's run and checkpoint instead (:func:`ablate.jobs.job.reuse`).
 
 Stage 2 copies the experts into the fusion model (``FusionModel.load_expert``: encoders, plus FPNs at stage fpn,
 plus heads at stage late), freezes them (``experts.freeze``) and trains the rest: gates, fusion operators, and the
@@ -25,11 +27,10 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from ablate.jobs.spec import apply_draws, checkpoint_dir
-from ablate.store import Tracker, config_hash, file_lock
+from ablate.store import KIND_EXPERT, Tracker, config_hash, file_lock
 
 log = logging.getLogger(__name__)
 EXPERTS_TABLE = "experts"
-KIND_EXPERT = "expert"
 
 
 def expert_config(cfg: DictConfig, modality: str) -> DictConfig:

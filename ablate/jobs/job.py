@@ -24,6 +24,7 @@ import logging
 import multiprocessing
 import os
 import re
+import shutil
 import socket
 import sys
 import time
@@ -43,7 +44,9 @@ from ablate.jobs.preempt import SETTLE_S, STOP, Stopped, exit_status, loky_worke
 from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unreachable
 from ablate.jobs.spec import JobSpec, checkpoint_dir, flatten_leaves
 from ablate.store import (
+    KIND_EXPERT,
     KIND_JOB,
+    KIND_TRIAL,
     UNHASHED,
     AccessDenied,
     ServerUnreachable,
@@ -167,6 +170,8 @@ def run_tags(spec: JobSpec) -> dict[str, str]:
         tune = OmegaConf.to_container(cfg.table.get("tune") or {}, resolve=True)
         assert isinstance(tune, dict)
         tags["tune_search"] = json.dumps({"space": tune.get("space") or {}, "seed": tune.get("seed", 0)})
+    if spec.expert_hash is not None:  # an expert's trial: the expert it trains, which stage 2 takes from it
+        tags["expert_hash"] = spec.expert_hash
     if spec.parent_run:
         tags.update({"mlflow.parentRunId": spec.parent_run, "sweep_id": spec.parent_run})
         tags["job_num"] = str(spec.context.job_num)
@@ -198,22 +203,57 @@ def already_done(spec: JobSpec, tracker: Tracker, exp: str) -> Outcome | None:
             spec.config_hash,
         )
         return Outcome("SKIPPED", done.info.run_id, spec.ckpt_dir)
-    source = tracker.finished_elsewhere(spec.config_hash) if spec.kind == KIND_JOB else None
+    if spec.kind == KIND_JOB:  # the same row of another table
+        source = tracker.finished_elsewhere(spec.config_hash)
+    elif spec.kind == KIND_EXPERT:  # the expert's tuning trial that trained it (stage 2 of a tuning phase)
+        source = tracker.finished_elsewhere(spec.config_hash, KIND_TRIAL, "expert_hash")
+    else:
+        source = None
     return reuse(spec, tracker, exp, source) if source is not None else None
 
 
-def reuse(spec: JobSpec, tracker: Tracker, exp: str, source: Run) -> Outcome:
-    """Copy a FINISHED run of the same config from another table into this one (tables share rows)."""
+#: A trial's tags that an expert copied from it does not keep: it is no trial, of no table's race or sweep.
+TRIAL_TAGS = ("trial", "trial_config", "tune_search", "expert_hash", "race_plan", "job_num")
+
+
+def reuse(spec: JobSpec, tracker: Tracker, exp: str, source: Run) -> Outcome | None:
+    """Copy a FINISHED run of the same config from another table into this one (tables share rows). An expert is
+    copied from the tuning trial that trained it, with the trial's best checkpoint into the expert's own folder,
+    where every later job finds it; None (train it) where that checkpoint is gone."""
     code = ("git_commit", "ablate_version", "launch_commit")
-    run_id = tracker.copy_run(source, exp, {k: v for k, v in run_tags(spec).items() if k not in code})
+    tags = {k: v for k, v in run_tags(spec).items() if k not in code}
+    where = checkpoint_dir(source.data.tags.get("table", ""), source.data.tags.get("config_hash", ""))
+    if spec.kind == KIND_EXPERT:
+        if not copy_checkpoint(where / "best.ckpt", spec.ckpt_dir / "best.ckpt"):
+            return None
+        where = spec.ckpt_dir
+    run_id = tracker.copy_run(source, exp, tags, drop=TRIAL_TAGS if spec.kind == KIND_EXPERT else ())
     log.info(
-        "Reusing %s (seed %s): the same config finished as run %s of another table; copied as %s",
+        "Reusing %s (seed %s): the same config finished as %s run %s of %s; copied as %s",
         spec.row,
         spec.seed,
+        source.data.tags.get("kind", "a"),
         source.info.run_id,
+        source.data.tags.get("table", "another table"),
         run_id,
     )
-    return Outcome("SKIPPED", run_id, checkpoint_dir(source.data.tags.get("table", ""), spec.config_hash))
+    return Outcome("SKIPPED", run_id, where)
+
+
+def copy_checkpoint(source: Path, target: Path) -> bool:
+    """Copy a checkpoint file (a hard link where the file system allows), whole or not at all; False where
+    ``source`` is gone."""
+    if not source.is_file():
+        return False
+    target.parent.mkdir(parents=True, exist_ok=True)
+    partial = target.with_suffix(".part")
+    partial.unlink(missing_ok=True)
+    try:
+        os.link(source, partial)
+    except OSError:
+        shutil.copyfile(source, partial)
+    partial.replace(target)
+    return True
 
 
 def prepare_experts(spec: JobSpec, tracker: Tracker, exp: str) -> dict[str, tuple[Path, str]]:

@@ -90,6 +90,19 @@ class JobSpec:
         return self.base if self.base is not None else self.cfg
 
     @property
+    def expert_hash(self) -> str | None:
+        """For a tuning trial of a single-modal config (an expert's trial, :func:`ablate.jobs.experts.trial_config`):
+        the config hash of the expert it trains, its config without the trial's number. Stage 2's trials (at the
+        trials' seed) ask for that expert once the trial is chosen, and take it from the trial
+        (:func:`ablate.jobs.job.reuse`) instead of training it again. None for any other job."""
+        if self.kind != KIND_TRIAL or self.cfg.stage.name != "single":
+            return None
+        expert = copy.deepcopy(self.cfg)
+        with open_dict(expert):
+            expert.trial = None
+        return config_hash(expert)
+
+    @property
     def table(self) -> str:
         return str(self.cfg.table.name)
 

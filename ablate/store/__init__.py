@@ -30,7 +30,15 @@ from ablate.store.identity import (
 from ablate.store.locks import file_lock
 from ablate.store.outage import DEFAULT_OUTAGE_S, ServerUnreachable
 from ablate.store.outbox import Outbox
-from ablate.store.tracker import FRAME_COUNTS, KIND_JOB, KIND_SWEEP, KIND_TRIAL, SKIPPED_FRAMES, Tracker
+from ablate.store.tracker import (
+    FRAME_COUNTS,
+    KIND_EXPERT,
+    KIND_JOB,
+    KIND_SWEEP,
+    KIND_TRIAL,
+    SKIPPED_FRAMES,
+    Tracker,
+)
 from ablate.store.uris import is_server, runs_link, tracking_uri
 
 if TYPE_CHECKING:
@@ -49,6 +57,7 @@ def __getattr__(name: str) -> object:
 
 __all__ = [
     "DEFAULT_OUTAGE_S",
+    "KIND_EXPERT",
     "KIND_JOB",
     "KIND_TRIAL",
     "KIND_SWEEP",

@@ -50,6 +50,8 @@ T = TypeVar("T")
 KIND_JOB, KIND_SWEEP = "job", "sweep"
 #: A tuning trial's run (ablate.sweep.tuning): it trains and validates, never tests, and is no table's row.
 KIND_TRIAL = "trial"
+#: A single-modal expert's run (ablate.jobs.experts, SMoE §4.3 stage 1), in the experiment ``experts``.
+KIND_EXPERT = "expert"
 #: The metric a job logs once its data module is set up: the bad frames it left out (``data.on_bad_frame=skip``).
 SKIPPED_FRAMES = "data/skipped_frames"
 #: A run's artifact of its test metric's counts per test frame (ablate.tables.frames).
@@ -180,15 +182,16 @@ class Tracker:
         runs = self.runs(experiment_id, f"tags.config_hash = '{chash}' and attributes.status = 'FINISHED'")
         return runs[0] if runs else None
 
-    def finished_elsewhere(self, chash: str) -> Run | None:
-        """A FINISHED job run with this config hash in any experiment, or None (tables share rows: ChiNet
-        Tables II-V all hold the ChiNet row)."""
+    def finished_elsewhere(self, chash: str, kind: str = KIND_JOB, tag: str = "config_hash") -> Run | None:
+        """A FINISHED run of ``kind`` whose tag ``tag`` is this config hash, in any experiment, or None: a job run of
+        the same config (tables share rows: ChiNet Tables II-V all hold the ChiNet row), or an expert's tuning
+        trial that trained the expert of this hash (``kind=trial``, ``tag=expert_hash``)."""
         ids = [e.experiment_id for e in self.call(self._client.search_experiments)]
         runs = (
             self.call(
                 self._client.search_runs,
                 ids,
-                f"tags.config_hash = '{chash}' and attributes.status = 'FINISHED' and tags.kind = '{KIND_JOB}'",
+                f"tags.{tag} = '{chash}' and attributes.status = 'FINISHED' and tags.kind = '{kind}'",
                 max_results=1,
             )
             if ids
@@ -196,10 +199,10 @@ class Tracker:
         )
         return runs[0] if runs else None
 
-    def copy_run(self, source: Run, experiment_id: str, tags: dict[str, str]) -> str:
-        """A FINISHED copy of ``source`` (params, final metrics, tags) in ``experiment_id``, tagged
+    def copy_run(self, source: Run, experiment_id: str, tags: dict[str, str], drop: tuple[str, ...] = ()) -> str:
+        """A FINISHED copy of ``source`` (params, final metrics, tags but ``drop``) in ``experiment_id``, tagged
         ``reused_from``; artifacts stay with the source run."""
-        own = ("sweep_id", "job_started")  # the copy belongs to its own sweep and starts when it is made
+        own = ("sweep_id", "job_started", *drop)  # the copy belongs to its own sweep and starts when it is made
         keep = {k: v for k, v in source.data.tags.items() if not k.startswith("mlflow.") and k not in own}
         origin = source.data.tags.get("reused_from", source.info.run_id)
         run_id = self.start(experiment_id, source.info.run_name or "reused", {**keep, **tags, "reused_from": origin})

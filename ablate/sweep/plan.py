@@ -3,8 +3,9 @@ estimated wall time.
 
 Each job's config is composed from its overrides, as the sweep will launch it (the first look of a race: its rows x
 the look's seeds). An expert is planned once per config hash, as :func:`ablate.jobs.experts.ensure_expert` trains it;
-one whose best checkpoint exists is not trained again, and a job whose config has a FINISHED run in the store is
-skipped (``done``). Every other job and expert is estimated from the recipe's steps (epochs x training batches, or
+one whose best checkpoint exists is not trained again, nor is one of a tuning phase's stage 2 (its trials copy
+their experts from the experts' chosen trials, :func:`ablate.jobs.job.reuse`), and a job whose config has a
+FINISHED run in the store is skipped (``done``). Every other job and expert is estimated from the recipe's steps (epochs x training batches, or
 ``trainer.max_steps``) at a step time measured here, now (:func:`ablate.jobs.steptime.step_times`): one row key (the
 job's overrides but the seed; an expert's modality) at a time, until ``plan.measure_s`` seconds have gone by (the
 first expert and the first job whatever the time: the first measurement generates the dataset where it is missing,
@@ -78,12 +79,13 @@ def items(config: DictConfig, done: Callable[[DictConfig], bool] = lambda cfg: F
         row = row_name(overrides, swept)
         key = " ".join(sorted(o for o in overrides if not o.lstrip("+~").startswith("seed=")))
         job = Item(f"{row} seed {cfg.seed}", key or row, cfg, done=done(cfg))
+        from_trials = cfg.get("trial") is not None and bool((cfg.table.get("tune") or {}).get("experts", True))
         for modality in needed(cfg) if cfg.get("experts") and not job.done else []:
             ecfg = expert_config(cfg, modality)
             chash = config_hash(ecfg)
             name = f"expert {modality} seed {cfg.seed}"
-            if chash not in experts:
-                trained = best_checkpoint(str(ecfg.table.name), chash).exists()
+            if chash not in experts:  # stage 2's trials copy their experts from the experts' chosen trials
+                trained = from_trials or best_checkpoint(str(ecfg.table.name), chash).exists()
                 experts[chash] = Item(name, f"expert {modality}", ecfg, done=trained)
             if not experts[chash].done:
                 job.needs.append(experts[chash].name)

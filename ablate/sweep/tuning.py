@@ -26,7 +26,8 @@ chose:
   is tuned first, once, as a row of its own (``expert <modality>``: ``experts.tune=<modality>`` makes a trial of it,
   :func:`ablate.jobs.experts.trial_config`), with the same N and draws; its chosen values go under
   ``experts.draws.<modality>`` of every later job, so the experts stay fixed while stage 2 is tuned (its trials sit
-  on the chosen experts, trained at the trials' seed), and a single-modal row, which *is* its expert, races on its
+  on the chosen experts, trained at the trials' seed: the chosen expert trials, copied, :func:`ablate.jobs.job.reuse`),
+  and a single-modal row, which *is* its expert, races on its
   expert's choice. A budget that stops the experts' trials leaves the rest of it to stage 2.
 * **Choice**: each row races on its trial with the best objective (the first such trial where several tie: the
   recipe before any draw). The raced jobs carry ``tuned=k`` and record the tuned parameters' values

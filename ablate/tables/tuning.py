@@ -24,12 +24,11 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from ablate.store import Tracker, split_tuned_key  # noqa: E402
+from ablate.store import KIND_TRIAL, Tracker, split_tuned_key  # noqa: E402
 from ablate.tables.collect import sweep_wall  # noqa: E402
 from ablate.tables.evp import crossing, expected_max  # noqa: E402
 from ablate.tables.records import RUNS_DIR  # noqa: E402
 
-KIND_TRIAL = "trial"
 #: How an expert's tuning row is named (ablate.sweep.tuning.expert_row): ``expert <modality>``.
 EXPERT_ROW = "expert "
 COLUMNS = [
