@@ -7,7 +7,7 @@ then scheduled on the sweep's workers. Prints, per table, the rows, the estimate
 first look, and the N that fits the regeneration's budget of about 3 h for tuning plus racing (the first look's
 wall time counted three times over: later looks add seeds where rows are undecided). In a table on experts each
 trial index first trains every expert once (the experts' own trials, side by side), then stage 2 of every fused row
-on the chosen experts (trained once more at the trials' seed, counted once); a single-modal row is its expert.
+on the chosen experts (copied from the chosen trials, not trained again); a single-modal row is its expert.
 
 Usage: ``python bench/tuning_cost.py [--trials 8] [--budget-h 3] [experiment ...]``.
 """
@@ -49,9 +49,9 @@ def main() -> None:
             continue
         experts = wall_seconds(list({i.key: i for i in plain if i.key.startswith("expert")}.values()), 2) or 0.0
         per_trial = _trial_seconds(plain) + experts  # the experts' trials, then stage 2's, per trial index
-        trials = args.trials * per_trial + experts
+        trials = args.trials * per_trial
         left = args.budget_h * 3600 - 3 * look
-        fits = max(0, int((left - experts) // per_trial)) if per_trial > 0 else 0
+        fits = max(0, int(left // per_trial)) if per_trial > 0 else 0
         print(f"{name:24} {rows:>4} {trials / 3600:>10.2f} {look / 3600:>14.2f} {fits:>15}")
 
 
