@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -106,6 +107,10 @@ def restart(store: Path) -> float:
     return time.time()
 
 
+#: What a job says, once, when the tracking server stops answering (ablate.store.run_logger).
+NOTICE = re.compile(r"does not answer \(.*?\): training goes on")
+
+
 def job_logs(cwd: Path) -> str:
     return "\n".join(p.read_text() for p in sorted(cwd.glob("multirun/**/*.log")))
 
@@ -187,8 +192,11 @@ def test_a_sweep_survives_its_server_killed_and_back_20_s_later(outage):
         assert in_outage, f"{job.data.tags['row']} logged nothing while the server was down"  # it kept training
         during += len(in_outage)
     logs = job_logs(outage.sweep_dir)
-    assert logs.count("does not answer (connection refused): training goes on") == 2, logs[-3000:]
-    assert logs.count("answers again") >= 2, logs[-3000:]
+    # one line per job that met the outage, whatever the symptom it met (a refused connection, a request cut off
+    # or timed out); a job that sent nothing while the server was down (its metrics waited) need not say so
+    said = [len(NOTICE.findall(p.read_text())) for p in sorted(outage.sweep_dir.glob("multirun/**/*.log"))]
+    assert max(said) <= 1 and sum(said) >= 1, (said, logs[-3000:])
+    assert logs.count("answers again") >= sum(said), logs[-3000:]
     assert not list(outage.sweep_dir.glob("checkpoints/**/outbox.jsonl"))  # every outbox delivered and removed
     print(
         f"\noutage survived: server down {outage.back_at - outage.down_at:.1f} s (killed, {DOWN_S} s, restarted); "
