@@ -11,7 +11,7 @@ from omegaconf import DictConfig
 from ablate.jobs.spec import best_checkpoint
 from ablate.jobs.steptime import StepTimes
 from ablate.store import config_hash
-from ablate.sweep.plan import estimate, items, lines, wall_seconds
+from ablate.sweep.plan import estimate, items, lines, seconds, trains_alone, wall_seconds
 from tests.test_progress import sweep_config
 
 EXPERT = StepTimes(train_s=2.0, cached_s=2.0, eval_s=0.5, train_batches=10, eval_batches=2, test_batches=4)
@@ -129,3 +129,17 @@ def test_stage_2_trials_plan_no_experts_they_copy_them_from_the_experts_chosen_t
     experts = [i for i in plan if i.key.startswith("expert ") and i.name.startswith("expert ")]
     assert experts and all(i.config.seed != 1000 for i in experts if not i.done)  # the race's experts alone
     assert all(not i.needs for i in trials)
+
+
+def test_an_item_not_measured_is_timed_at_its_kinds_step_times_an_experts_trial_as_an_expert(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    plan = items(sweep_config("experiment=bifnet_table4", "tune=lr_wd", "table.tune.trials=2"))
+    clock = Clock()
+    estimate(plan, measure_s=1, measure=clock.measure, clock=clock)
+    assert len(clock.measured) == 2 and clock.measured[1] != "expert bev"  # the first of each kind, whatever the time
+    alone = [i for i in plan if trains_alone(i)]
+    assert any(i.config.get("trial") is not None for i in alone)  # the experts' own trials train an expert alone
+    for item in (i for i in plan if not i.done):  # a fused trial is not timed as the expert trial before it
+        assert item.seconds == pytest.approx(seconds(item.config, EXPERT if item in alone else FUSED)), item.name

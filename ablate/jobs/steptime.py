@@ -83,6 +83,21 @@ class StepTimes:
         epochs_run = math.ceil(steps / max(self.train_batches, 1))
         return first * self.train_s + (steps - first) * self.cached_s + epochs_run * self.eval_batches * self.eval_s
 
+    @classmethod
+    def mean(cls, times: list[StepTimes]) -> StepTimes:
+        """The mean step times of several measured rows of one kind, at the batches an epoch of the first (the rows
+        of one sweep read one data module)."""
+        n = len(times)
+        first = times[0]
+        return cls(
+            sum(t.train_s for t in times) / n,
+            sum(t.cached_s for t in times) / n,
+            sum(t.eval_s for t in times) / n,
+            first.train_batches,
+            first.eval_batches,
+            first.test_batches,
+        )
+
     def test_seconds(self, conditions: int = 1) -> float:
         """The test: every test batch once per test condition, at a validation step's cost."""
         return self.test_batches * max(conditions, 1) * self.eval_s

@@ -2,14 +2,17 @@
 estimated wall time.
 
 Each job's config is composed from its overrides, as the sweep will launch it (the first look of a race: its rows x
-the look's seeds). An expert is planned once per config hash, as :func:`ablate.jobs.experts.ensure_expert` trains it;
-one whose best checkpoint exists is not trained again, nor is one of a tuning phase's stage 2 (its trials copy
-their experts from the experts' chosen trials, :func:`ablate.jobs.job.reuse`), and a job whose config has a
-FINISHED run in the store is skipped (``done``). Every other job and expert is estimated from the recipe's steps (epochs x training batches, or
-``trainer.max_steps``) at a step time measured here, now (:func:`ablate.jobs.steptime.step_times`): one row key (the
-job's overrides but the seed; an expert's modality) at a time, until ``plan.measure_s`` seconds have gone by (the
-first expert and the first job whatever the time: the first measurement generates the dataset where it is missing,
-which the first job would do); a job or expert not measured by then takes the mean of those measured.
+the look's seeds). An expert is planned once per config hash, as :func:`ablate.jobs.experts.ensure_expert` trains
+it; one whose best checkpoint exists is not trained again, nor is one of a tuning phase's stage 2 (its trials copy
+their experts from the experts' chosen trials, :func:`ablate.jobs.job.reuse`), and a job whose config has a FINISHED
+run in the store is skipped (``done``). Every other job and expert is estimated from the recipe's steps (epochs x
+training batches, or ``trainer.max_steps``) at a step time measured here, now
+(:func:`ablate.jobs.steptime.step_times`): one row key (the job's overrides but the seed; an expert's modality) at a
+time, until ``plan.measure_s`` seconds have gone by (the first of each kind whatever the time: the first measurement
+generates the dataset where it is missing, which the first job would do); a job or expert not measured by then is
+timed at the mean step times of those measured of its kind: a single-modal network trained alone (an expert, an
+expert's tuning trial), or a fusion network (whose first epoch runs its frozen experts and the later ones read their
+cached features).
 
 The wall time schedules the items on the sweep's workers in order, as its launcher does, each on the worker free
 first: the experts first (each fused job trains whichever expert no other job is training,
@@ -102,26 +105,30 @@ def estimate(
     """Set each item's :attr:`Item.seconds` and :attr:`Item.how` (see the module)."""
     start = clock()
     times: dict[str, StepTimes] = {}
+    kinds: dict[str, bool] = {}  # measured key -> whether it trains a single-modal network alone
     for item in plan:
         if item.done:
             item.seconds, item.how = 0.0, "done"
             continue
-        first = not any(key.startswith("expert") == item.key.startswith("expert") for key in times)
+        first = trains_alone(item) not in kinds.values()
         if item.key not in times and measure_s > 0 and (first or clock() - start < measure_s):
             try:
-                times[item.key] = measure(item.config)
+                times[item.key], kinds[item.key] = measure(item.config), trains_alone(item)
             except Exception as err:  # an estimate is a convenience: the job will say what is wrong
                 log.warning("Could not time the steps of %s for the sweep's plan: %s", item.name, err)
         if item.key in times:
             item.seconds, item.how = seconds(item.config, times[item.key]), "measured"
-    for item in plan:  # the rest: the mean of the measured of their kind
-        if item.seconds is None:
-            expert = item.key.startswith("expert")
-            kind = [
-                float(i.seconds or 0.0) for i in plan if i.how == "measured" and i.key.startswith("expert") == expert
-            ]
-            if kind:
-                item.seconds, item.how = sum(kind) / len(kind), "as the measured"
+    for item in plan:  # the rest: their own steps at the mean step times of the measured of their kind
+        mates = [times[key] for key, alone in kinds.items() if alone == trains_alone(item)]
+        if item.seconds is None and mates:
+            item.seconds, item.how = seconds(item.config, StepTimes.mean(mates)), "as the measured"
+
+
+def trains_alone(item: Item) -> bool:
+    """Whether ``item`` trains a single-modal network alone (an expert, an expert's tuning trial, a single-modal row
+    not on experts): its steps are timed apart from a fusion network's, whose later epochs read cached features."""
+    cfg = item.config
+    return item.key.startswith("expert") or (cfg.stage.name == "single" and not cfg.get("experts"))
 
 
 def seconds(cfg: DictConfig, times: StepTimes) -> float:
