@@ -119,11 +119,15 @@ def test_a_tuned_table_plans_its_trials_before_its_first_look(tmp_path: Path, mo
     assert [i.config.trial for i in plan[:6]] == [0, 0, 0, 1, 1, 1] and plan[6].config.trial is None
 
 
-def test_stage_2_trials_plan_no_experts_they_copy_them_from_the_experts_chosen_trials(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+@pytest.fixture
+def tuned_on_experts(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> list:
+    """The plan of BiFNet Table IV with a tuning phase of 2 trials: the experts' trials, stage 2's, the first look."""
     monkeypatch.chdir(tmp_path)
-    plan = items(sweep_config("experiment=bifnet_table4", "tune=lr_wd", "table.tune.trials=2"))
+    return items(sweep_config("experiment=bifnet_table4", "tune=lr_wd", "table.tune.trials=2"))
+
+
+def test_stage_2_trials_plan_no_experts_they_copy_them_from_the_experts_chosen_trials(tuned_on_experts: list) -> None:
+    plan = tuned_on_experts
     trials = [i for i in plan if i.config.get("trial") is not None]
     assert {i.config.seed for i in trials} == {1000} and any(i.config.get("experts") for i in trials)
     experts = [i for i in plan if i.key.startswith("expert ") and i.name.startswith("expert ")]
@@ -132,10 +136,9 @@ def test_stage_2_trials_plan_no_experts_they_copy_them_from_the_experts_chosen_t
 
 
 def test_an_item_not_measured_is_timed_at_its_kinds_step_times_an_experts_trial_as_an_expert(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tuned_on_experts: list,
 ) -> None:
-    monkeypatch.chdir(tmp_path)
-    plan = items(sweep_config("experiment=bifnet_table4", "tune=lr_wd", "table.tune.trials=2"))
+    plan = tuned_on_experts
     clock = Clock()
     estimate(plan, measure_s=1, measure=clock.measure, clock=clock)
     assert len(clock.measured) == 2 and clock.measured[1] != "expert bev"  # the first of each kind, whatever the time

@@ -118,9 +118,9 @@ def estimate(
                 log.warning("Could not time the steps of %s for the sweep's plan: %s", item.name, err)
         if item.key in times:
             item.seconds, item.how = seconds(item.config, times[item.key]), "measured"
-    for item in plan:  # the rest: their own steps at the mean step times of the measured of their kind
+    for item in (i for i in plan if i.seconds is None):  # the rest: at the mean step times of their kind's measured
         mates = [times[key] for key, alone in kinds.items() if alone == trains_alone(item)]
-        if item.seconds is None and mates:
+        if mates:
             item.seconds, item.how = seconds(item.config, StepTimes.mean(mates)), "as the measured"
 
 
