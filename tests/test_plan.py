@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from ablate.jobs.spec import best_checkpoint
 from ablate.jobs.steptime import StepTimes
@@ -115,7 +115,7 @@ def test_a_tuned_table_plans_its_trials_before_its_first_look(tmp_path: Path, mo
     config = sweep_config("experiment=chinet_table2", "tune=lr_wd", "table.tune.trials=2")
     assert planned_jobs(config) == 3 * 2 + 3 * 3  # 2 trials of each row, then 3 seeds of each
     plan = items(config)
-    assert [i.name for i in plan[:3]] == ["chinet seed 1000", "unet seed 1000", "fusenet seed 1000"]  # rows in order
+    assert [i.name for i in plan[:3]] == ["chinet trial 0", "unet trial 0", "fusenet trial 0"]  # rows in order
     assert [i.config.trial for i in plan[:6]] == [0, 0, 0, 1, 1, 1] and plan[6].config.trial is None
 
 
@@ -146,3 +146,32 @@ def test_an_item_not_measured_is_timed_at_its_kinds_step_times_an_experts_trial_
     assert any(i.config.get("trial") is not None for i in alone)  # the experts' own trials train an expert alone
     for item in (i for i in plan if not i.done):  # a fused trial is not timed as the expert trial before it
         assert item.seconds == pytest.approx(seconds(item.config, EXPERT if item in alone else FUSED)), item.name
+
+
+def test_a_resumed_tuning_phase_plans_stage_2_and_the_race_on_the_trials_it_chose(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    config = sweep_config("experiment=bifnet_table4", "tune=lr_wd", "table.tune.trials=2")
+    objectives = {  # the store's after the phase: the LiDAR expert and the summing row chose trial 1
+        "expert bev": {0: 0.5, 1: 0.9},
+        "expert rgb": {0: 0.9, 1: 0.5},
+        "bifnet_dst_sum": {0: 0.5, 1: 0.9},
+        "bifnet_dst_cbf": {0: 0.9, 1: float("nan")},
+    }
+    plan = {item.name: item.config for item in items(config, objectives=objectives)}
+    drawn = plan["expert bev trial 1"].task.optimizer  # a trial's config as its job hashes it: its draws applied
+    assert drawn.lr != plan["expert bev trial 0"].task.optimizer.lr
+    for name in ("bifnet_dst_sum trial 0", "bifnet_dst_cbf trial 1", "bifnet_dst_sum seed 2"):  # on the chosen experts
+        on = plan[name].experts.draws
+        assert (on.bev.task.optimizer.lr, on.bev.task.optimizer.weight_decay) == (drawn.lr, drawn.weight_decay), name
+        assert "rgb" not in on, name  # the image expert chose the recipe
+    assert plan["expert bev seed 0"].task.optimizer.lr == drawn.lr  # the race's experts: their chosen trial's values
+    rows = {"bifnet_image": 0, "bifnet_bev": 1, "bifnet_dst_sum": 1, "bifnet_dst_cbf": 0}  # the LiDAR row: its expert's
+    assert {row: plan[f"{row} seed 0"].tuned for row in rows} == rows
+    raced = {row: plan[f"{row} seed 0"].task.optimizer.lr for row in ("bifnet_dst_sum", "bifnet_dst_cbf")}
+    assert raced == {"bifnet_dst_sum": drawn.lr, "bifnet_dst_cbf": plan["bifnet_dst_cbf trial 0"].task.optimizer.lr}
+    # without the store's objectives (a sweep not yet tuned), the race is planned on the recipe
+    fresh = {item.name: item.config for item in items(config)}
+    assert fresh["bifnet_dst_sum seed 0"].get("tuned") is None
+    assert OmegaConf.select(fresh["bifnet_dst_sum trial 1"], "experts.draws", default=None) is None

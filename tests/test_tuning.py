@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 
 import pandas as pd
 import pytest
@@ -292,6 +293,11 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     assert "task.optimizer.lr ~ tag(log, interval(1e-4, 1e-2))" in text and "tuning seed 0; N = 2" in text
     assert (tmp_path / "results" / "runs" / "bifnet_table4.trials.csv").is_file()
     assert (tmp_path / "results" / "bifnet_table4_tuning.png").is_file()
+    # the same command again: its plan finds every trial and raced job done, stage 2's on the chosen experts included
+    again = ablate(tmp_path, "-m", "experiment=bifnet_table4", rows, "tune=lr_wd", "table.tune.trials=2", SERIAL, *TINY)
+    assert again.returncode == 0, output(again)
+    plan = re.search(r"Sweep plan: (\d+) job\(s\)[^\n]*", again.stdout + again.stderr)
+    assert plan and f"; {plan[1]} done already (skipped)" in plan[0] and "to train first" not in plan[0], plan
 
 
 def test_a_phase_resumed_by_a_later_sweep_counts_each_sweeps_span_not_the_time_between() -> None:

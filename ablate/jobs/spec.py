@@ -53,6 +53,19 @@ def best_checkpoint(table: str, chash: str) -> Path:
     return checkpoint_dir(table, chash) / "best.ckpt"
 
 
+def resolved_config(cfg: DictConfig) -> tuple[DictConfig, str, DictConfig | None]:
+    """A job's config as it runs and as its config hash holds it: a copy of ``cfg`` with its numerics resolved for
+    this machine (:func:`ablate.hardware.resolve`) and a tuning trial's draws applied (:func:`apply_draws`); the
+    sentence saying why those numerics; and the config before the draws (None without any). The job
+    (:meth:`JobSpec.of`) and the sweep's plan (:mod:`ablate.sweep.plan`, which finds the jobs already done by
+    their hashes) both take it from here."""
+    resolved = copy.deepcopy(cfg)
+    numerics = hardware.resolve(resolved)
+    base = copy.deepcopy(resolved) if resolved.get("draws") else None
+    apply_draws(resolved)
+    return resolved, numerics, base
+
+
 @dataclass(frozen=True)
 class JobSpec:
     """One job: ``cfg`` is its config with the numerics resolved for this machine (a copy: ``trainer.precision`` and
@@ -74,10 +87,7 @@ class JobSpec:
         """The spec of job config ``cfg`` in ``context``; ``row`` names it where the caller knows better than the
         overrides (an expert)."""
         kind = kind or (KIND_TRIAL if cfg.get("trial") is not None else KIND_JOB)  # a tuning trial (table.tune)
-        resolved = copy.deepcopy(cfg)
-        numerics = hardware.resolve(resolved)
-        base = copy.deepcopy(resolved) if resolved.get("draws") else None
-        apply_draws(resolved)
+        resolved, numerics, base = resolved_config(cfg)
         name = row or row_name(context.overrides, context.swept, context.row_choice)
         chash = config_hash(resolved)
         outbox = Outbox(checkpoint_dir(str(resolved.table.name), chash) / OUTBOX_FILE)

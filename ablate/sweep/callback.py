@@ -241,8 +241,16 @@ class SweepCallback(Callback):
         planned = progress.start(sdir, config)
         try:
             from ablate.sweep.plan import log_plan  # torch and Lightning: the step timing
+            from ablate.tables.tuning import trial_objectives
 
-            log_plan(config, _parallel(config), lambda cfg: tracker.finished_run(exp, config_hash(cfg)) is not None)
+            # a resumed tuning phase: its stage-2 trials and raced jobs as the sweeper will launch them
+            tuned = trial_objectives(tracker, str(config.table.name)) if config.table.get("tune") else None
+            log_plan(
+                config,
+                _parallel(config),
+                lambda cfg: tracker.finished_run(exp, config_hash(cfg)) is not None,
+                tuned,
+            )
         except Exception as err:  # the plan is a convenience: never the reason a sweep does not start
             log.warning("Could not plan the sweep: %s", err)
             log.info("Sweep of %d job(s), %s at a time", planned, _parallel(config))

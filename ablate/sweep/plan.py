@@ -5,8 +5,11 @@ Each job's config is composed from its overrides, as the sweep will launch it (t
 the look's seeds). An expert is planned once per config hash, as :func:`ablate.jobs.experts.ensure_expert` trains
 it; one whose best checkpoint exists is not trained again, nor is one of a tuning phase's stage 2 (its trials copy
 their experts from the experts' chosen trials, :func:`ablate.jobs.job.reuse`), and a job whose config has a FINISHED
-run in the store is skipped (``done``). Every other job and expert is estimated from the recipe's steps (epochs x
-training batches, or ``trainer.max_steps``) at a step time measured here, now
+run in the store is skipped (``done``, by the hash its job will have: a trial's draws applied,
+:func:`ablate.jobs.spec.resolved_config`). A resumed tuning phase's stage-2 trials and raced jobs are composed on what
+it chose from the trials in the store (:func:`ablate.sweep.tuning.choices`), so that they are found done too. Every
+other job and expert is estimated from the recipe's steps (epochs x training batches, or ``trainer.max_steps``) at a
+step time measured here, now
 (:func:`ablate.jobs.steptime.step_times`): one row key (the job's overrides but the seed; an expert's modality) at a
 time, until ``plan.measure_s`` seconds have gone by (the first of each kind whatever the time: the first measurement
 generates the dataset where it is missing, which the first job would do); a job or expert not measured by then is
@@ -23,18 +26,16 @@ leaves out the start of each job's interpreter and the sweep's end (row timing, 
 
 from __future__ import annotations
 
-import copy
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from omegaconf import DictConfig, OmegaConf
 
-from ablate import hardware
 from ablate.config import compose
 from ablate.jobs.experts import expert_config, job_config, needed
-from ablate.jobs.spec import best_checkpoint
+from ablate.jobs.spec import best_checkpoint, resolved_config
 from ablate.jobs.steptime import StepTimes, step_times
 from ablate.store import config_hash, row_name
 from ablate.sweep.progress import job_overrides
@@ -69,22 +70,34 @@ def swept_keys(jobs: list[list[str]]) -> set[str]:
     return {key for key, seen in values.items() if len(seen) > 1 or len(jobs) == 1}
 
 
-def items(config: DictConfig, done: Callable[[DictConfig], bool] = lambda cfg: False) -> list[Item]:
-    """The experts, then the jobs, of the sweep of ``config`` (``done``: whether a job's resolved config has a
-    FINISHED run)."""
-    jobs = job_overrides(config)
+def items(
+    config: DictConfig,
+    done: Callable[[DictConfig], bool] = lambda cfg: False,
+    objectives: Mapping[str, Mapping[int, float]] | None = None,
+) -> list[Item]:
+    """The experts, then the jobs, of the sweep of ``config`` (``done``: whether a job's config, as it runs and is
+    hashed, has a FINISHED run; ``objectives``: the tuning trials' in the store, where a resumed sweep has them,
+    :func:`ablate.sweep.progress.job_overrides`)."""
+    jobs = job_overrides(config, objectives)
     swept = swept_keys(jobs)
     experts: dict[str, Item] = {}
     planned: list[Item] = []
     for overrides in jobs:
-        cfg = job_config(copy.deepcopy(compose(overrides)))[0]  # an expert's tuning trial: the expert's config
-        hardware.resolve(cfg)
-        row = row_name(overrides, swept)
+        # an expert's tuning trial: the expert's config; a trial's draws applied, as the job hashes it
+        ran, named = job_config(compose(overrides))
+        cfg, _, base = resolved_config(ran)
+        row = named or row_name(overrides, swept)  # an expert's trial: "expert <modality>"
         key = " ".join(sorted(o for o in overrides if not o.lstrip("+~").startswith("seed=")))
-        job = Item(f"{row} seed {cfg.seed}", key or row, cfg, done=done(cfg))
+        trial = cfg.get("trial")  # every trial trains at one seed: named by its number
+        job = Item(
+            f"{row} {'trial' if trial is not None else 'seed'} {trial if trial is not None else cfg.seed}",
+            key or row,
+            cfg,
+            done=done(cfg),
+        )
         from_trials = cfg.get("trial") is not None and bool((cfg.table.get("tune") or {}).get("experts", True))
         for modality in needed(cfg) if cfg.get("experts") and not job.done else []:
-            ecfg = expert_config(cfg, modality)
+            ecfg = expert_config(base or cfg, modality)  # the experts of every trial of a row: without its draws
             chash = config_hash(ecfg)
             name = f"expert {modality} seed {cfg.seed}"
             if chash not in experts:  # stage 2's trials copy their experts from the experts' chosen trials
@@ -179,10 +192,16 @@ def _minutes(seconds: float | None) -> str:
     return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
 
 
-def log_plan(config: DictConfig, parallel: int, done: Callable[[DictConfig], bool]) -> None:
-    """Compose, estimate and log the sweep's plan (``plan.measure_s`` seconds of step timing at most; 0: none)."""
+def log_plan(
+    config: DictConfig,
+    parallel: int,
+    done: Callable[[DictConfig], bool],
+    objectives: Mapping[str, Mapping[int, float]] | None = None,
+) -> None:
+    """Compose, estimate and log the sweep's plan (``plan.measure_s`` seconds of step timing at most; 0: none;
+    ``objectives``: the tuning trials' in the store, :func:`items`)."""
     measure_s = float(OmegaConf.select(config, "plan.measure_s", default=MEASURE_S))
-    plan = items(config, done)
+    plan = items(config, done, objectives)
     race = bool(OmegaConf.select(config, "table.seeds.looks", default=None))
     said = lines(plan, parallel, race)
     if measure_s > 0:  # the plan at once; its estimates once the steps are timed (the dataset made first if missing)

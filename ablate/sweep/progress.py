@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from pathlib import Path
 
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
@@ -17,19 +18,22 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
 from ablate.config import compose
-from ablate.store import file_lock
-from ablate.sweep.tuning import Experts, TuneSpec
-from ablate.tables.spec import sweep_params
+from ablate.store import file_lock, row_name
+from ablate.sweep.tuning import Experts, TuneSpec, choices
+from ablate.tables.spec import LOWER_IS_BETTER, sweep_params
 
 PLANNED_FILE = ".planned"
 PROGRESS_FILE = ".progress"
 
 
-def job_overrides(config: DictConfig) -> list[list[str]]:
+def job_overrides(config: DictConfig, objectives: Mapping[str, Mapping[int, float]] | None = None) -> list[list[str]]:
     """Every job's overrides, as the multirun of ``config`` launches them: the product of its swept values (the
     sweeper's ``params``, a table's rows and the command line together, a key on the command line winning), as
     Hydra's basic sweeper splits them; for a table that races its seeds (``table.seeds``), each with the seeds of its
-    first look, after its tuning trials where it tunes (``table.tune``, :mod:`ablate.sweep.tuning`)."""
+    first look, after its tuning trials where it tunes (``table.tune``, :mod:`ablate.sweep.tuning`). Given the
+    tuning trials' ``objectives`` in the store (row -> trial -> value: a resumed sweep's), stage 2's trials sit on
+    the experts' chosen draws and the raced jobs on their rows' chosen trials, as the sweeper launches them once it
+    has chosen (:func:`ablate.sweep.tuning.choices`)."""
     params = OmegaConf.select(config, "hydra.sweeper.params", default=None) or {}
     arguments = list(config.hydra.overrides.task)
     params = sweep_params(params, arguments, config.table)  # a table's rows (ablate.tables.spec.run_rows)
@@ -43,13 +47,22 @@ def job_overrides(config: DictConfig) -> list[list[str]]:
     tune = OmegaConf.select(config, "table.tune", default=None)
     spec = TuneSpec.from_config(OmegaConf.to_container(tune, resolve=True) if tune else None)  # type: ignore[arg-type]
     name = str(OmegaConf.select(config, "table.name", default=""))
-    trials = []
+    swept = {o.get_key_element().lstrip("+~") for o in overrides if o.is_sweep_override()}
+    rows = {row_name(job, swept): job for job in jobs}  # as the racing sweeper names them
+    trials: list[list[str]] = []
+    raced: dict[str, list[str]] = {row: [] for row in rows}
     if spec is not None:  # the experts' trials first, where rows sit on experts; a single-modal row is its expert
-        keyed = {str(i): job for i, job in enumerate(jobs)}
-        experts = Experts.of(keyed, compose) if spec.experts else Experts()
-        tuned = [*experts.trials().values(), *(job for i, job in keyed.items() if i not in experts.single)]
-        trials = [[*job, *spec.overrides(name, k)] for k in range(spec.trials) for job in tuned]
-    return trials + [[*job, f"seed={seed}"] for job in jobs for seed in range(int(looks[0]))]
+        experts = Experts.of(rows, compose) if spec.experts else Experts()
+        higher = str(OmegaConf.select(config, "table.primary", default="")) not in LOWER_IS_BETTER
+        tuned = choices(spec, name, rows, experts, objectives or {}, (spec.trials, spec.trials), higher)
+        fixed, raced = (tuned.fixed, tuned.overrides) if objectives else ([], raced)
+        stage2 = [[*job, *fixed] for row, job in rows.items() if row not in experts.single]
+        trials = [
+            [*job, *spec.overrides(name, k)]
+            for k in range(spec.trials)
+            for job in [*experts.trials().values(), *stage2]
+        ]
+    return trials + [[*job, *raced[row], f"seed={seed}"] for row, job in rows.items() for seed in range(int(looks[0]))]
 
 
 def planned_jobs(config: DictConfig) -> int:

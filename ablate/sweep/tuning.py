@@ -224,8 +224,9 @@ class Experts:
 @dataclass
 class Tuned:
     """What a tuning phase chose: per row, what its raced jobs add (``overrides``) and its chosen trial (``chosen``,
-    the experts' rows too); the trials run per row of stage 2 and of the experts; why a phase stopped early; the
-    trials' objectives as last read (row -> trial -> value)."""
+    the experts' rows too); what every stage-2 job adds, the experts' chosen draws (``fixed``); the trials run per row
+    of stage 2 and of the experts; why a phase stopped early; the trials' objectives as last read (row -> trial ->
+    value)."""
 
     overrides: dict[str, list[str]]
     chosen: dict[str, int]
@@ -233,6 +234,42 @@ class Tuned:
     experts_done: int = 0
     stopped: list[str] = field(default_factory=list)
     objectives: Mapping[str, Mapping[int, float]] = field(default_factory=dict)
+    fixed: list[str] = field(default_factory=list)
+
+
+def choices(
+    spec: TuneSpec,
+    table: str,
+    jobs: Mapping[str, list[str]],
+    experts: Experts,
+    objectives: Mapping[str, Mapping[int, float]],
+    done: tuple[int, int],
+    higher_is_better: bool = True,
+) -> Tuned:
+    """What a tuning phase chooses from its trials' ``objectives`` (row -> trial -> value), ``done`` = (trials run
+    per expert, per stage-2 row): each expert's trial and the draws every stage-2 job adds with it, then each row's
+    trial and what its raced jobs add. Launches nothing: the phase (:func:`tune`) and the plan of a resumed sweep
+    (:mod:`ablate.sweep.plan`, from the objectives in the store) choose alike."""
+    experts_done, stage2_done = done
+    experts = experts if spec.experts else Experts()
+    chosen: dict[str, int] = {}
+    fixed: list[str] = []
+    if experts.base:
+        got = choose(objectives, experts_done, higher_is_better)
+        by_modality = {m: got.get(expert_row(m), 0) for m in experts.base}
+        chosen |= {expert_row(m): k for m, k in by_modality.items()}
+        fixed = expert_overrides(spec, table, by_modality)
+    stage2 = [row for row in jobs if row not in experts.single]
+    chosen |= choose({r: v for r, v in objectives.items() if r in stage2}, stage2_done, higher_is_better)
+    overrides: dict[str, list[str]] = {}
+    for row in jobs:
+        if row in experts.single:
+            chosen[row] = chosen.get(expert_row(experts.single[row]), 0)
+            overrides[row] = [*fixed, f"tuned={chosen[row]}"]
+        else:
+            chosen.setdefault(row, 0)
+            overrides[row] = [*fixed, *tuned_overrides(spec, table, chosen[row])]
+    return Tuned(overrides, chosen, stage2_done, experts_done, objectives=objectives, fixed=fixed)
 
 
 def tune(
@@ -247,34 +284,25 @@ def tune(
 ) -> Tuned:
     """The whole tuning phase of a table: its experts' trials first where rows sit on experts (and
     ``spec.experts``), then every other row's on the chosen experts; ``objectives`` reads the trials' objectives
-    back (row -> trial -> value) after each part. Single-modal rows on experts are tuned as their experts."""
+    back (row -> trial -> value) after each part; :func:`choices` chooses. Single-modal rows on experts are tuned as
+    their experts."""
     started = clock()
-    fixed: list[str] = []
-    chosen: dict[str, int] = {}
-    out = Tuned({}, chosen, 0)
     experts = experts if spec.experts else Experts()
+    experts_done, done, stopped = 0, 0, []
+    values: Mapping[str, Mapping[int, float]] = {}
     if experts.base:
         phase = run_phase(spec, table, experts.trials(), launch, clock)
-        out.experts_done, out.stopped = phase.done, [phase.stopped] if phase.stopped else []
-        out.objectives = objectives()
-        got = choose(out.objectives, phase.done, higher_is_better)
-        by_modality = {m: got.get(expert_row(m), 0) for m in experts.base}
-        chosen |= {expert_row(m): k for m, k in by_modality.items()}
-        fixed = expert_overrides(spec, table, by_modality)
+        experts_done, stopped = phase.done, [phase.stopped] if phase.stopped else []
+        values = objectives()
+    fixed = choices(spec, table, jobs, experts, values, (experts_done, 0), higher_is_better).fixed
     stage2 = {row: [*o, *fixed] for row, o in jobs.items() if row not in experts.single}
     if stage2:
         left = spec.budget_min - (clock() - started) / 60 if spec.budget_min else None
         part = replace(spec, budget_min=None if left is None else max(left, 1e-3))
         phase = run_phase(part, table, stage2, launch, clock)
-        out.done = phase.done
-        out.stopped += [phase.stopped] if phase.stopped else []
-        out.objectives = objectives()
-        chosen |= choose({r: v for r, v in out.objectives.items() if r in stage2}, phase.done, higher_is_better)
-    for row in jobs:
-        if row in experts.single:
-            chosen[row] = chosen.get(expert_row(experts.single[row]), 0)
-            out.overrides[row] = [*fixed, f"tuned={chosen[row]}"]
-        else:
-            chosen.setdefault(row, 0)
-            out.overrides[row] = [*fixed, *tuned_overrides(spec, table, chosen[row])]
+        done = phase.done
+        stopped += [phase.stopped] if phase.stopped else []
+        values = objectives()
+    out = choices(spec, table, jobs, experts, values, (experts_done, done), higher_is_better)
+    out.stopped = stopped
     return out

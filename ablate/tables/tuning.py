@@ -107,6 +107,15 @@ def last_trials(trials: pd.DataFrame) -> pd.DataFrame:
     return trials.drop_duplicates(["row", "trial"], keep="last").sort_values(["row", "trial"], kind="stable")
 
 
+def trial_objectives(tracker: Tracker, table: str) -> dict[str, dict[int, float]]:
+    """Per row, each tuning trial's objective in the store (its latest run's ``val_best``; NaN where it failed)."""
+    trials = last_trials(from_store(tracker, table))
+    out: dict[str, dict[int, float]] = {}
+    for row, trial, value in zip(trials.get("row", []), trials.get("trial", []), trials.get("val_best", [])):
+        out.setdefault(str(row), {})[int(trial)] = float(value)
+    return out
+
+
 def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> list[str]:
     """The markdown lines on the tuning phase: a table of the rows' chosen trials, the footer's sentence, and whether
     the rows' curves cross; without trials, why the table races on the recipe where it says (``table.untuned``),

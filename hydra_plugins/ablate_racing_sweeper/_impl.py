@@ -42,19 +42,9 @@ from ablate.tables import table_spec
 from ablate.tables.collect import job_runs, row_seconds
 from ablate.tables.racing import RacePlan, RaceState, race, table_values
 from ablate.tables.spec import LOWER_IS_BETTER, sweep_params
-from ablate.tables.tuning import from_store as tuning_runs
-from ablate.tables.tuning import last_trials
+from ablate.tables.tuning import trial_objectives
 
 log = logging.getLogger(__name__)
-
-
-def trial_objectives(tracker: Tracker, table: str) -> dict[str, dict[int, float]]:
-    """Per row, each tuning trial's objective in the store (its latest run's ``val_best``; NaN where it failed)."""
-    trials = last_trials(tuning_runs(tracker, table))
-    out: dict[str, dict[int, float]] = {}
-    for row, trial, value in zip(trials.get("row", []), trials.get("trial", []), trials.get("val_best", [])):
-        out.setdefault(str(row), {})[int(trial)] = float(value)
-    return out
 
 
 #: What a job returns (``ablate.jobs.job.main``) when the store already held its run and nothing trained.
