@@ -54,6 +54,7 @@ def sweeper_for(tmp_path, monkeypatch, metric, *overrides, shuffle=False, launch
     monkeypatch.setattr(impl, "job_runs", lambda tracker, table: None)
     monkeypatch.setattr(impl, "table_values", lambda runs, table: {r: pd.Series(v) for r, v in launcher.store.items()})
     monkeypatch.setattr(impl, "row_seconds", lambda tracker, runs: launcher.seconds)
+    monkeypatch.setattr(impl, "earlier_wall", lambda runs, sweep: getattr(launcher, "earlier_min", 0.0))
     monkeypatch.setattr(impl.RacingSweeperImpl, "_tracker", lambda self: None)
     return sweeper, launcher
 
@@ -165,6 +166,48 @@ def test_a_look_whose_jobs_were_all_held_does_not_stop_the_race(tmp_path, monkey
     sweeper, _ = sweeper_for(tmp_path, monkeypatch, None, "scale.race.budget_min=15", launcher=launcher)
     sweeper.sweep([])
     assert len(launcher.batches) == 2  # look 2 trained 6 jobs in 12 min: look 3's 9 would need 18 more
+
+
+def test_a_resumed_race_counts_the_time_its_earlier_sweeps_spent_against_its_budget(tmp_path, monkeypatch, caplog):
+    # look 1: chinet's and U-Net's seeds were raced by an earlier sweep (held), fusenet's three train here for 4 min
+    # each, two at a time: 6 min. Look 2 needs about 12 more: inside a budget of 25 min alone (18), past it with
+    # the 8 min the earlier sweep spent (26).
+    def resumed(earlier_min: float) -> TimedLauncher:
+        clock = [0.0]
+        monkeypatch.setattr(impl.time, "monotonic", lambda: clock[0])
+        held = {(r, s) for r in ("chinet", "unet") for s in range(3)}
+        launcher = TimedLauncher(lambda r, s: 95.0 + noise("same", s) + noise(r, s), clock, held, 4.0)
+        launcher.earlier_min = earlier_min
+        sweeper, _ = sweeper_for(
+            tmp_path / str(earlier_min), monkeypatch, None, "scale.race.budget_min=25", launcher=launcher
+        )
+        sweeper.sweep([])
+        return launcher
+
+    assert len(resumed(0.0).batches) > 1
+    with caplog.at_level("INFO", logger=impl.__name__):
+        assert len(resumed(8.0).batches) == 1
+    assert "before look 2 (14.0 min spent, 8.0 of them in earlier sweeps, about 12.0 more needed)" in caplog.text
+
+
+def test_the_time_a_race_spent_before_is_its_other_sweeps_spans_of_the_runs_it_uses() -> None:
+    from ablate.tables.collect import earlier_wall
+
+    minute = 60000
+    runs = pd.DataFrame(
+        [  # row, seed, sweep, job start, run start, end (minutes)
+            ("a", 0, "old", 0, 5, 10),  # superseded by the later run of (a, 0): not the race's
+            ("a", 0, "s1", 20, 22, 30),
+            ("b", 0, "s1", 21, 21, 32),
+            ("a", 1, "s2", 100, 101, 110),  # this sweep's own
+        ],
+        columns=["row", "seed", "sweep_id", "job_started", "started", "ended"],
+    )
+    runs[["job_started", "started", "ended"]] *= minute
+    runs["scale"] = "cpu"
+    assert earlier_wall(runs, "s2") == 12.0  # s1: 20 .. 32
+    assert earlier_wall(runs, "s1") == 10.0 and earlier_wall(runs.drop(columns="job_started"), "s2") == 11.0
+    assert earlier_wall(None, "s2") == 0.0 and earlier_wall(runs[runs["sweep_id"] == "s2"], "s2") == 0.0
 
 
 def null_rate(correction: str, tables: int = 1000) -> float:

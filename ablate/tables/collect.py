@@ -98,6 +98,21 @@ def sweep_wall(began: pd.Series, ended: pd.Series, sweep: pd.Series | None) -> t
     return float((spans["last"].max() - spans["first"].min()).sum()) / 60000, int(spans.ngroups)
 
 
+def earlier_wall(runs: pd.DataFrame | None, sweep_id: str | None) -> float:
+    """Minutes of wall time that sweeps other than ``sweep_id`` spent on the latest runs (:func:`latest`: the very
+    runs the table and its race use), per sweep as the footer counts it (:func:`sweep_wall`): what a race resumed
+    by the same command had spent before it, to be counted against its budget."""
+    if runs is None or not len(runs):
+        return 0.0
+    runs = latest(runs)
+    sweeps = runs["sweep_id"].fillna("").astype(str) if "sweep_id" in runs else pd.Series("", index=runs.index)
+    other = runs[sweeps != (sweep_id or "")]
+    if not len(other):
+        return 0.0
+    began = other["job_started"].fillna(other["started"]) if "job_started" in other else other["started"]
+    return sweep_wall(began, other["ended"], other.get("sweep_id"))[0]
+
+
 def made_lines(runs: pd.DataFrame) -> list[str]:
     """The footer's line on how the rows were made: the CPU, precision and threads of the runs (each set with its
     run count where they differ: the numerics are a source of variation of their own), and the wall time: per

@@ -39,7 +39,7 @@ from ablate.store.context import SWEPT_FILE
 from ablate.sweep import progress
 from ablate.sweep.tuning import Experts, TuneSpec, expert_row, tune
 from ablate.tables import table_spec
-from ablate.tables.collect import job_runs, row_seconds
+from ablate.tables.collect import earlier_wall, job_runs, row_seconds
 from ablate.tables.racing import RacePlan, RaceState, race, table_values
 from ablate.tables.spec import LOWER_IS_BETTER, sweep_params
 from ablate.tables.tuning import trial_objectives
@@ -87,6 +87,7 @@ class Race:
     returns: list[list[JobReturn]] = field(default_factory=list)
     stopped: str = ""
     cost: Callable[[str], float] = field(default_factory=lambda: job_costs({}))
+    earlier: float = 0.0  # seconds the race spent in earlier sweeps (the same command, resumed)
 
     def next_look(self) -> tuple[int, int, list[list[str]], list[str]]:
         """The next look's number, its seeds per row, and its jobs' overrides and rows."""
@@ -96,13 +97,17 @@ class Race:
         return look, n, batch, rows
 
     def over_budget(self, look: int, rows: list[str]) -> bool:
-        """Whether the next look would end past the wall-time budget (then :attr:`stopped` says so)."""
+        """Whether the next look would end past the wall-time budget (then :attr:`stopped` says so): this command's
+        time since the race began, and the race's time in earlier sweeps where the command resumed it
+        (:attr:`earlier`), as the table's footer counts its wall time."""
         elapsed = time.monotonic() - self.started
         needed = look_estimate(elapsed, [self.cost(r) for r in self.trained], [self.cost(r) for r in rows])
-        if self.plan.budget_min and elapsed + needed > self.plan.budget_min * 60:
+        spent = elapsed + self.earlier
+        if self.plan.budget_min and spent + needed > self.plan.budget_min * 60:
+            before = f", {self.earlier / 60:.1f} of them in earlier sweeps" if self.earlier else ""
             self.stopped = (
                 f"the wall-time budget of {self.plan.budget_min:g} min stopped the race before look {look} "
-                f"({elapsed / 60:.1f} min spent, about {needed / 60:.1f} more needed)"
+                f"({spent / 60:.1f} min spent{before}, about {needed / 60:.1f} more needed)"
             )
             return True
         return False
@@ -260,6 +265,7 @@ class RacingSweeperImpl:
             print(f"error: {err}; the race stopped after look {look}: the same command resumes it", file=sys.stderr)
             raise SystemExit(1) from None
         values = table_values(runs, table)
+        race_.earlier = 60 * earlier_wall(runs, self._context().parent_run)
         if race_.trained:
             race_.cost = self._costs(tracker, runs)
         race_.state = race(values, list(race_.jobs), race_.reference, race_.plan, race_.higher, stop_after=look)
