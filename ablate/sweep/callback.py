@@ -244,12 +244,12 @@ class SweepCallback(Callback):
             from ablate.tables.tuning import trial_objectives
 
             # a resumed tuning phase: its stage-2 trials and raced jobs as the sweeper will launch them
-            tuned = trial_objectives(tracker, str(config.table.name)) if config.table.get("tune") else None
+            objectives = trial_objectives(tracker, str(config.table.name)) if config.table.get("tune") else None
             log_plan(
                 config,
                 _parallel(config),
                 lambda cfg: tracker.finished_run(exp, config_hash(cfg)) is not None,
-                tuned,
+                objectives,
             )
         except Exception as err:  # the plan is a convenience: never the reason a sweep does not start
             log.warning("Could not plan the sweep: %s", err)

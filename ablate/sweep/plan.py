@@ -89,13 +89,9 @@ def items(
         row = named or row_name(overrides, swept)  # an expert's trial: "expert <modality>"
         key = " ".join(sorted(o for o in overrides if not o.lstrip("+~").startswith("seed=")))
         trial = cfg.get("trial")  # every trial trains at one seed: named by its number
-        job = Item(
-            f"{row} {'trial' if trial is not None else 'seed'} {trial if trial is not None else cfg.seed}",
-            key or row,
-            cfg,
-            done=done(cfg),
-        )
-        from_trials = cfg.get("trial") is not None and bool((cfg.table.get("tune") or {}).get("experts", True))
+        label = f"trial {trial}" if trial is not None else f"seed {cfg.seed}"
+        job = Item(f"{row} {label}", key or row, cfg, done=done(cfg))
+        from_trials = trial is not None and bool((cfg.table.get("tune") or {}).get("experts", True))
         for modality in needed(cfg) if cfg.get("experts") and not job.done else []:
             ecfg = expert_config(base or cfg, modality)  # the experts of every trial of a row: without its draws
             chash = config_hash(ecfg)
