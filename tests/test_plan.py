@@ -133,6 +133,8 @@ def test_stage_2_trials_plan_no_experts_they_copy_them_from_the_experts_chosen_t
     experts = [i for i in plan if i.key.startswith("expert ") and i.name.startswith("expert ")]
     assert experts and all(i.config.seed != 1000 for i in experts if not i.done)  # the race's experts alone
     assert all(not i.needs for i in trials)
+    stage1 = [i.name.startswith("expert ") for i in trials]  # the experts' trials first, all of them, as the phase
+    assert stage1 == sorted(stage1, reverse=True) and sum(stage1) == 4 and len(stage1) == 4 + 2 * 2
 
 
 def test_an_item_not_measured_is_timed_at_its_kinds_step_times_an_experts_trial_as_an_expert(

@@ -57,11 +57,8 @@ def job_overrides(config: DictConfig, objectives: Mapping[str, Mapping[int, floa
         tuned = choices(spec, name, rows, experts, objectives or {}, (spec.trials, spec.trials), higher)
         fixed, raced = (tuned.fixed, tuned.overrides) if objectives else ([], raced)
         stage2 = [[*job, *fixed] for row, job in rows.items() if row not in experts.single]
-        trials = [
-            [*job, *spec.overrides(name, k)]
-            for k in range(spec.trials)
-            for job in [*experts.trials().values(), *stage2]
-        ]
+        for part in (list(experts.trials().values()), stage2):  # every expert trial before stage 2, as the phase runs
+            trials += [[*job, *spec.overrides(name, k)] for k in range(spec.trials) for job in part]
     return trials + [[*job, *raced[row], f"seed={seed}"] for row, job in rows.items() for seed in range(int(looks[0]))]
 
 
