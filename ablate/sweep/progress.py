@@ -53,9 +53,11 @@ def job_overrides(config: DictConfig, objectives: Mapping[str, Mapping[int, floa
     raced: dict[str, list[str]] = {row: [] for row in rows}
     if spec is not None:  # the experts' trials first, where rows sit on experts; a single-modal row is its expert
         experts = Experts.of(rows, compose) if spec.experts else Experts()
-        higher = str(OmegaConf.select(config, "table.primary", default="")) not in LOWER_IS_BETTER
-        tuned = choices(spec, name, rows, experts, objectives or {}, (spec.trials, spec.trials), higher)
-        fixed, raced = (tuned.fixed, tuned.overrides) if objectives else ([], raced)
+        fixed: list[str] = []
+        if objectives:  # a resumed phase: what it chose so far
+            higher = str(OmegaConf.select(config, "table.primary", default="")) not in LOWER_IS_BETTER
+            tuned = choices(spec, name, rows, experts, objectives, (spec.trials, spec.trials), higher)
+            fixed, raced = tuned.fixed, tuned.overrides
         stage2 = [[*job, *fixed] for row, job in rows.items() if row not in experts.single]
         for part in (list(experts.trials().values()), stage2):  # every expert trial before stage 2, as the phase runs
             trials += [[*job, *spec.overrides(name, k)] for k in range(spec.trials) for job in part]
