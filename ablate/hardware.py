@@ -185,10 +185,22 @@ def resolved(cfg: DictConfig) -> DictConfig:
     return copy
 
 
+def gpu(trainer: DictConfig) -> str | None:
+    """The name of the CUDA device a job of ``trainer`` trains on (``trainer=gpu``: its first device, as torch
+    names it), or None where it trains on the CPU."""
+    import torch  # here: the config's resolvers run without torch
+
+    if not _on_gpu(trainer) or not torch.cuda.is_available():
+        return None
+    return torch.cuda.get_device_name(0)
+
+
 def tags(cfg: DictConfig) -> dict[str, str]:
-    """The numerics and the machine, as run tags: resolved precision, memory format, threads, compile, CPU, ISA."""
+    """The numerics and the machine, as run tags: resolved precision, memory format, threads, compile, CPU, ISA,
+    and the GPU (tag ``gpu``) where the job trains on one."""
     machine = cpu()
     trainer = cfg.trainer
+    device = gpu(trainer)
     return {
         "precision": str(trainer.get("precision")),
         "channels_last": str(trainer.get("channels_last")),
@@ -196,6 +208,7 @@ def tags(cfg: DictConfig) -> dict[str, str]:
         "compile": str(trainer.get("compile", False)),
         "cpu": machine.model,
         "cpu_isa": machine.isa,
+        **({"gpu": device} if device else {}),
     }
 
 

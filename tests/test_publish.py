@@ -86,3 +86,7 @@ def test_your_seeds_are_placed_in_the_published_rows_prediction_interval() -> No
     tuned = '{"task.optimizer.lr": 0.0008727, "task.optimizer.weight_decay": null}'
     line = compare(ours, theirs.assign(tuned_config=tuned), table).splitlines()[-1]
     assert line.endswith("; tuned config: lr=0.0008727, weight_decay=default -> the recipe |"), line
+    # yours trained on a GPU, the published rows on the CPU (records from before the column name none)
+    line = compare(ours.assign(made_gpu="NVIDIA H200"), theirs, table).splitlines()[-1]
+    assert "GPU: none -> NVIDIA H200" in line, line
+    assert "GPU" not in compare(ours.assign(made_gpu=""), theirs, table).splitlines()[-1]

@@ -190,6 +190,12 @@ def test_the_footers_wall_time_starts_where_a_job_began_training_its_experts(tmp
     assert "wall time 20 min over 1 sweep(s), 20 min of job time" in made_lines(records)[0]
     # records written before the column: the runs' own spans, as those tables were rendered
     assert "wall time 0 min over 1 sweep(s), 0 min of job time" in made_lines(records.drop(columns="job_started"))[0]
+    # a CPU run names no GPU, and records from before the GPU's column read the same
+    assert set(records["made_gpu"]) == {""}
+    assert made_lines(records)[0].startswith("Made on AMD EPYC, precision 32-true, 1 thread(s) per job;")
+    assert made_lines(records.drop(columns="made_gpu")) == made_lines(records)
+    on_gpu = made_lines(records.assign(made_gpu="NVIDIA H200"))[0]
+    assert on_gpu.startswith("Made on AMD EPYC with NVIDIA H200, precision 32-true, 1 thread(s) per job;"), on_gpu
 
 
 def test_a_run_copied_from_another_table_starts_when_it_is_copied(tmp_path: Path) -> None:

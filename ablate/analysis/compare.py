@@ -19,12 +19,18 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.tables.collect import under_condition
-from ablate.tables.records import read_records, records_path
+from ablate.tables.records import read_records, records_path, text_of
 from ablate.tables.significance import prediction_interval
 from ablate.tables.tuning import config_text
 
 #: The record columns that say how a number was computed, beside the config.
-NUMERICS = {"made_cpu": "CPU", "cpu_isa": "ISA", "made_precision": "precision", "made_threads": "threads"}
+NUMERICS = {
+    "made_cpu": "CPU",
+    "cpu_isa": "ISA",
+    "made_gpu": "GPU",
+    "made_precision": "precision",
+    "made_threads": "threads",
+}
 
 
 def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> str:
@@ -59,8 +65,8 @@ def differing(mine: pd.DataFrame, published: pd.DataFrame) -> str:
     they differ (``the recipe`` for an untuned row, :func:`ablate.tables.tuning.config_text`)."""
     out = []
     for column, name in NUMERICS.items():
-        before = sorted({str(v) for v in published.get(column, pd.Series(["?"]))})
-        now = sorted({str(v) for v in mine.get(column, pd.Series(["?"]))})
+        before = sorted({text_of(v, column) for v in published.get(column, pd.Series([None]))})
+        now = sorted({text_of(v, column) for v in mine.get(column, pd.Series([None]))})
         if before != now:
             out.append(f"{name}: {' / '.join(before)} -> {' / '.join(now)}")
     before, now = (

@@ -36,12 +36,18 @@ from omegaconf import DictConfig, OmegaConf
 from ablate.store import Tracker, split_tuned_key
 from ablate.tables import collect, table_spec
 from ablate.tables.collect import under_condition
-from ablate.tables.records import read_records, records_path
+from ablate.tables.records import read_records, records_path, text_of
 from ablate.tables.significance import prediction_interval
 
 #: How a number was computed, beside the config (a run's tags, its record's columns): compared between the recorded
 #: runs and now, by the name a line gives it.
-NUMERICS = {"cpu": "made_cpu", "cpu_isa": "cpu_isa", "precision": "made_precision", "threads": "made_threads"}
+NUMERICS = {
+    "cpu": "made_cpu",
+    "cpu_isa": "cpu_isa",
+    "gpu": "made_gpu",
+    "precision": "made_precision",
+    "threads": "made_threads",
+}
 
 
 @dataclass
@@ -85,7 +91,7 @@ class Reproduction:
 
 def numerics(run: pd.Series) -> dict[str, str]:
     """The numerics of one run (a row of a table's runs or records)."""
-    return {name: str(run.get(column, "?")) for name, column in NUMERICS.items()}
+    return {name: text_of(run.get(column), column) for name, column in NUMERICS.items()}
 
 
 def differences(recorded: list[dict[str, str]], now: dict[str, str]) -> list[str]:

@@ -7,7 +7,10 @@ a job would use on the CPU. :func:`step_times` times, on one training batch of t
 with the experts run (every step of a job without a feature cache, the first epoch of one with it), a training step
 with the experts' features read from the cache (the later epochs), and a validation step. Each is the fastest of
 ``repeats`` after one untimed step, with the job's ``trainer.threads`` and its precision (bf16 autocast where its
-resolved ``trainer.precision`` is bf16, as Lightning's ``bf16-mixed`` runs it on the CPU).
+resolved ``trainer.precision`` is bf16, as Lightning's ``bf16-mixed`` runs it), on the device the job trains on: the
+CPU, or the first CUDA device for ``trainer=gpu`` where there is one (:func:`ablate.hardware.gpu`), each step waited
+for on the device. On a GPU the experts' feature cache is left out (a job sizes its own against the GPU's free
+memory, :mod:`ablate.jobs.experts`): its later epochs are timed as its first, an upper bound.
 """
 
 from __future__ import annotations
@@ -22,8 +25,10 @@ from typing import Any
 import lightning as L
 import torch
 from hydra.utils import instantiate
+from lightning.fabric.utilities.apply_func import move_data_to_device
 from omegaconf import DictConfig
 
+from ablate import hardware
 from ablate.data.datamodule import collate
 from ablate.jobs.experts import expert_config, feature_cache, needed
 
@@ -116,10 +121,14 @@ def step_times(cfg: DictConfig, repeats: int = 2, clock: Callable[[], float] = t
         with warnings.catch_warnings():  # the task's self.log without a trainer: logged nowhere, as meant
             warnings.filterwarnings("ignore", ".*self.trainer.* reference is not registered.*")
             bf16 = "bf16" in str(cfg.trainer.get("precision", "32"))  # the job's numerics, resolved (ablate.hardware)
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                built, train_s, cached_s, eval_s = _timed(cfg, repeats, clock)
+            device = torch.device("cuda", 0) if hardware.gpu(cfg.trainer) else torch.device("cpu")
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+                built, train_s, cached_s, eval_s = _timed(cfg, repeats, clock, device)
     finally:
         torch.set_num_threads(threads)
+    if device.type == "cuda":  # the sweep's own process keeps no model on the GPU its jobs train on
+        built = {"splits": built["splits"]}
+        torch.cuda.empty_cache()
     splits, batch_size = built["splits"], int(cfg.data.batch_size)
     return StepTimes(
         train_s,
@@ -131,11 +140,17 @@ def step_times(cfg: DictConfig, repeats: int = 2, clock: Callable[[], float] = t
     )
 
 
-def _timed(cfg: DictConfig, repeats: int, clock: Callable[[], float]) -> tuple[dict[str, Any], float, float, float]:
+def _timed(
+    cfg: DictConfig, repeats: int, clock: Callable[[], float], device: torch.device = torch.device("cpu")
+) -> tuple[dict[str, Any], float, float, float]:
     """The built job (:func:`build`) and its training step's seconds with the experts run and with them cached, and
-    its validation step's."""
+    its validation step's, on ``device``."""
     built = build(cfg, cfg, int(cfg.data.batch_size))
     task, batch = built["task"], built["batch"]
+    if device.type == "cuda":
+        task.to(device)
+        task.feature_cache = None  # built on the CPU, for the CPU: see the module
+        batch = move_data_to_device(batch, device)
     optimizer, _ = task.optimizers_for(task.trainable(), 1000)
 
     def train_step() -> None:
@@ -143,6 +158,8 @@ def _timed(cfg: DictConfig, repeats: int, clock: Callable[[], float]) -> tuple[d
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
+        if device.type == "cuda":  # the kernels queued: the step ends when the device is done
+            torch.cuda.synchronize(device)
 
     cache = task.feature_cache
     task.feature_cache = None
@@ -151,8 +168,14 @@ def _timed(cfg: DictConfig, repeats: int, clock: Callable[[], float]) -> tuple[d
     cached_s = _fastest(train_step, repeats, clock) if cache is not None else train_s  # the untimed step fills it
     task.feature_cache = None
     task.eval()
+
+    def eval_step() -> None:
+        task.validation_step(batch, 0)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
     with torch.no_grad():
-        eval_s = _fastest(lambda: task.validation_step(batch, 0), repeats, clock)
+        eval_s = _fastest(eval_step, repeats, clock)
     return built, train_s, cached_s, eval_s
 
 

@@ -133,6 +133,8 @@ def fit(
         log.info("Resuming from %s (step %d, epoch %d)", start.path, start.step, start.epoch)
     tracker.set_tags(run_id, start.tags)
     task.feature_cache = feature_cache(spec.cfg, task.model)
+    if torch.cuda.is_available():  # a sweep's worker process runs job after job: each job's peak is its own
+        torch.cuda.reset_peak_memory_stats()
     try:
         with STOP.training(trainer):
             trainer.fit(task, datamodule=datamodule, ckpt_path=str(start.path) if start.path else None)
@@ -165,8 +167,10 @@ def test(
     sample = next(iter(datamodule.test_dataloader()))
     metrics["params_m"] = sum(p.numel() for p in task.model.parameters()) / 1e6
     tracker.log_metrics(run_id, metrics, step=trainer.global_step)
-    device = str(next(task.model.parameters()).device)
-    tracker.set_tags(run_id, {"device": device, "threads_used": str(torch.get_num_threads())})
+    device = trainer.strategy.root_device  # the model's parameters are back on the CPU once the test ends
+    tracker.set_tags(run_id, {"device": str(device), "threads_used": str(torch.get_num_threads())})
+    if memory := gpu_memory(device):
+        tracker.log_metrics(run_id, memory, step=trainer.global_step)
     tracker.set_tags(run_id, {"evaluator": task.evaluator} if getattr(task, "evaluator", None) else {})
     for name, figure in task.figures(sample).items():
         tracker.log_figure(run_id, figure, name)
@@ -174,6 +178,19 @@ def test(
     if best and spec.cfg.logger.get("log_checkpoint", True) and Path(best).resolve().parent == spec.ckpt_dir.resolve():
         tracker.log_artifact(run_id, best, "checkpoints")
     return metrics
+
+
+def gpu_memory(device: torch.device) -> dict[str, float]:
+    """Where the job ran on a CUDA device, the peak memory its tensors took there since its fit began, allocated and
+    reserved by torch's caching allocator, in GiB (metrics ``gpu_peak_alloc_gib`` and ``gpu_peak_reserved_gib``);
+    on the CPU, none."""
+    if device.type != "cuda":
+        return {}
+    gib = 2**30
+    return {
+        "gpu_peak_alloc_gib": torch.cuda.max_memory_allocated(device) / gib,
+        "gpu_peak_reserved_gib": torch.cuda.max_memory_reserved(device) / gib,
+    }
 
 
 def log_frame_counts(tracker: Tracker, run_id: str, counts: list[dict[str, Any]]) -> None:

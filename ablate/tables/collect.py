@@ -51,6 +51,7 @@ def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
             "targets": " ".join(sorted({v for k, v in r.data.params.items() if k.endswith("_target_")})),
             **{f"made_{k}": r.data.tags.get(k, "?") for k in MADE},
             "cpu_isa": r.data.tags.get("cpu_isa", "?"),
+            "made_gpu": r.data.tags.get("gpu", ""),  # the GPU a job trained on (ablate.hardware.gpu); "" the CPU
             "sweep_id": r.data.tags.get("sweep_id", ""),
             "race_plan": r.data.tags.get("race_plan", ""),
             "tuned_config": r.data.tags.get("tuned_config", ""),  # the config a tuning phase chose for its row
@@ -114,17 +115,20 @@ def earlier_wall(runs: pd.DataFrame | None, sweep_id: str | None) -> float:
 
 
 def made_lines(runs: pd.DataFrame) -> list[str]:
-    """The footer's line on how the rows were made: the CPU, precision and threads of the runs (each set with its
-    run count where they differ: the numerics are a source of variation of their own), and the wall time: per
+    """The footer's line on how the rows were made: the CPU (and the GPU, where runs trained on one), precision and
+    threads of the runs (each set with its run count where they differ: the numerics are a source of variation of
+    their own), and the wall time: per
     sweep the runs came from, its first job's start to its last job's end, added up (from the runs alone, so the
     same runs give the same line), beside the jobs' own time added up. A job starts where it began training or
     waiting for its experts (``job_started``), before its run; records without that column start at the run."""
     if not len(runs) or "made_cpu" not in runs:
         return []
-    kinds = runs.groupby([f"made_{k}" for k in MADE]).size()
+    gpus = runs["made_gpu"].fillna("") if "made_gpu" in runs else pd.Series("", index=runs.index)
+    kinds = runs.assign(made_gpu=gpus).groupby([f"made_{k}" for k in MADE] + ["made_gpu"]).size()
     made = [
-        f"{cpu}, precision {precision}, {threads} thread(s) per job" + (f" ({n} runs)" if len(kinds) > 1 else "")
-        for (cpu, precision, threads), n in kinds.items()
+        f"{cpu}{f' with {gpu}' if gpu else ''}, precision {precision}, {threads} thread(s) per job"
+        + (f" ({n} runs)" if len(kinds) > 1 else "")
+        for (cpu, precision, threads, gpu), n in kinds.items()
     ]
     began = runs["job_started"] if "job_started" in runs else runs["started"]
     wall, sweeps = sweep_wall(began, runs["ended"], runs.get("sweep_id"))

@@ -5,7 +5,8 @@ from which the report renders the table again on any machine, with no store (Dom
 One line per run the table uses (:func:`ablate.tables.collect.collect`: per row and seed the latest FINISHED run,
 at the latest scale): who it is (``table``, ``row``, ``seed``, ``status``, ``scale``, ``config_hash``), the code
 that made it (``git_commit``, its ``fingerprint``, ``evaluator``, ``targets``), where and how (``made_cpu``,
-``cpu_isa``, ``made_precision``, ``made_threads``), when (``started``, ``ended`` in ms, ``seconds``, and
+``cpu_isa``, ``made_gpu``: the GPU, empty on the CPU and absent from older records, ``made_precision``,
+``made_threads``), when (``started``, ``ended`` in ms, ``seconds``, and
 ``job_started``, the job's start before its experts), the race and
 sweep it belongs to (``race_plan``, ``sweep_id``, ``job_num``, ``reused_from``, ``run_id``), the config a tuning
 phase chose for its row (``tuned_config``, empty where the row was not tuned), and one column per
@@ -39,6 +40,7 @@ TEXT = (
     "targets",
     "made_cpu",
     "cpu_isa",
+    "made_gpu",
     "made_precision",
     "made_threads",
     "sweep_id",
@@ -49,8 +51,18 @@ TEXT = (
 #: The whole-number columns: the job's number in its sweep, its run's start and end (ms since the epoch), and the
 #: job's start before the experts it trained first (``job_started``; absent from records written before it).
 WHOLE = ("job_num", "started", "ended", "job_started")
+#: What a missing or empty text column reads as where records are compared: a run on the CPU names no GPU, and
+#: records written before the column have none; any other column unknown reads ``?``.
+ABSENT = {"made_gpu": "none"}
 #: Metrics a record leaves out: the per-epoch ones (their last values) and the test metrics' second names.
 HISTORY = ("train/", "val/", "test/", "epoch", "lr")
+
+
+def text_of(value: object, column: str) -> str:
+    """``value`` of a record's text ``column`` as text, :data:`ABSENT`'s reading where it is missing or empty."""
+    if value is None or (isinstance(value, float) and value != value) or value == "":
+        return ABSENT.get(column, "?")
+    return str(value)
 
 
 def records_path(results_dir: str | Path, table: str) -> Path:
@@ -105,6 +117,7 @@ KIND_IMPORTED = "imported"
 #: config hash and run id are the recorded run's, kept apart from this store's own.
 TAG_NAMES = {
     "made_cpu": "cpu",
+    "made_gpu": "gpu",
     "made_precision": "precision",
     "made_threads": "threads",
     "config_hash": "recorded_config_hash",
