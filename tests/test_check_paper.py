@@ -83,6 +83,12 @@ def test_a_paper_row_of_each_family_trains_and_tests_a_step(family, data_dir):
         assert cfg.scale.unet_widths == [64, 128, 256, 512, 1024]
 
 
+def test_a_single_modal_row_trained_as_an_expert_counts_its_tables_seeds():
+    (image,) = paper_rows.describe([("bifnet_table4", "bifnet_image")])
+    (fused,) = paper_rows.describe([("bifnet_table4", "bifnet_dst_sum")])
+    assert image["seeds"] == fused["seeds"] == 3  # scale=paper: the papers' three seeds, every row
+
+
 def test_recipes_give_the_papers_steps():
     semantic = paper_rows.recipe(paper_rows.job_config("chinet_table2", "chinet"))
     assert (semantic["batch"], semantic["train_frames"], semantic["steps"]) == (5, 4489, 50 * 898)
@@ -190,8 +196,14 @@ def test_gpu_measurements_stand_beside_the_estimates_with_their_ratio_and_diverg
         },
     ]
     (tmp_path / "paper_scale_gpu.json").write_text(json.dumps(gpu))
+    sweep = {"kind": "row", "command": "python -m ablate row=chinet scale=paper trainer=gpu", "gpu": "NVIDIA H200"}
+    sweep |= {"date": "2026-11-28", "steps": 300, "steps_per_epoch": 36, "step_s": 0.278, "test_s": 95.0}
+    sweep |= {"metrics": {"det_rate": 94.24}, "gpu_training": {}, "gpu_test": {}}
+    (tmp_path / "paper_scale_sweeps.json").write_text(json.dumps([sweep]))
     assert paper_check.main(["budget_min=-1"]) == 0
     md = (tmp_path / "paper_scale.md").read_text()
+    assert "**Whole commands were run on a GPU**" in md and md.rstrip().endswith("Test metrics: det_rate 94.24.")
+    assert "`python -m ablate row=chinet scale=paper trainer=gpu`" in md and "0.278 s a step" in md
     assert "No GPU was available" not in md and "## Measured on a GPU" in md and "NVIDIA H200 (torch 2.11" in md
     assert (
         "| chinet_table2:chinet | bf16 | — | 5 | 5 | 0.200 | 0.050 | 4.0x | 21.9 | 17.8 | 1.3 -> 0.3 | trains |" in md
@@ -356,7 +368,8 @@ def test_reuse_counts_only_the_missing_frozen_macs_and_keeps_the_steps(tmp_path,
         "cpu": "Another CPU (2 cores, avx2)",
     }
     stored = {k: dict(figures) for e in entries for k in (e["key"], *e["experts"].values())}
-    (tmp_path / "paper_scale.json").write_text(json.dumps({"measured": stored}))
+    stale = {"model": "a config no row has today"}
+    (tmp_path / "paper_scale.json").write_text(json.dumps({"measured": {**stored, json.dumps(stale): figures}}))
     counted = []
 
     def count(spec, data_dir, overrides=()):
@@ -374,5 +387,6 @@ def test_reuse_counts_only_the_missing_frozen_macs_and_keeps_the_steps(tmp_path,
     again = json.loads((tmp_path / "paper_scale.json").read_text())["measured"]
     fpn = again[next(e["key"] for e in entries if e["row"] == "smoe_fpn")]
     assert fpn["train_s"] == 20.0 and fpn["cpu"] == figures["cpu"] and fpn["macs_frozen"] == 15 * 10**10
+    assert again[json.dumps(stale)] == figures  # a measurement of another config is kept, not lost
     monkeypatch.setattr(paper_check, "count_isolated", lambda *a, **k: pytest.fail("counted twice"))
     assert paper_check.main(["reuse=true"]) == 0

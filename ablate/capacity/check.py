@@ -194,8 +194,9 @@ def main(argv: list[str] | None = None) -> int:
     chosen, overrides = args.experiment, args.overrides
     # the figures files first: a bad one is one line before every table's configs are composed (seconds)
     store, gpu_store = RESULTS / "paper_scale.json", RESULTS / "paper_scale_gpu.json"  # gpu: bench_paper_gpu --json
+    sweeps_store = RESULTS / "paper_scale_sweeps.json"  # bench/gpu_sweeps.py
     try:
-        record, gpu = _read(store, {}), _read(gpu_store, [])
+        record, gpu, sweeps = _read(store, {}), _read(gpu_store, []), _read(sweeps_store, [])
     except ValueError as exc:
         print(f"error: {exc}")
         return 2
@@ -217,15 +218,19 @@ def main(argv: list[str] | None = None) -> int:
                     measured.pop(k, None)
 
     def save(measured: dict) -> None:
+        # the measurements of configs no row has today stay stored: nothing measured is lost to a config's change
+        kept = {**record.get("measured", {}), **measured}
         store.parent.mkdir(parents=True, exist_ok=True)
-        text = json.dumps({"written_on": cpu_name(), "measured": measured}, indent=1, sort_keys=True)
+        text = json.dumps({"written_on": cpu_name(), "measured": kept}, indent=1, sort_keys=True)
         store.write_text(text + "\n")
 
     budget = args.budget_min * 60 if args.budget_min is not None else None
     (recount if reuse else check)(entries, measured, budget, overrides, save)
     save(measured)
     path = RESULTS / "paper_scale.md"
-    path.write_text(report({"rows": everything, "measured": measured, "cpu": cpu_name(), "gpu": gpu}) + "\n")
+    path.write_text(
+        report({"rows": everything, "measured": measured, "cpu": cpu_name(), "gpu": gpu, "sweeps": sweeps}) + "\n"
+    )
     print(path)
     if bad := failed(entries, measured):
         print(f"error: {len(bad)} row(s) failed: {', '.join(bad)}")

@@ -62,9 +62,11 @@ def first_seeds(cfg: DictConfig) -> int:
 
 def measure_key(cfg: DictConfig) -> str:
     """What a measurement depends on: the resolved model, task, modalities, targets, data module (but the frames'
-    count and the batch) and the experts' freezing; rows of several tables with the same share a measurement."""
+    count, the batch, and the training frames' order, ``data.order_seed``, which is the job's seed) and the experts'
+    freezing; rows of several tables with the same share a measurement."""
     data = cast("dict[str, Any]", OmegaConf.to_container(cfg, resolve=True))
-    datamodule = {k: v for k, v in data["data"].items() if k not in ("batch_size", "num_workers", "data_dir")}
+    unmeasured = ("batch_size", "num_workers", "data_dir", "order_seed")
+    datamodule = {k: v for k, v in data["data"].items() if k not in unmeasured}
     datamodule["synth"] = {k: v for k, v in (datamodule.get("synth") or {}).items() if k != "frames"}
     experts = data.get("experts") or {}
     key = {
@@ -158,6 +160,8 @@ def describe(pairs: Iterable[tuple[str, str]], overrides: Iterable[str] = ()) ->
                 "experts": experts,
                 "expert_specs": {m: [experiment, row, m] for m in experts},
                 **recipe(trains),
+                # the row's race, also where what it trains is an expert's config (which races nothing itself)
+                "seeds": first_seeds(cfg),
                 "expert_steps": recipe(cfg)["expert_steps"],
             }
         )
