@@ -172,6 +172,9 @@ def test(
     if memory := gpu_memory(device):
         tracker.log_metrics(run_id, memory, step=trainer.global_step)
     tracker.set_tags(run_id, {"evaluator": task.evaluator} if getattr(task, "evaluator", None) else {})
+    # the figures' forward pass where the job ran, not on one CPU thread: ChiNet at the paper's size takes 35 s a
+    # frame there, and drew its 4 frames for most of a GPU job's 95 s test
+    task.to(device)
     for name, figure in task.figures(sample).items():
         tracker.log_figure(run_id, figure, name)
     log_frame_counts(tracker, run_id, getattr(task, "frame_counts", []))
