@@ -10,7 +10,8 @@ GPU").
 how many ran at once, each job's seconds (from its start, experts included, to its end), the jobs' wall time, the
 command's (the log's first line to its last: the data, the plan, the jobs, the latency timing and the table), the
 plan's estimate of a job (the sweep log's ``Sweep plan`` lines), each comparison's verdict beside the published
-table's (``results/<table>.md``), the sweep's rows beside the published records (``<table>_vs_published.md``), and the GPU's utilisation and memory in use while the jobs ran (``nvidia-smi
+table's (``results/<table>.md``), the sweep's rows beside the published records (``<table>_vs_published.md``),
+and the GPU's utilisation and memory in use while the jobs ran (``nvidia-smi
 --query-gpu=timestamp,utilization.gpu,memory.used,power.draw --format=csv,noheader -l 1``).
 
 ``row``: one job's log (its progress lines, ``epoch e/E, step s/S``, and its ``FINISHED`` line): the seconds per

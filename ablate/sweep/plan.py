@@ -10,11 +10,11 @@ run in the store is skipped (``done``, by the hash its job will have: a trial's 
 it chose from the trials in the store (:func:`ablate.sweep.tuning.choices`), so that they are found done too. Every
 other job and expert is estimated from the recipe's steps (epochs x training batches, or ``trainer.max_steps``) at a
 step time measured here, now (:func:`ablate.jobs.steptime.step_times`): one row key (the job's overrides but the
-seed; an expert's modality) at a time, until ``plan.measure_s`` seconds have gone by (the first of each kind whatever the time: the first measurement
-generates the dataset where it is missing, which the first job would do); a job or expert not measured by then is
-timed at the mean step times of those measured of its kind: a single-modal network trained alone (an expert, an
-expert's tuning trial), or a fusion network (whose first epoch runs its frozen experts and the later ones read their
-cached features).
+seed; an expert's modality) at a time, until ``plan.measure_s`` seconds have gone by (the first of each kind whatever
+the time: the first measurement generates the dataset where it is missing, which the first job would do); a job or
+expert not measured by then is timed at the mean step times of those measured of its kind: a single-modal network
+trained alone (an expert, an expert's tuning trial), or a fusion network (whose first epoch runs its frozen experts
+and the later ones read their cached features).
 
 The wall time schedules the items on the sweep's workers in order, as its launcher does, each on the worker free
 first: the experts first (each fused job trains whichever expert no other job is training,
