@@ -103,7 +103,10 @@ def beside(md: Path) -> list[dict[str, str]]:
 
 def table(args: argparse.Namespace, samples: list, day: datetime) -> dict[str, Any]:
     folder = Path(args.dir)
-    records = next((folder / "runs").glob("*.csv"))
+    # the table's records, not their .curves.csv beside them
+    records = next((p for p in sorted((folder / "runs").glob("*.csv")) if "." not in p.stem), None)
+    if records is None:
+        raise SystemExit(f"{folder / 'runs'}: no records (<table>.csv) of a sweep there")
     name = records.stem
     runs = pd.read_csv(records)
     runs = runs[~runs["row"].astype(str).str.startswith("expert")] if "row" in runs else runs
