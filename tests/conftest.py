@@ -20,31 +20,41 @@ def kitti_root() -> Path:
     return SHARED_KITTI
 
 
-#: The slowest test files (end to end: sweeps, servers, clusters), slowest first by their --durations (at 2 workers,
-#: in seconds: test_cli 127, test_reproduce 119, test_launchers 114, test_dgfn 112, test_tracking_outage 99,
-#: test_tracking_server 97, then 70 and less). `make test` spreads whole files over the workers in the order they
-#: are collected (pytest-xdist's --dist loadfile): these start first, and the quick files fill in around them at
-#: the end, instead of one slow file starting last beside an idle worker. test_mlflow_ui comes after test_cli, whose
-#: smoke store it shares (tests/shared.py): the store is made by then.
+#: The slowest test files (end to end: sweeps, servers, clusters), slowest first by their --durations (at 2 workers
+#: beside a table's race on 2 cores, in seconds: test_cli 219, test_tracking_outage 174, test_dgfn 155,
+#: test_launchers 137, test_tracking_server 127, test_reproduce 119, test_records 107, then 98 and less). `make test`
+#: spreads whole files over the workers in the order they are collected (pytest-xdist's --dist loadfile): these
+#: start first, and the quick files fill in around them at the end, instead of one slow file starting last beside an
+#: idle worker. test_mlflow_ui comes after test_cli, whose smoke store it shares (tests/shared.py): the store is made
+#: by then.
 SLOW_FIRST = [
     "test_cli.py",
-    "test_reproduce.py",
-    "test_launchers.py",
-    "test_dgfn.py",
     "test_tracking_outage.py",
+    "test_dgfn.py",
+    "test_launchers.py",
     "test_tracking_server.py",
-    "test_numerics_jobs.py",
-    "test_preemption.py",
+    "test_reproduce.py",
+    "test_records.py",
     "test_ddp.py",
+    "test_preemption.py",
+    "test_tuning.py",
     "test_bifnet.py",
+    "test_plan.py",
+    "test_numerics_jobs.py",
+    "test_publish.py",
+    "test_verdicts.py",
     "test_mlflow_ui.py",
     "test_check_paper.py",
-    "test_checkpoint_faults.py",
     "test_commands.py",
-    "test_racing.py",
-    "data/test_masks.py",
+    "test_checkpoint_faults.py",
+    "test_wheel.py",
     "test_own_operator.py",
+    "test_system_metrics.py",
+    "test_progress_lines.py",
     "test_layers.py",
+    "test_tracking_race.py",
+    "data/test_masks.py",
+    "test_racing.py",
 ]
 
 
