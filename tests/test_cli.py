@@ -102,6 +102,19 @@ def test_an_unknown_option_fails_with_the_valid_choices(tmp_path):
     assert "Could not find 'fusion/bogus'" in out.stderr and "smoe" in out.stderr and "sharpen" in out.stderr
 
 
+def test_one_job_of_a_paper_table_without_a_row_is_one_error_naming_the_rows_and_records_nothing(tmp_path):
+    # the root config's defaults are no row of DGFN Table I (its SSD task cannot build them): refused before a run
+    out = ablate(tmp_path, "experiment=dgfn_table1", *TINY)
+    assert out.returncode == 1, out.stdout[-3000:] + out.stderr[-3000:]
+    errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
+    assert errors == [
+        "error: experiment=dgfn_table1 is a table of 2 rows (dgfn, dgfn_baseline): name one with row=<row> "
+        "(python -m ablate experiment=dgfn_table1 row=dgfn), or race them all (python -m ablate -m "
+        "experiment=dgfn_table1)"
+    ]
+    assert "Traceback" not in out.stderr and "MLflow run" not in out.stdout + out.stderr
+
+
 def test_a_row_shared_with_another_table_is_reused_not_retrained(table2):
     cwd, _ = table2
     out = ablate(cwd, "-m", "experiment=chinet_table3", SERIAL, *TINY)

@@ -384,6 +384,22 @@ def standard_start_method() -> None:
         multiprocessing.set_start_method("spawn", force=True)
 
 
+def no_row(cfg: DictConfig) -> None:
+    """A job of a paper table names its row: without one it would train the root config's defaults (no row of the
+    table: for DGFN's and BiFNet's tasks, a model they cannot build) into the table's experiment. Raise
+    :class:`JobFailed` naming the rows and the two commands; an ad-hoc table (no ``table.rows``) needs none."""
+    from ablate.tables.spec import run_rows
+
+    rows = run_rows(cfg.table)
+    if rows:
+        name = cfg.table.name
+        raise JobFailed(
+            f"experiment={name} is a table of {len(rows)} rows ({', '.join(rows)}): name one with row=<row> "
+            f"(python -m ablate experiment={name} row={rows[0]}), or race them all (python -m ablate -m "
+            f"experiment={name})"
+        )
+
+
 def main(cfg: DictConfig) -> str:
     """Hydra task function: the job's context is read here, once (:meth:`SweepContext.current`), and the job runs in
     the launch directory. In a multirun a failed job is noted for the end-of-sweep summary and the other jobs go on;
@@ -395,6 +411,8 @@ def main(cfg: DictConfig) -> str:
             from ablate.jobs.experts import job_config  # torch: the job trains
 
             cfg, row = job_config(cfg)  # an expert's tuning trial (table.tune) is the expert's config
+            if row is None and context.row_choice is None:
+                no_row(cfg)
             return run(JobSpec.of(cfg, context, row=row)).status
     except Stopped as stop:
         reason = stop.reason
