@@ -253,6 +253,9 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     rows = "row=bifnet_bev,bifnet_dst_sum"  # the LiDAR expert's row, and a fused row on frozen experts
     out = ablate(tmp_path, "-m", "experiment=bifnet_table4", rows, "tune=lr_wd", "table.tune.trials=2", SERIAL, *TINY)
     assert out.returncode == 0, output(out)
+    # the progress counts the whole sweep from its first job: 4 experts' trials, 2 of stage 2, 2 raced jobs
+    done = re.findall(r"Sweep progress: (\d+)/(\d+) jobs finished", out.stdout + out.stderr)
+    assert done == [(str(k), "8") for k in range(1, 9)], done
     store = f"sqlite:///{tmp_path / 'mlflow.db'}"
     _, trials = runs(store, "bifnet_table4", kind="trial")
     assert sorted((r.data.tags["row"], r.data.tags["trial"]) for r in trials) == [

@@ -175,7 +175,7 @@ class RacingSweeperImpl:
     def _race(self, plan: RacePlan, combos: list[list[str]], swept: set[str], sdir: Path) -> list[list[JobReturn]]:
         """Launch look after look until every comparison is decided, the looks run out or the budget stops it."""
         race_ = self._start_race(plan, combos, swept)
-        self._tune(race_, sdir)
+        self._tune(race_)
         while not race_.state.over:
             look, n, batch, rows = race_.next_look()
             if race_.over_budget(look, rows):
@@ -198,7 +198,7 @@ class RacingSweeperImpl:
         self._tag_parent(tags)
         return race_.returns
 
-    def _tune(self, race_: Race, sdir: Path) -> None:
+    def _tune(self, race_: Race) -> None:
         """The tuning phase where the table has one (``table.tune``, :mod:`ablate.sweep.tuning`): the experts' trials
         where rows sit on experts, then every other row's, one trial index a batch; then each row's jobs race on its
         chosen trial's config; the race's own budget counts from there."""
@@ -214,8 +214,7 @@ class RacingSweeperImpl:
         if spec is None:
             return
 
-        def launch(batch: list[list[str]]) -> None:
-            progress.replan(sdir, race_.launched + len(batch))
+        def launch(batch: list[list[str]]) -> None:  # the sweep's plan counts every trial: its progress stays whole
             race_.returns.append(self._launch(batch, race_.launched))
             race_.launched += len(batch)
 
