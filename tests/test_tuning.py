@@ -247,6 +247,48 @@ def test_a_budget_spent_on_the_experts_leaves_stage_2_its_recipe_trial_at_least(
     assert tuned.overrides["b"] == ["tuned=0"] and tuned.overrides["a"] == ["tuned=0"]
 
 
+def test_a_resumed_phase_counts_the_earlier_sweeps_time_against_its_budget() -> None:
+    from ablate.sweep.tuning import Experts, tune
+
+    def phase(earlier: float) -> tuple[int, list[str]]:
+        now = [0.0]
+
+        def launch(batch: list[list[str]]) -> None:
+            now[0] += 60.0  # a trial index takes a minute
+
+        spec = TuneSpec(4, SPACE, budget_min=5.0)
+        jobs = {"a": ["row=a"], "b": ["row=b"]}
+        out = tune(spec, "t", jobs, Experts(), launch, lambda: {}, clock=lambda: now[0], earlier=earlier)
+        return out.done, out.stopped
+
+    assert phase(0.0) == (4, [])  # 4 minutes: within the 5
+    done, stopped = phase(180.0)  # 3 minutes spent by an earlier sweep: 2 more fit
+    assert done == 2 and stopped == [
+        "the tuning budget of 5 min stopped the phase after trial 1 of every row (5.0 min spent, about 1.0 more a trial)"
+    ]
+
+
+def test_the_sweeper_reads_the_earlier_sweeps_spans_of_the_tables_trials(monkeypatch: pytest.MonkeyPatch) -> None:
+    from hydra_plugins.ablate_racing_sweeper import _impl
+
+    minute = 60_000
+    trials = pd.DataFrame(  # two sweeps: 0-10 min, and 30-34 min (its trial 0 of row a run again: the latest counts)
+        {
+            "row": ["a", "b", "a", "a", "b"],
+            "trial": [0, 0, 1, 0, 1],
+            "started": [0, 0, 5 * minute, 30 * minute, 31 * minute],
+            "seconds": [300.0, 300.0, 300.0, 60.0, 180.0],
+            "sweep_id": ["s1", "s1", "s1", "s2", "s2"],
+        }
+    )
+    monkeypatch.setattr(_impl, "tuning_trials", lambda tracker, name: trials)
+    monkeypatch.setattr(_impl.RacingSweeperImpl, "_tracker", lambda self: None)
+    sweeper = _impl.RacingSweeperImpl(None)
+    assert sweeper._earlier_trials("t") == 60 * ((10 - 0) + (34 - 30))
+    monkeypatch.setattr(_impl, "tuning_trials", lambda tracker, name: trials.iloc[:0])
+    assert sweeper._earlier_trials("t") == 0.0
+
+
 def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_and_races_on_the_choice(tmp_path):
     from tests.scaleout import SERIAL, TINY, ablate, output, runs
 

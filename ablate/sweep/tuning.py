@@ -17,7 +17,8 @@ chose:
   only between two batches (every row has then had the same trials), where the next batch would end past it. A
   failed trial counts as spent: it has no objective and is never chosen.
 * **Resuming**: the same command draws the same configs; a trial whose config has a FINISHED run is skipped by the
-  jobs' config hash, and its objective read back from the store.
+  jobs' config hash, and its objective read back from the store. The budget counts the time earlier sweeps spent on
+  the phase (each sweep's span of its trials, :func:`ablate.tables.tuning.phase_wall`), as the race's does.
 * **Draws as config**: a trial's values go under ``draws`` (``++draws.task.optimizer.lr=...``), which the job applies
   over its config (:func:`ablate.jobs.spec.apply_draws`); its experts (SMoE §4.3, BiFNet's frozen experts) are
   derived from the config without them, so every trial of a row shares one pair of experts, trained at the trials'
@@ -40,7 +41,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 from ablate.sweep.draws import draw, parse_space
@@ -131,17 +132,19 @@ def run_phase(
     jobs: Mapping[str, list[str]],
     launch: Callable[[list[list[str]]], None],
     clock: Callable[[], float] = time.monotonic,
+    spent: float = 0.0,
 ) -> Phase:
     """Launch trial k of every row as one batch, k = 0 .. N-1, stopping between batches where the budget would be
-    passed (the mean batch so far taken for the next); ``launch`` runs a batch of jobs' overrides."""
+    passed (the mean batch so far taken for the next); ``launch`` runs a batch of jobs' overrides. ``spent``: the
+    seconds of the phase's budget spent before this part (the experts' trials, earlier sweeps)."""
     phase = Phase(spec, list(jobs), started=clock())
     for k in range(spec.trials):
         elapsed = clock() - phase.started
         per_batch = elapsed / k if k else 0.0
-        if spec.budget_min and k and elapsed + per_batch > spec.budget_min * 60:
+        if spec.budget_min and k and spent + elapsed + per_batch > spec.budget_min * 60:
             phase.stopped = (
                 f"the tuning budget of {spec.budget_min:g} min stopped the phase after trial {k - 1} of every row "
-                f"({elapsed / 60:.1f} min spent, about {per_batch / 60:.1f} more a trial)"
+                f"({(spent + elapsed) / 60:.1f} min spent, about {per_batch / 60:.1f} more a trial)"
             )
             break
         log.info("Tuning trial %d of %d for %d row(s)%s", k, spec.trials, len(jobs), _eta(k, spec.trials, elapsed))
@@ -281,25 +284,25 @@ def tune(
     objectives: Callable[[], Mapping[str, Mapping[int, float]]],
     higher_is_better: bool = True,
     clock: Callable[[], float] = time.monotonic,
+    earlier: float = 0.0,
 ) -> Tuned:
     """The whole tuning phase of a table: its experts' trials first where rows sit on experts (and
     ``spec.experts``), then every other row's on the chosen experts; ``objectives`` reads the trials' objectives
     back (row -> trial -> value) after each part; :func:`choices` chooses. Single-modal rows on experts are tuned as
-    their experts."""
-    started = clock()
+    their experts. ``earlier``: the seconds earlier sweeps spent on this phase (the same command, resumed), counted
+    against ``spec.budget_min`` as this sweep's own."""
+    started = clock() - earlier
     experts = experts if spec.experts else Experts()
     experts_done, done, stopped = 0, 0, []
     values: Mapping[str, Mapping[int, float]] = {}
     if experts.base:
-        phase = run_phase(spec, table, experts.trials(), launch, clock)
+        phase = run_phase(spec, table, experts.trials(), launch, clock, spent=clock() - started)
         experts_done, stopped = phase.done, [phase.stopped] if phase.stopped else []
         values = objectives()
     fixed = choices(spec, table, jobs, experts, values, (experts_done, 0), higher_is_better).fixed
     stage2 = {row: [*o, *fixed] for row, o in jobs.items() if row not in experts.single}
     if stage2:
-        left = spec.budget_min - (clock() - started) / 60 if spec.budget_min else None
-        part = replace(spec, budget_min=None if left is None else max(left, 1e-3))
-        phase = run_phase(part, table, stage2, launch, clock)
+        phase = run_phase(spec, table, stage2, launch, clock, spent=clock() - started)
         done = phase.done
         stopped += [phase.stopped] if phase.stopped else []
         values = objectives()

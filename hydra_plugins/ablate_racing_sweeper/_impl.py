@@ -42,7 +42,8 @@ from ablate.tables import table_spec
 from ablate.tables.collect import earlier_wall, job_runs, row_seconds
 from ablate.tables.racing import RacePlan, RaceState, race, table_values
 from ablate.tables.spec import LOWER_IS_BETTER, sweep_params
-from ablate.tables.tuning import trial_objectives
+from ablate.tables.tuning import from_store as tuning_trials
+from ablate.tables.tuning import last_trials, phase_wall, trial_objectives
 
 log = logging.getLogger(__name__)
 
@@ -226,7 +227,8 @@ class RacingSweeperImpl:
                 raise SystemExit(1) from None
 
         experts = Experts.of(race_.jobs, compose) if spec.experts else Experts()
-        tuned = tune(spec, name, race_.jobs, experts, launch, objectives)
+        earlier = self._earlier_trials(name) if spec.budget_min else 0.0
+        tuned = tune(spec, name, race_.jobs, experts, launch, objectives, earlier=earlier)
         values = tuned.objectives
         for row, k in tuned.chosen.items():
             as_expert = expert_row(experts.single[row]) if row in experts.single else ""
@@ -239,6 +241,17 @@ class RacingSweeperImpl:
         chosen = " ".join(f"{r}={k}" for r, k in tuned.chosen.items()).replace("expert ", "expert_")
         self._tag_parent({"tune_trials": str(tuned.done), "tune_chosen": chosen})
         race_.started = time.monotonic()
+
+    def _earlier_trials(self, name: str) -> float:
+        """Seconds that earlier sweeps of the same command spent on the table's tuning phase (before this phase
+        launches, every trial in the store is theirs): each sweep's span (:func:`ablate.tables.tuning.phase_wall`),
+        counted against the phase's budget as :attr:`Race.earlier` is against the race's."""
+        try:
+            trials = last_trials(tuning_trials(self._tracker(), name))
+        except (ServerUnreachable, AccessDenied) as err:
+            print(f"error: {err}; the tuning phase did not start: the same command resumes it", file=sys.stderr)
+            raise SystemExit(1) from None
+        return 60 * phase_wall(trials)[0] if len(trials) else 0.0
 
     def _start_race(self, plan: RacePlan, combos: list[list[str]], swept: set[str]) -> Race:
         """The race before its first look: every row racing, its reference the table's (or the first row)."""
