@@ -205,3 +205,18 @@ def test_a_run_copied_from_another_table_starts_when_it_is_copied(tmp_path: Path
     tracker.end(source, "FINISHED")
     copy = tracker.get_run(tracker.copy_run(tracker.get_run(source), tracker.experiment_id("t2"), {"table": "t2"}))
     assert "job_started" not in copy.data.tags and "sweep_id" not in copy.data.tags  # its own sweep's wall time
+
+
+def test_a_committed_table_of_many_metrics_renders_its_numbers_again_without_a_pandas_warning(tmp_path: Path) -> None:
+    # DGFN Table I: 58 metrics (8 test inputs, 3 difficulties, AP11/AP40, gates); its numbers were built a column at
+    # a time, and pandas warned of a fragmented frame 41 times at the end of every sweep and report
+    import warnings
+
+    from ablate.config import compose
+
+    shutil.copytree(REPO / "results" / "runs", tmp_path / "runs", ignore=shutil.ignore_patterns("[!d]*"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", pd.errors.PerformanceWarning)
+        written = render_records(compose(["experiment=dgfn_table1"]), tmp_path)
+    assert written is not None and (tmp_path / "dgfn_table1.csv") in written
+    assert filecmp.cmp(tmp_path / "dgfn_table1.csv", REPO / "results" / "dgfn_table1.csv", shallow=False)

@@ -27,10 +27,12 @@ from ablate.tables.summary import best_of, kendall, per_seed, reference
 def numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
     """The table's numbers, unformatted: one line per row of ``summary`` (:func:`ablate.tables.summary.summarise`)."""
     key = str(table.primary)
-    out = summary[["row", "name", "n"]].copy()
-    for metric in table.metrics:
-        for part in ("mean", "std", "lo", "hi", "paper"):
-            out[f"{metric}_{part}"] = summary[f"{metric}_{part}"].astype(float)
+    parts = {
+        f"{metric}_{part}": summary[f"{metric}_{part}"].astype(float)
+        for metric in table.metrics
+        for part in ("mean", "std", "lo", "hi", "paper")
+    }  # one frame, not a column at a time: DGFN's 58 metrics made pandas warn of a fragmented frame
+    out = pd.concat([summary[["row", "name", "n"]], pd.DataFrame(parts, index=summary.index)], axis=1)
     raced = replayed_race(summary, runs, table, key) if len(summary) else None
     ref = (raced.reference if raced is not None else None) or reference(summary, table)
     deltas = []
