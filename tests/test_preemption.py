@@ -5,6 +5,7 @@ RUNNING runs out and counts them in the footer."""
 
 import os
 import signal
+import sqlite3
 import time
 from pathlib import Path
 
@@ -123,10 +124,27 @@ def test_sigterm_to_a_joblib_sweep_takes_its_workers_with_it(tmp_path):
     assert parent.info.status == "KILLED" and parent.data.tags["killed_by"] == "SIGTERM"
 
 
+def readable(db: Path) -> bool:
+    """Whether the SQLite store ``db`` can be read now (no other process is in the middle of a write)."""
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=0.5) as con:
+            con.execute("SELECT count(*) FROM sqlite_master").fetchone()
+        return True
+    except sqlite3.OperationalError:
+        return False
+
+
 def report_while_paused(cwd: Path, proc: forkserver.Command) -> str:
     """The table ``python -m ablate.report`` writes while the sweep ``proc`` is stopped (SIGSTOP) in the middle of a
-    job: the job's run stays RUNNING for the whole report, however slow the machine."""
-    proc.send_signal(signal.SIGSTOP)
+    job: the job's run stays RUNNING for the whole report, however slow the machine. A sweep stopped in the middle of
+    writing to its SQLite store would hold the store's lock for the whole report ("database is locked"): it is let
+    go on and stopped again until the store can be read."""
+    for _ in range(50):
+        proc.send_signal(signal.SIGSTOP)
+        if readable(cwd / "mlflow.db"):
+            break
+        proc.send_signal(signal.SIGCONT)
+        time.sleep(0.1)
     try:
         report = ablate(cwd, "--publish", "experiment=chinet_table2", module="ablate.report")
     finally:
