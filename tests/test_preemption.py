@@ -145,6 +145,8 @@ def report_while_paused(cwd: Path, proc: forkserver.Command) -> str:
             break
         proc.send_signal(signal.SIGCONT)
         time.sleep(0.1)
+    else:  # never found readable: stopped all the same, as the report must run beside a stopped sweep
+        proc.send_signal(signal.SIGSTOP)
     try:
         report = ablate(cwd, "--publish", "experiment=chinet_table2", module="ablate.report")
     finally:
