@@ -1,10 +1,11 @@
 """A sweep's overall progress (ablate.sweep.progress): jobs finished of planned, and the ETA from finished jobs."""
 
+import json
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-from ablate.sweep.progress import finished, planned_jobs, start, summary
+from ablate.sweep.progress import KINDS_FILE, estimated, finished, job_kind, planned_jobs, start, summary
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
@@ -47,3 +48,37 @@ def test_every_finished_job_is_counted_once_in_the_sweep_directory(tmp_path):
     finished(tmp_path, "FINISHED", 30.0)
     line = finished(tmp_path, "FAILED", 10.0, parallel=2)
     assert line == "Sweep progress: 2/3 jobs finished (1 failed), 1 to go, ETA 20 s (20 s per trained job, 2 at a time)"
+
+
+def test_a_job_kind_follows_its_overrides():
+    assert job_kind(["row=smoe_fpn", "++experts.tune=rgb", "seed=1000", "trial=2"]) == "expert trial"
+    assert job_kind(["row=chinet", "optim.lr=0.002", "seed=1000", "trial=1"]) == "trial"
+    assert job_kind(["row=chinet", "seed=3"]) == "job"
+
+
+def test_each_kind_of_job_to_go_is_timed_at_its_own_kind_or_its_plan_scaled_to_the_finished():
+    records = [{"status": "FINISHED", "seconds": 300, "kind": "trial"}] * 2
+    # 4 trials to go at their mean, 5 min; the 4 raced jobs at their plan's 900 s, halved as the trials were
+    line = summary(records, 10, parallel=2, kinds={"trial": 6}, estimates={"trial": 600, "job": 900})
+    assert line == (
+        "Sweep progress: 2/10 jobs finished, 8 to go, ETA 25.0 min "
+        "(5.0 min per tuning trial, 7.5 min per trained job as planned, 2 at a time)"
+    )
+    # once a raced job has finished, its own duration times the rest; the trials are over
+    records = [*records] * 3 + [{"status": "FINISHED", "seconds": 1200, "kind": "job"}]
+    line = summary(records, 10, parallel=2, kinds={"trial": 6}, estimates={"trial": 600, "job": 900})
+    assert line == "Sweep progress: 7/10 jobs finished, 3 to go, ETA 40.0 min (20.0 min per trained job, 2 at a time)"
+    # no plan: a kind none of whose jobs has finished takes every trained job's mean
+    line = summary(records[:2], 10, parallel=1, kinds={"trial": 6})
+    assert line.endswith("(5.0 min per tuning trial, 5.0 min per trained job, 1 at a time)")
+
+
+def test_a_tuned_tables_sweep_counts_its_trials_apart_from_its_raced_jobs(tmp_path):
+    assert (
+        start(tmp_path, sweep_config("experiment=chinet_table3", "tune=lr_wd")) == 18
+    )  # 2 rows x (6 trials + 3 seeds)
+    assert json.loads((tmp_path / KINDS_FILE).read_text()) == {"trial": 12}
+    estimated(tmp_path, {"trial": 60.0, "job": 120.0})
+    line = finished(tmp_path, "FINISHED", 30.0, parallel=2, kind="trial")
+    # 11 trials at 30 s, then 6 raced jobs at 60 s, on 2 workers: 360 s
+    assert line.endswith("ETA 6.0 min (30 s per tuning trial, 60 s per trained job as planned, 2 at a time)")

@@ -298,6 +298,13 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     # the progress counts the whole sweep from its first job: 4 experts' trials, 2 of stage 2, 2 raced jobs
     done = re.findall(r"Sweep progress: (\d+)/(\d+) jobs finished", out.stdout + out.stderr)
     assert done == [(str(k), "8") for k in range(1, 9)], done
+    # each kind of job to go timed apart: experts' trials, stage 2's trials, raced jobs
+    per = [
+        re.findall(r"per ([a-z ]+?)(?: as planned)?[,)]", line)
+        for line in re.findall(r"Sweep progress: .*", out.stdout + out.stderr)
+    ]
+    assert per[0] == ["expert trial", "tuning trial", "trained job"], per
+    assert per[4] == ["tuning trial", "trained job"] and per[6] == ["trained job"] and per[7] == [], per
     store = f"sqlite:///{tmp_path / 'mlflow.db'}"
     _, trials = runs(store, "bifnet_table4", kind="trial")
     assert sorted((r.data.tags["row"], r.data.tags["trial"]) for r in trials) == [

@@ -240,17 +240,18 @@ class SweepCallback(Callback):
         log.info("MLflow parent run %s in experiment '%s' (%s)", run_id, config.table.name, tracker.uri)
         planned = progress.start(sdir, config)
         try:
-            from ablate.sweep.plan import log_plan  # torch and Lightning: the step timing
+            from ablate.sweep.plan import kind_seconds, log_plan  # torch and Lightning: the step timing
             from ablate.tables.tuning import trial_objectives
 
             # a resumed tuning phase: its stage-2 trials and raced jobs as the sweeper will launch them
             objectives = trial_objectives(tracker, str(config.table.name)) if config.table.get("tune") else None
-            log_plan(
+            plan = log_plan(
                 config,
                 _parallel(config),
                 lambda cfg: tracker.finished_run(exp, config_hash(cfg)) is not None,
                 objectives,
             )
+            progress.estimated(sdir, kind_seconds(plan))
         except Exception as err:  # the plan is a convenience: never the reason a sweep does not start
             log.warning("Could not plan the sweep: %s", err)
             log.info("Sweep of %d job(s), %s at a time", planned, _parallel(config))
@@ -265,7 +266,8 @@ class SweepCallback(Callback):
             return
         status = job_return._return_value if job_return.status.name == "COMPLETED" else "FAILED"
         try:
-            line = progress.finished(sdir, str(status), time.monotonic() - self._job_started, _parallel(config))
+            seconds, kind = time.monotonic() - self._job_started, progress.job_kind(list(config.hydra.overrides.task))
+            line = progress.finished(sdir, str(status), seconds, _parallel(config), kind)
             log.info(line)
         except Exception as err:  # progress is a convenience: never the reason a job fails
             log.warning("Could not record the sweep's progress: %s", err)

@@ -37,7 +37,7 @@ from ablate.jobs.experts import expert_config, job_config, needed
 from ablate.jobs.spec import best_checkpoint, resolved_config
 from ablate.jobs.steptime import StepTimes, step_times
 from ablate.store import config_hash, row_name
-from ablate.sweep.progress import job_overrides
+from ablate.sweep.progress import job_kind, job_overrides
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,7 @@ class Item:
     needs: list[str] = field(default_factory=list)  # the names of the experts it waits for
     seconds: float | None = None
     how: str = ""
+    kind: str = "expert"  # a job's kind (ablate.sweep.progress.job_kind); an expert trains within a job
 
 
 def swept_keys(jobs: list[list[str]]) -> set[str]:
@@ -89,7 +90,7 @@ def items(
         key = " ".join(sorted(o for o in overrides if not o.lstrip("+~").startswith("seed=")))
         trial = cfg.get("trial")  # every trial trains at one seed: named by its number
         label = f"trial {trial}" if trial is not None else f"seed {cfg.seed}"
-        job = Item(f"{row} {label}", key or row, cfg, done=done(cfg))
+        job = Item(f"{row} {label}", key or row, cfg, done=done(cfg), kind=job_kind(overrides))
         from_trials = trial is not None and bool((cfg.table.get("tune") or {}).get("experts", True))
         for modality in needed(cfg) if cfg.get("experts") and not job.done else []:
             ecfg = expert_config(base or cfg, modality)  # the experts of every trial of a row: without its draws
@@ -164,6 +165,16 @@ def wall_seconds(plan: list[Item], parallel: int) -> float | None:
     return max(free)
 
 
+def kind_seconds(plan: list[Item]) -> dict[str, float]:
+    """Each job kind's mean estimated seconds over its jobs to run (for the progress lines' ETA,
+    :mod:`ablate.sweep.progress`)."""
+    seconds: dict[str, list[float]] = {}
+    for item in plan:
+        if item.kind != "expert" and not item.done and item.seconds is not None:
+            seconds.setdefault(item.kind, []).append(item.seconds)
+    return {kind: sum(s) / len(s) for kind, s in seconds.items()}
+
+
 def lines(plan: list[Item], parallel: int, race: bool) -> list[str]:
     """The plan as log lines: a header, one line per item, the estimated wall time."""
     experts = [i for i in plan if i.key.startswith("expert") and not i.done]
@@ -192,9 +203,9 @@ def log_plan(
     parallel: int,
     done: Callable[[DictConfig], bool],
     objectives: Mapping[str, Mapping[int, float]] | None = None,
-) -> None:
+) -> list[Item]:
     """Compose, estimate and log the sweep's plan (``plan.measure_s`` seconds of step timing at most; 0: none;
-    ``objectives``: the tuning trials' in the store, :func:`items`)."""
+    ``objectives``: the tuning trials' in the store, :func:`items`); return it."""
     measure_s = float(OmegaConf.select(config, "plan.measure_s", default=MEASURE_S))
     plan = items(config, done, objectives)
     race = bool(OmegaConf.select(config, "table.seeds.looks", default=None))
@@ -204,3 +215,4 @@ def log_plan(
     estimate(plan, measure_s)
     for line in lines(plan, parallel, race)[1 if measure_s > 0 else 0 :]:
         log.info(line)
+    return plan

@@ -4,12 +4,19 @@ The sweep writes how many jobs it plans (``<sweep dir>/.planned``, from the same
 Hydra's basic sweeper does); every job, in whichever process runs it, appends its outcome and duration to
 ``<sweep dir>/.progress`` under a file lock and logs one line such as
 ``Sweep progress: 4/9 jobs finished (1 skipped), 5 to go, ETA 11 min (2.2 min per trained job, 2 at a time)``.
+
+A table's tuning phase runs jobs of other kinds than its raced ones (:func:`job_kind`): an expert's tuning trial trains
+a single-modal network, a row's trial trains without testing, a raced job trains and tests under every condition. The
+sweep records how many of each kind it plans (``<sweep dir>/.planned_kinds``) and, once its plan is estimated, each
+kind's estimated seconds per job (``.estimates``, :mod:`ablate.sweep.plan`); the ETA times every kind's jobs to go at
+its own finished jobs' mean, a kind none of whose jobs has finished yet at its plan's estimate scaled by how the
+finished jobs compared with theirs, and schedules them on the sweep's workers in launch order.
 """
 
 from __future__ import annotations
 
 import json
-import math
+from collections import Counter
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -24,6 +31,18 @@ from ablate.tables.spec import LOWER_IS_BETTER, sweep_params
 
 PLANNED_FILE = ".planned"
 PROGRESS_FILE = ".progress"
+KINDS_FILE = ".planned_kinds"
+ESTIMATES_FILE = ".estimates"
+
+#: The kinds of a sweep's jobs in launch order (:func:`job_kind`), and how a progress line names one of each.
+KINDS = {"expert trial": "expert trial", "trial": "tuning trial", "job": "trained job"}
+
+
+def job_kind(overrides: list[str]) -> str:
+    """The kind of the job of ``overrides``: ``expert trial`` (an expert's tuning trial, ``experts.tune``),
+    ``trial`` (a row's tuning trial, ``trial``), else ``job`` (a raced or swept job)."""
+    keys = {item.lstrip("+~").partition("=")[0] for item in overrides}
+    return "expert trial" if "experts.tune" in keys else "trial" if "trial" in keys else "job"
 
 
 def job_overrides(config: DictConfig, objectives: Mapping[str, Mapping[int, float]] | None = None) -> list[list[str]]:
@@ -76,44 +95,101 @@ def replan(sweep_dir: Path, planned: int) -> None:
 
 
 def start(sweep_dir: Path, config: DictConfig) -> int:
-    """Record the planned job count of the sweep in ``sweep_dir``; return it."""
-    planned = planned_jobs(config)
-    (sweep_dir / PLANNED_FILE).write_text(str(planned))
+    """Record the planned job count of the sweep in ``sweep_dir``, and of each kind but ``job`` (whose count a race's
+    later looks change, :func:`replan`); return the count."""
+    jobs = job_overrides(config)
+    kinds = Counter(job_kind(job) for job in jobs)
+    (sweep_dir / PLANNED_FILE).write_text(str(len(jobs)))
+    (sweep_dir / KINDS_FILE).write_text(json.dumps({k: n for k, n in kinds.items() if k != "job"}))
     (sweep_dir / PROGRESS_FILE).write_text("")
-    return planned
+    return len(jobs)
 
 
-def finished(sweep_dir: Path, status: str, seconds: float, parallel: int = 1) -> str:
-    """Record one job's end (``status``: FINISHED, SKIPPED, FAILED; its wall ``seconds``) and return the sweep's
-    progress line."""
+def estimated(sweep_dir: Path, seconds: Mapping[str, float]) -> None:
+    """Record the plan's estimated seconds per job of each kind (:mod:`ablate.sweep.plan`)."""
+    (sweep_dir / ESTIMATES_FILE).write_text(json.dumps({k: round(s, 3) for k, s in seconds.items()}))
+
+
+def finished(sweep_dir: Path, status: str, seconds: float, parallel: int = 1, kind: str = "job") -> str:
+    """Record one job's end (``status``: FINISHED, SKIPPED, FAILED; its wall ``seconds``; its ``kind``,
+    :func:`job_kind`) and return the sweep's progress line."""
     path = sweep_dir / PROGRESS_FILE
     with file_lock(sweep_dir / ".progress.lock"):
         with open(path, "a") as handle:
-            handle.write(json.dumps({"status": status, "seconds": round(seconds, 3)}) + "\n")
+            handle.write(json.dumps({"status": status, "seconds": round(seconds, 3), "kind": kind}) + "\n")
         records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     planned_file = sweep_dir / PLANNED_FILE
     planned = int(planned_file.read_text()) if planned_file.exists() else len(records)
-    return summary(records, planned, parallel)
+    return summary(records, planned, parallel, _read(sweep_dir / KINDS_FILE), _read(sweep_dir / ESTIMATES_FILE))
 
 
-def summary(records: list[dict], planned: int, parallel: int = 1) -> str:
-    """The progress line for the finished jobs' ``records`` of ``planned``, ``parallel`` jobs at a time. The ETA
-    takes the trained jobs' mean duration for every job to go (a skipped job costs nothing, but which of the rest
-    will be skipped is not known)."""
+def _read(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def summary(
+    records: list[dict],
+    planned: int,
+    parallel: int = 1,
+    kinds: Mapping[str, int] | None = None,
+    estimates: Mapping[str, float] | None = None,
+) -> str:
+    """The progress line for the finished jobs' ``records`` of ``planned``, ``parallel`` jobs at a time (``kinds``:
+    the planned count of each kind but ``job``; ``estimates``: the plan's seconds per job of each kind). The ETA takes
+    each kind's trained jobs' mean duration for its jobs to go (a skipped job costs nothing, but which of the rest
+    will be skipped is not known; a kind without a trained job: see the module), scheduled on the workers in launch
+    order."""
     done = len(records)
     skipped = sum(r["status"] == "SKIPPED" for r in records)
     failed = sum(r["status"] == "FAILED" for r in records)
     notes = ", ".join(f"{n} {word}" for n, word in ((skipped, "skipped"), (failed, "failed")) if n)
     line = f"Sweep progress: {done}/{planned} jobs finished" + (f" ({notes})" if notes else "")
     left = max(planned - done, 0)
-    trained = [r["seconds"] for r in records if r["status"] != "SKIPPED"]
-    if left and trained:
-        mean = sum(trained) / len(trained)
-        eta = math.ceil(left / max(parallel, 1)) * mean
-        line += f", {left} to go, ETA {_minutes(eta)} ({_minutes(mean)} per trained job, {max(parallel, 1)} at a time)"
-    elif left:
-        line += f", {left} to go"
-    return line
+    per = _per_job(records, estimates or {})
+    if not left:
+        return line
+    to_go = _left(records, planned, kinds or {})
+    if not all(kind in per for kind in to_go):
+        return line + f", {left} to go"
+    jobs = [per[kind][0] for kind in KINDS for _ in range(to_go.get(kind, 0))]
+    said = ", ".join(f"{_minutes(per[k][0])} per {KINDS[k]}{per[k][1]}" for k in KINDS if to_go.get(k))
+    workers = max(parallel, 1)
+    return line + f", {left} to go, ETA {_minutes(schedule(jobs, workers))} ({said}, {workers} at a time)"
+
+
+def _left(records: list[dict], planned: int, kinds: Mapping[str, int]) -> dict[str, int]:
+    """Each kind's jobs to go: its planned count (``job``: the rest of ``planned``) less its finished jobs."""
+    ended = Counter(r.get("kind", "job") for r in records)
+    counts = {**kinds, "job": planned - sum(kinds.values())}
+    return {kind: n - ended[kind] for kind, n in counts.items() if n - ended[kind] > 0}
+
+
+def _per_job(records: list[dict], estimates: Mapping[str, float]) -> dict[str, tuple[float, str]]:
+    """Each kind's seconds per job and how they were had: its trained jobs' mean (""), else its estimate scaled by
+    the trained jobs' durations over their kinds' estimates (" as planned"), else every trained job's mean."""
+    seconds: dict[str, list[float]] = {}
+    for r in records:
+        if r["status"] != "SKIPPED":
+            seconds.setdefault(r.get("kind", "job"), []).append(float(r["seconds"]))
+    if not seconds:
+        return {}
+    per = {kind: (sum(s) / len(s), "") for kind, s in seconds.items()}
+    timed = [kind for kind in seconds if estimates.get(kind)]
+    scale = sum(sum(seconds[k]) for k in timed) / sum(estimates[k] * len(seconds[k]) for k in timed) if timed else 0
+    everything = [s for values in seconds.values() for s in values]
+    for kind in KINDS:
+        if kind not in per:
+            guess = scale * estimates.get(kind, 0.0)
+            per[kind] = (guess, " as planned") if guess > 0 else (sum(everything) / len(everything), "")
+    return per
+
+
+def schedule(seconds: list[float], parallel: int) -> float:
+    """The wall time of jobs of ``seconds``, in order, on ``parallel`` workers, each job on the worker free first."""
+    free = [0.0] * max(parallel, 1)
+    for s in seconds:
+        free[free.index(min(free))] += s
+    return max(free)
 
 
 def _minutes(seconds: float) -> str:
