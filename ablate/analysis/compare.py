@@ -19,18 +19,9 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.tables.collect import under_condition
-from ablate.tables.records import read_records, records_path, text_of
+from ablate.tables.records import numerics_differ, read_records, records_path
 from ablate.tables.significance import prediction_interval
 from ablate.tables.tuning import config_text
-
-#: The record columns that say how a number was computed, beside the config.
-NUMERICS = {
-    "made_cpu": "CPU",
-    "cpu_isa": "ISA",
-    "made_gpu": "GPU",
-    "made_precision": "precision",
-    "made_threads": "threads",
-}
 
 
 def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> str:
@@ -61,14 +52,9 @@ def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> s
 
 
 def differing(mine: pd.DataFrame, published: pd.DataFrame) -> str:
-    """``name: published -> yours`` for each of :data:`NUMERICS` whose values differ, then the tuned configs where
+    """``name: published -> yours`` for each of :data:`ablate.tables.records.NUMERICS` whose values differ, then the tuned configs where
     they differ (``the recipe`` for an untuned row, :func:`ablate.tables.tuning.config_text`)."""
-    out = []
-    for column, name in NUMERICS.items():
-        before = sorted({text_of(v, column) for v in published.get(column, pd.Series([None]))})
-        now = sorted({text_of(v, column) for v in mine.get(column, pd.Series([None]))})
-        if before != now:
-            out.append(f"{name}: {' / '.join(before)} -> {' / '.join(now)}")
+    out = numerics_differ(published, mine)
     before, now = (
         sorted({config_text(str(c)) for c in runs.get("tuned_config", pd.Series([""])).fillna("")})
         for runs in (published, mine)

@@ -36,18 +36,8 @@ from omegaconf import DictConfig, OmegaConf
 from ablate.store import Tracker, split_tuned_key
 from ablate.tables import collect, table_spec
 from ablate.tables.collect import under_condition
-from ablate.tables.records import read_records, records_path, text_of
+from ablate.tables.records import numerics_differ, read_records, records_path
 from ablate.tables.significance import prediction_interval
-
-#: How a number was computed, beside the config (a run's tags, its record's columns): compared between the recorded
-#: runs and now, by the name a line gives it.
-NUMERICS = {
-    "cpu": "made_cpu",
-    "cpu_isa": "cpu_isa",
-    "gpu": "made_gpu",
-    "precision": "made_precision",
-    "threads": "made_threads",
-}
 
 
 @dataclass
@@ -87,21 +77,6 @@ class Reproduction:
             "same CPU, precision and threads as the recorded runs"
         ]
         return out
-
-
-def numerics(run: pd.Series) -> dict[str, str]:
-    """The numerics of one run (a row of a table's runs or records)."""
-    return {name: text_of(run.get(column), column) for name, column in NUMERICS.items()}
-
-
-def differences(recorded: list[dict[str, str]], now: dict[str, str]) -> list[str]:
-    """``key: recorded value(s) -> now`` for each of :data:`NUMERICS` that differs."""
-    out = []
-    for key in NUMERICS:
-        before = sorted({r.get(key, "?") for r in recorded})
-        if before != [now.get(key, "?")]:
-            out.append(f"{key}: {' / '.join(before)} -> {now.get(key, '?')}")
-    return out
 
 
 def tuned_config(runs: pd.DataFrame, cfg: DictConfig) -> list[str]:
@@ -181,6 +156,6 @@ def reproduce(
         by_seed.get(seed),
         values,
         prediction_interval(values),
-        differences([numerics(r) for _, r in mine.iterrows()], numerics(new.iloc[0])),
+        numerics_differ(mine, new.iloc[:1]),
         tuned,
     )

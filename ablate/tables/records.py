@@ -65,6 +65,27 @@ def text_of(value: object, column: str) -> str:
     return str(value)
 
 
+#: The record columns that say how a number was computed, beside the config, and how a line names each.
+NUMERICS = {
+    "made_cpu": "CPU",
+    "cpu_isa": "ISA",
+    "made_gpu": "GPU",
+    "made_precision": "precision",
+    "made_threads": "threads",
+}
+
+
+def numerics_differ(before: pd.DataFrame, now: pd.DataFrame) -> list[str]:
+    """``name: before's value(s) -> now's`` for each of :data:`NUMERICS` whose values differ between the runs
+    ``before`` and ``now`` (rows of a table's runs or records; a missing column reads as :data:`ABSENT` says)."""
+    out = []
+    for column, name in NUMERICS.items():
+        was, is_ = (sorted({text_of(v, column) for v in runs.get(column, pd.Series([None]))}) for runs in (before, now))
+        if was != is_:
+            out.append(f"{name}: {' / '.join(was)} -> {' / '.join(is_)}")
+    return out
+
+
 def records_path(results_dir: str | Path, table: str) -> Path:
     """The records of ``table`` under ``results_dir``: ``<results_dir>/runs/<table>.csv``."""
     return Path(results_dir) / RUNS_DIR / f"{table}.csv"
