@@ -177,3 +177,17 @@ def test_a_resumed_tuning_phase_plans_stage_2_and_the_race_on_the_trials_it_chos
     fresh = {item.name: item.config for item in items(config)}
     assert fresh["bifnet_dst_sum seed 0"].get("tuned") is None
     assert OmegaConf.select(fresh["bifnet_dst_sum trial 1"], "experts.draws", default=None) is None
+
+
+def test_a_tuning_phases_launches_wait_for_each_other_in_the_wall_time(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    plan = items(sweep_config("experiment=chinet_table2", "tune=lr_wd", "table.tune.trials=2"))
+    for item in plan:
+        item.seconds = 10.0
+    # 3 rows on 2 workers: trial 0's three jobs take two rounds, and trial 1 starts after them; then the first look
+    # (9 jobs, one launch): 20 + 20 + 50 s, where packing the 15 jobs without waits would take 80 s
+    assert wall_seconds(plan, 2) == pytest.approx(90.0)
+    assert wall_seconds(plan, 3) == pytest.approx(10 + 10 + 30)
+    assert wall_seconds(plan[6:], 2) == pytest.approx(50.0)  # the race alone: one launch

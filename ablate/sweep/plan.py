@@ -17,10 +17,11 @@ trained alone (an expert, an expert's tuning trial), or a fusion network (whose 
 and the later ones read their cached features).
 
 The wall time schedules the items on the sweep's workers in order, as its launcher does, each on the worker free
-first: the experts first (each fused job trains whichever expert no other job is training,
-:func:`ablate.jobs.experts.prepare`), and a job no earlier than the experts it needs are trained. The estimate
-leaves out the start of each job's interpreter and the sweep's end (row timing, the table); progress lines
-(:mod:`ablate.sweep.progress`) update it from the jobs' real durations as they finish.
+first, and each of a tuning phase's launches (trial k of every row) after the one before has ended: the experts
+first (each fused job trains whichever expert no other job is training, :func:`ablate.jobs.experts.prepare`), and a
+job no earlier than the experts it needs are trained. The estimate leaves out the start of each job's interpreter and
+the sweep's end (row timing, the table); progress lines (:mod:`ablate.sweep.progress`) update it from the jobs' real
+durations as they finish.
 """
 
 from __future__ import annotations
@@ -152,15 +153,28 @@ def seconds(cfg: DictConfig, times: StepTimes) -> float:
     return times.fit_seconds(epochs, int(steps) if steps is not None else None, cached=True) + test
 
 
+def batch(item: Item) -> tuple[str, object] | None:
+    """The launch a job belongs to: a tuning phase launches trial k of every row at once, and waits for them all
+    before trial k + 1 (the experts' trials, then stage 2's); the first look is one more launch. An expert trains
+    within a job: None."""
+    return None if item.kind == "expert" else (item.kind, item.config.get("trial"))
+
+
 def wall_seconds(plan: list[Item], parallel: int) -> float | None:
-    """The plan's wall time on ``parallel`` workers (see the module); None where an item has no estimate."""
+    """The plan's wall time on ``parallel`` workers (see the module); None where an item has no estimate. A launch
+    (:func:`batch`) starts when the one before has ended, as the sweeper waits for it: a tuned table of three rows
+    on two workers takes two rounds a trial index."""
     if any(item.seconds is None for item in plan):
         return None
     free = [0.0] * max(parallel, 1)
     ends: dict[str, float] = {}
+    launch, after = None, 0.0
     for item in plan:
+        if batch(item) is not None and batch(item) != launch:  # the first launch waits for no other
+            after = max(ends.values()) if launch is not None else 0.0
+            launch = batch(item)
         worker = min(range(len(free)), key=free.__getitem__)
-        begin = max([free[worker], *(ends.get(name, 0.0) for name in item.needs)])
+        begin = max([free[worker], after, *(ends.get(name, 0.0) for name in item.needs)])
         ends[item.name] = free[worker] = begin + float(item.seconds or 0.0)
     return max(free)
 
