@@ -52,8 +52,8 @@ def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> s
 
 
 def differing(mine: pd.DataFrame, published: pd.DataFrame) -> str:
-    """``name: published -> yours`` for each of :data:`ablate.tables.records.NUMERICS` whose values differ, then the tuned configs where
-    they differ (``the recipe`` for an untuned row, :func:`ablate.tables.tuning.config_text`)."""
+    """``name: published -> yours`` for each of :data:`ablate.tables.records.NUMERICS` whose values differ, then the
+    tuned configs where they differ (``the recipe`` for an untuned row, :func:`ablate.tables.tuning.config_text`)."""
     out = numerics_differ(published, mine)
     before, now = (
         sorted({config_text(str(c)) for c in runs.get("tuned_config", pd.Series([""])).fillna("")})
