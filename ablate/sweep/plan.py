@@ -170,9 +170,10 @@ def wall_seconds(plan: list[Item], parallel: int) -> float | None:
     ends: dict[str, float] = {}
     launch, after = None, 0.0
     for item in plan:
-        if batch(item) is not None and batch(item) != launch:  # the first launch waits for no other
+        this = batch(item)
+        if this is not None and this != launch:  # the first launch waits for no other
             after = max(ends.values()) if launch is not None else 0.0
-            launch = batch(item)
+            launch = this
         worker = min(range(len(free)), key=free.__getitem__)
         begin = max([free[worker], after, *(ends.get(name, 0.0) for name in item.needs)])
         ends[item.name] = free[worker] = begin + float(item.seconds or 0.0)
