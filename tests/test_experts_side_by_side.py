@@ -21,13 +21,16 @@ def test_two_jobs_train_their_two_experts_at_the_same_time(tmp_path: Path, monke
     monkeypatch.chdir(tmp_path)  # the experts' checkpoints and locks live under ./checkpoints
     cfg = compose(["experiment=smoe_table1", "row=smoe_fpn", "scale=smoke"])  # fused: needs the rgb and ddm experts
     trained: list[tuple[str, str, float, float]] = []  # (job, expert, start, end)
+    # an expert's training ends only once the other expert's has begun: side by side, whatever the threads' timing;
+    # where one job trained both (the other waiting on a lock), the first training's wait times out and fails
+    both_training = threading.Barrier(2, timeout=60)
 
     def job(name: str) -> dict[str, Any]:
         def run(ecfg: Any, kind: str, row: str) -> SimpleNamespace:
             folder = checkpoint_dir("experts", config_hash(ecfg))
             if not (folder / "best.ckpt").exists():  # as the job does: a FINISHED expert is not trained again
                 start = time.monotonic()
-                time.sleep(0.6)  # an expert training
+                both_training.wait()  # an expert training
                 folder.mkdir(parents=True, exist_ok=True)
                 (folder / "best.ckpt").write_text("weights")
                 trained.append((name, row, start, time.monotonic()))
