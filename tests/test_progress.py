@@ -5,7 +5,18 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-from ablate.sweep.progress import KINDS_FILE, estimated, finished, job_kind, planned_jobs, start, summary
+from ablate.sweep.progress import (
+    KINDS_FILE,
+    LAUNCHES_FILE,
+    estimated,
+    finished,
+    job_kind,
+    job_row,
+    job_trial,
+    planned_jobs,
+    start,
+    summary,
+)
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
@@ -54,6 +65,40 @@ def test_a_job_kind_follows_its_overrides():
     assert job_kind(["row=smoe_fpn", "++experts.tune=rgb", "seed=1000", "trial=2"]) == "expert trial"
     assert job_kind(["row=chinet", "optim.lr=0.002", "seed=1000", "trial=1"]) == "trial"
     assert job_kind(["row=chinet", "seed=3"]) == "job"
+    assert (job_row(["row=smoe_fpn", "++experts.tune=rgb", "trial=2"]), job_trial(["row=smoe_fpn", "trial=2"])) == (
+        "expert rgb",
+        2,
+    )
+    assert (job_row(["row=chinet", "seed=3"]), job_trial(["row=chinet", "seed=3"]), job_row(["fusion=sum"])) == (
+        "chinet",
+        None,
+        "",
+    )
+
+
+def test_a_trial_index_takes_as_long_as_its_slowest_row_before_the_race_begins():
+    """Two rows of unequal cost on two workers: trial k of both is one launch, which waits for the slower row; the
+    jobs were once packed as if the faster row's next trial could start beside the slower's."""
+    trials, launches = {"trial": 12}, {"trial": ["chinet", "miso"]}  # 2 rows x 6 trials, then 3 seeds each
+    records = [
+        {"status": "FINISHED", "seconds": 480, "kind": "trial", "row": "chinet", "trial": 0},
+        {"status": "FINISHED", "seconds": 300, "kind": "trial", "row": "miso", "trial": 0},
+    ]
+    estimates = {"trial": 400, "job": 500}  # the trials took 780 s of 800 planned: a raced job 487.5 s
+    line = summary(records, 18, parallel=2, kinds=trials, estimates=estimates, launches=launches)
+    # 5 launches of ChiNet's 480 s, then 6 raced jobs in 3 rounds of 487.5 s: 3862.5 s (packed: 3412.5 s)
+    assert line == (
+        "Sweep progress: 2/18 jobs finished, 16 to go, ETA 64.4 min "
+        "(6.5 min per tuning trial, 8.1 min per trained job as planned, 2 at a time)"
+    )
+    # half a launch done: its other row still runs alone
+    more = [*records, {"status": "FINISHED", "seconds": 480, "kind": "trial", "row": "chinet", "trial": 1}]
+    line = summary(more, 18, parallel=2, kinds=trials, estimates=estimates, launches=launches)
+    assert " ETA 63.2 min " in line  # 300 + 4 x 480 + 3 x 525 (the trials took 1260 s of 1200 planned)
+    # a progress file without rows (an older sweep's) packs the trials as before
+    bare = [{k: v for k, v in r.items() if k not in ("row", "trial")} for r in records]
+    line = summary(bare, 18, parallel=2, kinds=trials, estimates=estimates, launches=launches)
+    assert " ETA 56.9 min " in line
 
 
 def test_each_kind_of_job_to_go_is_timed_at_its_own_kind_or_its_plan_scaled_to_the_finished():
@@ -78,6 +123,7 @@ def test_a_tuned_tables_sweep_counts_its_trials_apart_from_its_raced_jobs(tmp_pa
         start(tmp_path, sweep_config("experiment=chinet_table3", "tune=lr_wd")) == 18
     )  # 2 rows x (6 trials + 3 seeds)
     assert json.loads((tmp_path / KINDS_FILE).read_text()) == {"trial": 12}
+    assert json.loads((tmp_path / LAUNCHES_FILE).read_text()) == {"trial": ["chinet", "simo"]}
     estimated(tmp_path, {"trial": 60.0, "job": 120.0})
     line = finished(tmp_path, "FINISHED", 30.0, parallel=2, kind="trial")
     # 11 trials at 30 s, then 6 raced jobs at 60 s, on 2 workers: 360 s

@@ -305,6 +305,18 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     ]
     assert per[0] == ["expert trial", "tuning trial", "trained job"], per
     assert per[4] == ["tuning trial", "trained job"] and per[6] == ["trained job"] and per[7] == [], per
+    # every trial's row and number recorded, and each tuned kind's launches: the ETA waits for a launch's slowest row
+    (sweep_dir,) = {p.parent for p in tmp_path.glob("multirun/*/*/.progress")}
+    recorded = [json.loads(line) for line in (sweep_dir / ".progress").read_text().splitlines()]
+    assert sorted((r["row"], r["trial"]) for r in recorded if r["kind"] != "job") == [
+        ("bifnet_dst_sum", 0), ("bifnet_dst_sum", 1),
+        ("expert bev", 0), ("expert bev", 1), ("expert rgb", 0), ("expert rgb", 1),
+    ]  # fmt: skip
+    launches = json.loads((sweep_dir / ".launches").read_text())
+    assert {kind: sorted(rows) for kind, rows in launches.items()} == {
+        "expert trial": ["expert bev", "expert rgb"],
+        "trial": ["bifnet_dst_sum"],
+    }
     store = f"sqlite:///{tmp_path / 'mlflow.db'}"
     _, trials = runs(store, "bifnet_table4", kind="trial")
     assert sorted((r.data.tags["row"], r.data.tags["trial"]) for r in trials) == [

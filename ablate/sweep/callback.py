@@ -266,8 +266,10 @@ class SweepCallback(Callback):
             return
         status = job_return._return_value if job_return.status.name == "COMPLETED" else "FAILED"
         try:
-            seconds, kind = time.monotonic() - self._job_started, progress.job_kind(list(config.hydra.overrides.task))
-            line = progress.finished(sdir, str(status), seconds, _parallel(config), kind)
+            overrides, seconds = list(config.hydra.overrides.task), time.monotonic() - self._job_started
+            row, trial = progress.job_row(overrides), progress.job_trial(overrides)
+            kind = progress.job_kind(overrides)
+            line = progress.finished(sdir, str(status), seconds, _parallel(config), kind, row, trial)
             log.info(line)
         except Exception as err:  # progress is a convenience: never the reason a job fails
             log.warning("Could not record the sweep's progress: %s", err)

@@ -11,6 +11,11 @@ sweep records how many of each kind it plans (``<sweep dir>/.planned_kinds``) an
 kind's estimated seconds per job (``.estimates``, :mod:`ablate.sweep.plan`); the ETA times every kind's jobs to go at
 its own finished jobs' mean, a kind none of whose jobs has finished yet at its plan's estimate scaled by how the
 finished jobs compared with theirs, and schedules them on the sweep's workers in launch order.
+
+A tuning phase launches trial k of every row at once and waits for them all before trial k + 1
+(:mod:`ablate.sweep.tuning`), so a trial index takes as long as its slowest row. The sweep records each tuned kind's
+rows (``.launches``) and every job its row and trial number; the ETA then schedules the trials to go launch by launch,
+each trial at its own row's mean where that row has finished one, and the raced jobs after the last launch.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ PLANNED_FILE = ".planned"
 PROGRESS_FILE = ".progress"
 KINDS_FILE = ".planned_kinds"
 ESTIMATES_FILE = ".estimates"
+LAUNCHES_FILE = ".launches"
 
 #: The kinds of a sweep's jobs in launch order (:func:`job_kind`), and how a progress line names one of each.
 KINDS = {"expert trial": "expert trial", "trial": "tuning trial", "job": "trained job"}
@@ -43,6 +49,19 @@ def job_kind(overrides: list[str]) -> str:
     ``trial`` (a row's tuning trial, ``trial``), else ``job`` (a raced or swept job)."""
     keys = {item.lstrip("+~").partition("=")[0] for item in overrides}
     return "expert trial" if "experts.tune" in keys else "trial" if "trial" in keys else "job"
+
+
+def job_row(overrides: list[str]) -> str:
+    """The row of the job of ``overrides`` as its tuning launches name it: ``expert <modality>`` for an expert's
+    trial, else its ``row`` ("" where it has none)."""
+    values = {key.lstrip("+~"): value for key, _, value in (item.partition("=") for item in overrides)}
+    return f"expert {values['experts.tune']}" if "experts.tune" in values else values.get("row", "")
+
+
+def job_trial(overrides: list[str]) -> int | None:
+    """The trial number of the job of ``overrides`` (None: no tuning trial)."""
+    values = {key.lstrip("+~"): value for key, _, value in (item.partition("=") for item in overrides)}
+    return int(values["trial"]) if values.get("trial", "").isdigit() else None
 
 
 def job_overrides(config: DictConfig, objectives: Mapping[str, Mapping[int, float]] | None = None) -> list[list[str]]:
@@ -96,11 +115,17 @@ def replan(sweep_dir: Path, planned: int) -> None:
 
 def start(sweep_dir: Path, config: DictConfig) -> int:
     """Record the planned job count of the sweep in ``sweep_dir``, and of each kind but ``job`` (whose count a race's
-    later looks change, :func:`replan`); return the count."""
+    later looks change, :func:`replan`) with the rows each of its launches holds; return the count."""
     jobs = job_overrides(config)
     kinds = Counter(job_kind(job) for job in jobs)
+    launches: dict[str, list[str]] = {}
+    for job in jobs:
+        rows = launches.setdefault(job_kind(job), [])
+        if job_row(job) not in rows:
+            rows.append(job_row(job))
     (sweep_dir / PLANNED_FILE).write_text(str(len(jobs)))
     (sweep_dir / KINDS_FILE).write_text(json.dumps({k: n for k, n in kinds.items() if k != "job"}))
+    (sweep_dir / LAUNCHES_FILE).write_text(json.dumps({k: rows for k, rows in launches.items() if k != "job"}))
     (sweep_dir / PROGRESS_FILE).write_text("")
     return len(jobs)
 
@@ -110,17 +135,28 @@ def estimated(sweep_dir: Path, seconds: Mapping[str, float]) -> None:
     (sweep_dir / ESTIMATES_FILE).write_text(json.dumps({k: round(s, 3) for k, s in seconds.items()}))
 
 
-def finished(sweep_dir: Path, status: str, seconds: float, parallel: int = 1, kind: str = "job") -> str:
+def finished(
+    sweep_dir: Path,
+    status: str,
+    seconds: float,
+    parallel: int = 1,
+    kind: str = "job",
+    row: str = "",
+    trial: int | None = None,
+) -> str:
     """Record one job's end (``status``: FINISHED, SKIPPED, FAILED; its wall ``seconds``; its ``kind``,
-    :func:`job_kind`) and return the sweep's progress line."""
+    :func:`job_kind`; its ``row`` and ``trial``, :func:`job_row`, :func:`job_trial`) and return the sweep's progress
+    line."""
     path = sweep_dir / PROGRESS_FILE
+    record = {"status": status, "seconds": round(seconds, 3), "kind": kind, "row": row, "trial": trial}
     with file_lock(sweep_dir / ".progress.lock"):
         with open(path, "a") as handle:
-            handle.write(json.dumps({"status": status, "seconds": round(seconds, 3), "kind": kind}) + "\n")
+            handle.write(json.dumps(record) + "\n")
         records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     planned_file = sweep_dir / PLANNED_FILE
     planned = int(planned_file.read_text()) if planned_file.exists() else len(records)
-    return summary(records, planned, parallel, _read(sweep_dir / KINDS_FILE), _read(sweep_dir / ESTIMATES_FILE))
+    kinds, estimates = _read(sweep_dir / KINDS_FILE), _read(sweep_dir / ESTIMATES_FILE)
+    return summary(records, planned, parallel, kinds, estimates, _read(sweep_dir / LAUNCHES_FILE))
 
 
 def _read(path: Path) -> dict:
@@ -133,12 +169,13 @@ def summary(
     parallel: int = 1,
     kinds: Mapping[str, int] | None = None,
     estimates: Mapping[str, float] | None = None,
+    launches: Mapping[str, list[str]] | None = None,
 ) -> str:
     """The progress line for the finished jobs' ``records`` of ``planned``, ``parallel`` jobs at a time (``kinds``:
-    the planned count of each kind but ``job``; ``estimates``: the plan's seconds per job of each kind). The ETA takes
-    each kind's trained jobs' mean duration for its jobs to go (a skipped job costs nothing, but which of the rest
-    will be skipped is not known; a kind without a trained job: see the module), scheduled on the workers in launch
-    order."""
+    the planned count of each kind but ``job``; ``estimates``: the plan's seconds per job of each kind; ``launches``:
+    the rows of each tuned kind's launches). The ETA takes each kind's trained jobs' mean duration for its jobs to go
+    (a skipped job costs nothing, but which of the rest will be skipped is not known; a kind without a trained job:
+    see the module), scheduled on the workers in launch order, a tuning trial at its row's mean (:func:`_wall`)."""
     done = len(records)
     skipped = sum(r["status"] == "SKIPPED" for r in records)
     failed = sum(r["status"] == "FAILED" for r in records)
@@ -151,10 +188,47 @@ def summary(
     to_go = _left(records, planned, kinds or {})
     if not all(kind in per for kind in to_go):
         return line + f", {left} to go"
-    jobs = [per[kind][0] for kind in KINDS for _ in range(to_go.get(kind, 0))]
     said = ", ".join(f"{_minutes(per[k][0])} per {KINDS[k]}{per[k][1]}" for k in KINDS if to_go.get(k))
     workers = max(parallel, 1)
-    return line + f", {left} to go, ETA {_minutes(schedule(jobs, workers))} ({said}, {workers} at a time)"
+    wall = _wall(records, to_go, per, kinds or {}, launches or {}, workers)
+    return line + f", {left} to go, ETA {_minutes(wall)} ({said}, {workers} at a time)"
+
+
+def _wall(
+    records: list[dict],
+    to_go: Mapping[str, int],
+    per: Mapping[str, tuple[float, str]],
+    kinds: Mapping[str, int],
+    launches: Mapping[str, list[str]],
+    workers: int,
+) -> float:
+    """The wall time of the jobs to go, kind after kind in launch order. A tuned kind whose launches are known
+    (``launches``: its rows; ``kinds``: its planned count, the rows times the trials) runs trial k of its rows to go
+    as one launch after another, each trial at its row's trained trials' mean (else its kind's); where the records
+    do not account for its jobs to go (a progress file without rows), its jobs are packed as the raced jobs are."""
+    total = 0.0
+    for kind in KINDS:
+        rows, n = launches.get(kind) or [], to_go.get(kind, 0)
+        if not n:
+            continue
+        ended = {(r.get("trial"), r.get("row")) for r in records if r.get("kind", "job") == kind}
+        trials = kinds.get(kind, 0) // len(rows) if rows else 0
+        rounds = [[row for row in rows if (k, row) not in ended] for k in range(trials)]
+        if kind == "job" or sum(map(len, rounds)) != n:
+            total += schedule([per[kind][0]] * n, workers)
+            continue
+        mean = _per_row(records, kind)
+        total += sum(schedule([mean.get(row, per[kind][0]) for row in left], workers) for left in rounds)
+    return total
+
+
+def _per_row(records: list[dict], kind: str) -> dict[str, float]:
+    """Each row's mean seconds over its trained jobs of ``kind``."""
+    seconds: dict[str, list[float]] = {}
+    for r in records:
+        if r.get("kind", "job") == kind and r["status"] != "SKIPPED" and r.get("row"):
+            seconds.setdefault(r["row"], []).append(float(r["seconds"]))
+    return {row: sum(s) / len(s) for row, s in seconds.items()}
 
 
 def _left(records: list[dict], planned: int, kinds: Mapping[str, int]) -> dict[str, int]:
