@@ -51,16 +51,20 @@ def job_kind(overrides: list[str]) -> str:
     return "expert trial" if "experts.tune" in keys else "trial" if "trial" in keys else "job"
 
 
+def _values(overrides: list[str]) -> dict[str, str]:
+    return {key.lstrip("+~"): value for key, _, value in (item.partition("=") for item in overrides)}
+
+
 def job_row(overrides: list[str]) -> str:
     """The row of the job of ``overrides`` as its tuning launches name it: ``expert <modality>`` for an expert's
     trial, else its ``row`` ("" where it has none)."""
-    values = {key.lstrip("+~"): value for key, _, value in (item.partition("=") for item in overrides)}
+    values = _values(overrides)
     return f"expert {values['experts.tune']}" if "experts.tune" in values else values.get("row", "")
 
 
 def job_trial(overrides: list[str]) -> int | None:
     """The trial number of the job of ``overrides`` (None: no tuning trial)."""
-    values = {key.lstrip("+~"): value for key, _, value in (item.partition("=") for item in overrides)}
+    values = _values(overrides)
     return int(values["trial"]) if values.get("trial", "").isdigit() else None
 
 
