@@ -44,15 +44,15 @@ LAUNCHES_FILE = ".launches"
 KINDS = {"expert trial": "expert trial", "trial": "tuning trial", "job": "trained job"}
 
 
+def _values(overrides: list[str]) -> dict[str, str]:
+    return {key.lstrip("+~"): value for key, _, value in (item.partition("=") for item in overrides)}
+
+
 def job_kind(overrides: list[str]) -> str:
     """The kind of the job of ``overrides``: ``expert trial`` (an expert's tuning trial, ``experts.tune``),
     ``trial`` (a row's tuning trial, ``trial``), else ``job`` (a raced or swept job)."""
-    keys = {item.lstrip("+~").partition("=")[0] for item in overrides}
+    keys = _values(overrides)
     return "expert trial" if "experts.tune" in keys else "trial" if "trial" in keys else "job"
-
-
-def _values(overrides: list[str]) -> dict[str, str]:
-    return {key.lstrip("+~"): value for key, _, value in (item.partition("=") for item in overrides)}
 
 
 def job_row(overrides: list[str]) -> str:
