@@ -123,10 +123,9 @@ def start(sweep_dir: Path, config: DictConfig) -> int:
     jobs = job_overrides(config)
     kinds = Counter(job_kind(job) for job in jobs)
     launches: dict[str, list[str]] = {}
-    for job in jobs:
-        rows = launches.setdefault(job_kind(job), [])
-        if job_row(job) not in rows:
-            rows.append(job_row(job))
+    for kind, row in ((job_kind(job), job_row(job)) for job in jobs):
+        if row not in (rows := launches.setdefault(kind, [])):
+            rows.append(row)
     (sweep_dir / PLANNED_FILE).write_text(str(len(jobs)))
     (sweep_dir / KINDS_FILE).write_text(json.dumps({k: n for k, n in kinds.items() if k != "job"}))
     (sweep_dir / LAUNCHES_FILE).write_text(json.dumps({k: rows for k, rows in launches.items() if k != "job"}))
