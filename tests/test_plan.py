@@ -11,7 +11,8 @@ from omegaconf import DictConfig, OmegaConf
 from ablate.jobs.spec import best_checkpoint
 from ablate.jobs.steptime import StepTimes
 from ablate.store import config_hash
-from ablate.sweep.plan import estimate, items, lines, seconds, trains_alone, wall_seconds
+from ablate.sweep.plan import estimate, expert_seconds, items, lines, seconds, trains_alone, wall_seconds
+from ablate.sweep.progress import job_overrides
 from tests.test_progress import sweep_config
 
 EXPERT = StepTimes(train_s=2.0, cached_s=2.0, eval_s=0.5, train_batches=10, eval_batches=2, test_batches=4)
@@ -92,6 +93,27 @@ def test_trained_experts_and_finished_jobs_cost_nothing_and_a_race_plans_its_fir
     text = lines(plan, 2, race=True)
     assert text[0] == "Sweep plan: 6 job(s) (the first look of a race), 2 at a time; 2 done already (skipped)"
     assert len(text) == 2 + 4 and text[-1].endswith("; later looks add seeds where rows are undecided")
+
+
+def test_a_later_look_plans_the_experts_of_its_new_seeds_only(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The racing sweeper counts the experts a later look's jobs train first for the progress ETA (new seeds' only:
+    the first look's are trained by then)."""
+    monkeypatch.chdir(tmp_path)
+    config = sweep_config("experiment=smoe_table1", "row=smoe_sum,smoe_max")
+    first = items(config)
+    assert expert_seconds(first) == (6, None)  # not estimated yet
+    for expert in (item for item in first if item.kind == "expert"):
+        best = best_checkpoint("experts", config_hash(expert.config))
+        best.parent.mkdir(parents=True)
+        best.write_text("weights")
+    look2 = [[*job[:-1], f"seed={seed}"] for job in job_overrides(config)[::3] for seed in (3, 4)]
+    plan = items(config, jobs=look2)
+    assert [item.name for item in plan if item.kind == "expert"] == [
+        f"expert {m} seed {s}" for s in (3, 4) for m in ("rgb", "ddm_jet")
+    ]
+    clock = Clock()
+    estimate(plan, measure_s=50, measure=clock.measure, clock=clock)
+    assert expert_seconds(plan) == (4, pytest.approx(plan[0].seconds))
 
 
 def test_without_time_to_measure_the_eta_waits_for_the_first_job_and_one_job_is_always_measured(

@@ -6,9 +6,11 @@ from pathlib import Path
 from hydra import compose, initialize_config_dir
 
 from ablate.sweep.progress import (
+    EXPERTS_FILE,
     KINDS_FILE,
     LAUNCHES_FILE,
     estimated,
+    experts_planned,
     finished,
     job_kind,
     job_row,
@@ -128,3 +130,35 @@ def test_a_tuned_tables_sweep_counts_its_trials_apart_from_its_raced_jobs(tmp_pa
     line = finished(tmp_path, "FINISHED", 30.0, parallel=2, kind="trial")
     # 11 trials at 30 s, then 6 raced jobs at 60 s, on 2 workers: 360 s
     assert line.endswith("ETA 6.0 min (30 s per tuning trial, 60 s per trained job as planned, 2 at a time)")
+
+
+def test_the_experts_a_look_trains_first_are_timed_apart_from_its_jobs():
+    """A look of raced jobs on experts: its first jobs train the experts within them (10 min each here), the rest
+    only their fusion network (about 5 min). The ETA once took every job at the first ones' mean."""
+    records = [
+        {"status": "FINISHED", "seconds": 900, "kind": "job", "row": "smoe_fpn", "experts": [600.0], "stage1": 610.0},
+        {"status": "FINISHED", "seconds": 300, "kind": "job", "row": "smoe_late"},
+    ]
+    line = summary(records, 8, parallel=2, experts={"planned": 4, "seconds": 500.0})
+    # 3 experts to go at the trained one's 600 s, then 6 jobs at (290 + 300) / 2 s, on 2 workers: 1790 s
+    assert line == (
+        "Sweep progress: 2/8 jobs finished, 6 to go, ETA 29.8 min "
+        "(3 expert(s) to train at 10.0 min, 4.9 min per trained job, 2 at a time)"
+    )
+    # every expert trained: the jobs alone (3 rounds of 295 s), not at the 600 s mean of the first two
+    assert " ETA 14.8 min (4.9 min per trained job, " in summary(records, 8, 2, experts={"planned": 1})
+    # no expert trained yet: the plan's 1000 s, scaled as the jobs came out against theirs (300 s of 600)
+    line = summary(records[1:], 8, 2, estimates={"job": 600.0}, experts={"planned": 2, "seconds": 1000.0})
+    assert "(2 expert(s) to train at 8.3 min as planned, 5.0 min per trained job, 2 at a time)" in line
+
+
+def test_each_look_adds_its_experts_and_each_job_records_its_stage_one(tmp_path):
+    assert start(tmp_path, sweep_config("experiment=chinet_table2", "scale=smoke")) == 3
+    experts_planned(tmp_path, 2, 480.0)  # the first look's, from the sweep's plan
+    experts_planned(tmp_path, 1)  # a later look's new seed
+    assert json.loads((tmp_path / EXPERTS_FILE).read_text()) == {"planned": 3, "seconds": 480.0}
+    line = finished(tmp_path, "FINISHED", 700.0, 2, "job", "chinet", None, [400.0, 200.0], 620.0)
+    # 1 expert to go at the two trained ones' 300 s, beside the 2 jobs to go at 700 - 620 s each: 300 s
+    assert line.endswith("ETA 5.0 min (1 expert(s) to train at 5.0 min, 80 s per trained job, 2 at a time)")
+    record = json.loads((tmp_path / ".progress").read_text())
+    assert (record["experts"], record["stage1"]) == ([400.0, 200.0], 620.0)

@@ -312,6 +312,11 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
         ("bifnet_dst_sum", 0), ("bifnet_dst_sum", 1),
         ("expert bev", 0), ("expert bev", 1), ("expert rgb", 0), ("expert rgb", 1),
     ]  # fmt: skip
+    # the raced jobs trained seed 0's two experts within them, each timed apart for the ETA (ablate.jobs.stage1)
+    assert json.loads((sweep_dir / ".experts").read_text())["planned"] == 2
+    raced = [r for r in recorded if r["kind"] == "job"]
+    assert sorted(len(r.get("experts", [])) for r in raced) in ([0, 2], [1, 1]), raced
+    assert all(sum(r["experts"]) <= r["stage1"] < r["seconds"] for r in raced if r.get("experts")), raced
     launches = json.loads((sweep_dir / ".launches").read_text())
     assert {kind: sorted(rows) for kind, rows in launches.items()} == {
         "expert trial": ["expert bev", "expert rgb"],

@@ -40,6 +40,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException, ValidationError
 
 from ablate import hardware
+from ablate.jobs import stage1
 from ablate.jobs.preempt import SETTLE_S, STOP, Stopped, exit_status, loky_worker
 from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unreachable
 from ablate.jobs.spec import JobSpec, checkpoint_dir, flatten_leaves
@@ -264,14 +265,25 @@ def prepare_experts(spec: JobSpec, tracker: Tracker, exp: str) -> dict[str, tupl
         return {}
     from ablate.jobs.experts import prepare  # torch: imported once a job trains
 
+    began = time.monotonic()
+
+    def timed(ecfg: DictConfig, kind: str, row: str) -> Outcome:  # each expert trained now timed for the ETA
+        start = time.monotonic()
+        outcome = run(JobSpec.of(ecfg, spec.context, kind, row))
+        if outcome.status == "FINISHED":
+            stage1.CURRENT.trained.append(time.monotonic() - start)
+        return outcome
+
     try:
-        return prepare(spec.experts_cfg, lambda ecfg, kind, row: run(JobSpec.of(ecfg, spec.context, kind, row)))
+        return prepare(spec.experts_cfg, timed)
     except JobFailed as err:
         run_id = tracker.start(exp, f"{spec.row} seed={spec.seed}", run_tags(spec))
         message = f"an expert failed: {err}"
         record_end(tracker, run_id, "FAILED", {"error": message[:5000]}, outbox=spec.outbox)
         log.error("%s (seed %s) FAILED: %s", named(spec), spec.seed, message)
         raise JobFailed(message) from err
+    finally:
+        stage1.CURRENT.seconds += time.monotonic() - began
 
 
 def train(spec: JobSpec, tracker: Tracker, run_id: str, experts: dict[str, tuple[Path, str]]) -> dict[str, float]:

@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from ablate.analysis.compare import against_published
 from ablate.analysis.latency import measure
 from ablate.config import CONF, compose
-from ablate.jobs import fingerprint
+from ablate.jobs import fingerprint, stage1
 from ablate.jobs.preempt import GRACE_S, alive, install_parent
 from ablate.store import (
     KIND_SWEEP,
@@ -240,7 +240,7 @@ class SweepCallback(Callback):
         log.info("MLflow parent run %s in experiment '%s' (%s)", run_id, config.table.name, tracker.uri)
         planned = progress.start(sdir, config)
         try:
-            from ablate.sweep.plan import kind_seconds, log_plan  # torch and Lightning: the step timing
+            from ablate.sweep.plan import expert_seconds, kind_seconds, log_plan  # torch and Lightning: step timing
             from ablate.tables.tuning import trial_objectives
 
             # a resumed tuning phase: its stage-2 trials and raced jobs as the sweeper will launch them
@@ -252,12 +252,14 @@ class SweepCallback(Callback):
                 objectives,
             )
             progress.estimated(sdir, kind_seconds(plan))
+            progress.experts_planned(sdir, *expert_seconds(plan))
         except Exception as err:  # the plan is a convenience: never the reason a sweep does not start
             log.warning("Could not plan the sweep: %s", err)
             log.info("Sweep of %d job(s), %s at a time", planned, _parallel(config))
 
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._job_started = time.monotonic()
+        stage1.CURRENT.clear()
 
     def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
         """Count the job in the sweep's progress and log the sweep's progress line with its ETA."""
@@ -269,7 +271,10 @@ class SweepCallback(Callback):
             overrides, seconds = list(config.hydra.overrides.task), time.monotonic() - self._job_started
             row, trial = progress.job_row(overrides), progress.job_trial(overrides)
             kind = progress.job_kind(overrides)
-            line = progress.finished(sdir, str(status), seconds, _parallel(config), kind, row, trial)
+            ran = stage1.CURRENT  # what the job spent on its experts (ablate.jobs.stage1)
+            line = progress.finished(
+                sdir, str(status), seconds, _parallel(config), kind, row, trial, list(ran.trained), ran.seconds
+            )
             log.info(line)
         except Exception as err:  # progress is a convenience: never the reason a job fails
             log.warning("Could not record the sweep's progress: %s", err)

@@ -75,11 +75,12 @@ def items(
     config: DictConfig,
     done: Callable[[DictConfig], bool] = lambda cfg: False,
     objectives: Mapping[str, Mapping[int, float]] | None = None,
+    jobs: list[list[str]] | None = None,
 ) -> list[Item]:
     """The experts, then the jobs, of the sweep of ``config`` (``done``: whether a job's config, as it runs and is
     hashed, has a FINISHED run; ``objectives``: the tuning trials' in the store, where a resumed sweep has them,
-    :func:`ablate.sweep.progress.job_overrides`)."""
-    jobs = job_overrides(config, objectives)
+    :func:`ablate.sweep.progress.job_overrides`), or of its ``jobs`` (a race's later look)."""
+    jobs = job_overrides(config, objectives) if jobs is None else jobs
     swept = swept_keys(jobs)
     experts: dict[str, Item] = {}
     planned: list[Item] = []
@@ -178,6 +179,14 @@ def wall_seconds(plan: list[Item], parallel: int) -> float | None:
         begin = max([free[worker], after, *(ends.get(name, 0.0) for name in item.needs)])
         ends[item.name] = free[worker] = begin + float(item.seconds or 0.0)
     return max(free)
+
+
+def expert_seconds(plan: list[Item]) -> tuple[int, float | None]:
+    """How many experts the plan's jobs will train within them, and their mean estimated seconds (None: not
+    estimated; for the progress lines' ETA, :mod:`ablate.sweep.progress`)."""
+    experts = [i for i in plan if i.kind == "expert" and not i.done]
+    timed = [float(i.seconds) for i in experts if i.seconds is not None]
+    return len(experts), (sum(timed) / len(timed) if timed else None)
 
 
 def kind_seconds(plan: list[Item]) -> dict[str, float]:

@@ -16,13 +16,19 @@ A tuning phase launches trial k of every row at once and waits for them all befo
 (:mod:`ablate.sweep.tuning`), so a trial index takes as long as its slowest row. The sweep records each tuned kind's
 rows (``.launches``) and every job its row and trial number; the ETA then schedules the trials to go launch by launch,
 each trial at its own row's mean where that row has finished one, and the raced jobs after the last launch.
+
+A raced job on experts (SMoE §4.3) trains whichever of them is missing first, within the job
+(:mod:`ablate.jobs.stage1`), so the first jobs of a look take an expert's training more than the rest. The sweep
+records how many experts its looks will train and the plan's estimate of one (``.experts``); every job records the
+experts it trained and its seconds in stage 1. The ETA times each job to go at the jobs' mean less their stage 1, and
+each expert to go, before them, at the trained experts' mean (else its estimate, scaled as a kind's).
 """
 
 from __future__ import annotations
 
 import json
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
@@ -39,6 +45,7 @@ PROGRESS_FILE = ".progress"
 KINDS_FILE = ".planned_kinds"
 ESTIMATES_FILE = ".estimates"
 LAUNCHES_FILE = ".launches"
+EXPERTS_FILE = ".experts"
 
 #: The kinds of a sweep's jobs in launch order (:func:`job_kind`), and how a progress line names one of each.
 KINDS = {"expert trial": "expert trial", "trial": "tuning trial", "job": "trained job"}
@@ -133,6 +140,17 @@ def start(sweep_dir: Path, config: DictConfig) -> int:
     return len(jobs)
 
 
+def experts_planned(sweep_dir: Path, count: int, seconds: float | None = None) -> None:
+    """Add ``count`` experts to those the sweep's jobs will train within them (a race's first look, then each later
+    look's), with the plan's estimated ``seconds`` of one where it has them."""
+    path = sweep_dir / EXPERTS_FILE
+    known = _read(path)
+    known["planned"] = int(known.get("planned", 0)) + count
+    if seconds:
+        known["seconds"] = round(seconds, 3)
+    path.write_text(json.dumps(known))
+
+
 def estimated(sweep_dir: Path, seconds: Mapping[str, float]) -> None:
     """Record the plan's estimated seconds per job of each kind (:mod:`ablate.sweep.plan`)."""
     (sweep_dir / ESTIMATES_FILE).write_text(json.dumps({k: round(s, 3) for k, s in seconds.items()}))
@@ -146,12 +164,17 @@ def finished(
     kind: str = "job",
     row: str = "",
     trial: int | None = None,
+    experts: Sequence[float] = (),
+    stage1: float = 0.0,
 ) -> str:
     """Record one job's end (``status``: FINISHED, SKIPPED, FAILED; its wall ``seconds``; its ``kind``,
-    :func:`job_kind`; its ``row`` and ``trial``, :func:`job_row`, :func:`job_trial`) and return the sweep's progress
-    line."""
+    :func:`job_kind`; its ``row`` and ``trial``, :func:`job_row`, :func:`job_trial`; the seconds of each of the
+    ``experts`` it trained and its seconds in ``stage1`` in all, :mod:`ablate.jobs.stage1`) and return the sweep's
+    progress line."""
     path = sweep_dir / PROGRESS_FILE
     record = {"status": status, "seconds": round(seconds, 3), "kind": kind, "row": row, "trial": trial}
+    if stage1:
+        record.update(experts=[round(e, 3) for e in experts], stage1=round(stage1, 3))
     with file_lock(sweep_dir / ".progress.lock"):
         with open(path, "a") as handle:
             handle.write(json.dumps(record) + "\n")
@@ -159,7 +182,8 @@ def finished(
     planned_file = sweep_dir / PLANNED_FILE
     planned = int(planned_file.read_text()) if planned_file.exists() else len(records)
     kinds, estimates = _read(sweep_dir / KINDS_FILE), _read(sweep_dir / ESTIMATES_FILE)
-    return summary(records, planned, parallel, kinds, estimates, _read(sweep_dir / LAUNCHES_FILE))
+    launches, experts_file = _read(sweep_dir / LAUNCHES_FILE), _read(sweep_dir / EXPERTS_FILE)
+    return summary(records, planned, parallel, kinds, estimates, launches, experts_file)
 
 
 def _read(path: Path) -> dict:
@@ -173,12 +197,15 @@ def summary(
     kinds: Mapping[str, int] | None = None,
     estimates: Mapping[str, float] | None = None,
     launches: Mapping[str, list[str]] | None = None,
+    experts: Mapping[str, float] | None = None,
 ) -> str:
     """The progress line for the finished jobs' ``records`` of ``planned``, ``parallel`` jobs at a time (``kinds``:
     the planned count of each kind but ``job``; ``estimates``: the plan's seconds per job of each kind; ``launches``:
-    the rows of each tuned kind's launches). The ETA takes each kind's trained jobs' mean duration for its jobs to go
+    the rows of each tuned kind's launches; ``experts``: the experts the jobs will train, ``planned``, and the plan's
+    ``seconds`` of one). The ETA takes each kind's trained jobs' mean duration less their stage 1 for its jobs to go
     (a skipped job costs nothing, but which of the rest will be skipped is not known; a kind without a trained job:
-    see the module), scheduled on the workers in launch order, a tuning trial at its row's mean (:func:`_wall`)."""
+    see the module), scheduled on the workers in launch order, a tuning trial at its row's mean, the experts to go
+    before the raced jobs (:func:`_wall`)."""
     done = len(records)
     skipped = sum(r["status"] == "SKIPPED" for r in records)
     failed = sum(r["status"] == "FAILED" for r in records)
@@ -191,9 +218,14 @@ def summary(
     to_go = _left(records, planned, kinds or {})
     if not all(kind in per for kind in to_go):
         return line + f", {left} to go"
-    said = ", ".join(f"{_minutes(per[k][0])} per {KINDS[k]}{per[k][1]}" for k in KINDS if to_go.get(k))
+    expert = _expert(records, experts or {}, estimates or {}) if to_go.get("job") else None
+    said = ", ".join(f"{_minutes(per[k][0])} per {KINDS[k]}{per[k][1]}" for k in KINDS if to_go.get(k) and k != "job")
+    if expert is not None:
+        said += (", " if said else "") + f"{expert[0]} expert(s) to train at {_minutes(expert[1])}{expert[2]}"
+    if to_go.get("job"):
+        said += (", " if said else "") + f"{_minutes(per['job'][0])} per {KINDS['job']}{per['job'][1]}"
     workers = max(parallel, 1)
-    wall = _wall(records, to_go, per, kinds or {}, launches or {}, workers)
+    wall = _wall(records, to_go, per, kinds or {}, launches or {}, workers, expert)
     return line + f", {left} to go, ETA {_minutes(wall)} ({said}, {workers} at a time)"
 
 
@@ -204,11 +236,13 @@ def _wall(
     kinds: Mapping[str, int],
     launches: Mapping[str, list[str]],
     workers: int,
+    expert: tuple[int, float, str] | None = None,
 ) -> float:
     """The wall time of the jobs to go, kind after kind in launch order. A tuned kind whose launches are known
     (``launches``: its rows; ``kinds``: its planned count, the rows times the trials) runs trial k of its rows to go
     as one launch after another, each trial at its row's trained trials' mean (else its kind's); where the records
-    do not account for its jobs to go (a progress file without rows), its jobs are packed as the raced jobs are."""
+    do not account for its jobs to go (a progress file without rows), its jobs are packed as the raced jobs are; the
+    ``expert`` s to go (their count and seconds each) go before the raced jobs."""
     total = 0.0
     for kind in KINDS:
         rows, n = launches.get(kind) or [], to_go.get(kind, 0)
@@ -218,7 +252,8 @@ def _wall(
         trials = kinds.get(kind, 0) // len(rows) if rows else 0
         rounds = [[row for row in rows if (k, row) not in ended] for k in range(trials)]
         if kind == "job" or sum(map(len, rounds)) != n:
-            total += schedule([per[kind][0]] * n, workers)
+            first = [expert[1]] * expert[0] if kind == "job" and expert is not None else []
+            total += schedule([*first, *[per[kind][0]] * n], workers)
             continue
         mean = _per_row(records, kind)
         total += sum(schedule([mean.get(row, per[kind][0]) for row in left], workers) for left in rounds)
@@ -230,7 +265,7 @@ def _per_row(records: list[dict], kind: str) -> dict[str, float]:
     seconds: dict[str, list[float]] = {}
     for r in records:
         if r.get("kind", "job") == kind and r["status"] != "SKIPPED" and r.get("row"):
-            seconds.setdefault(r["row"], []).append(float(r["seconds"]))
+            seconds.setdefault(r["row"], []).append(_own(r))
     return {row: sum(s) / len(s) for row, s in seconds.items()}
 
 
@@ -247,7 +282,7 @@ def _per_job(records: list[dict], estimates: Mapping[str, float]) -> dict[str, t
     seconds: dict[str, list[float]] = {}
     for r in records:
         if r["status"] != "SKIPPED":
-            seconds.setdefault(r.get("kind", "job"), []).append(float(r["seconds"]))
+            seconds.setdefault(r.get("kind", "job"), []).append(_own(r))
     if not seconds:
         return {}
     per = {kind: (sum(s) / len(s), "") for kind, s in seconds.items()}
@@ -259,6 +294,29 @@ def _per_job(records: list[dict], estimates: Mapping[str, float]) -> dict[str, t
             guess = scale * estimates.get(kind, 0.0)
             per[kind] = (guess, " as planned") if guess > 0 else (sum(everything) / len(everything), "")
     return per
+
+
+def _own(record: Mapping) -> float:
+    """A finished job's seconds less its stage 1 (its experts: timed apart, :func:`_expert`)."""
+    return max(float(record["seconds"]) - float(record.get("stage1", 0.0)), 0.0)
+
+
+def _expert(
+    records: list[dict], experts: Mapping[str, float], estimates: Mapping[str, float]
+) -> tuple[int, float, str] | None:
+    """The experts to go (planned less trained), their seconds each and how they were had: the trained experts'
+    mean (""), else the plan's estimate scaled as :func:`_per_job` scales a kind's (" as planned"); None where none
+    is to go or nothing times one."""
+    trained = [float(s) for r in records for s in r.get("experts", ())]
+    left = int(experts.get("planned", 0)) - len(trained)
+    if left <= 0:
+        return None
+    if trained:
+        return left, sum(trained) / len(trained), ""
+    timed = [r for r in records if r["status"] != "SKIPPED" and estimates.get(r.get("kind", "job"))]
+    scale = sum(_own(r) for r in timed) / sum(estimates[r.get("kind", "job")] for r in timed) if timed else 1.0
+    guess = scale * float(experts.get("seconds", 0.0))
+    return (left, guess, " as planned") if guess > 0 else None
 
 
 def schedule(seconds: list[float], parallel: int) -> float:

@@ -184,6 +184,8 @@ class RacingSweeperImpl:
             racing = ", ".join(race_.state.racing)
             log.info("Look %d of %d: %d job(s), seeds up to %d for %s", look, len(plan.looks), len(batch), n, racing)
             progress.replan(sdir, race_.launched + len(batch))
+            if look > 1:  # the first look's experts are in the sweep's plan
+                self._plan_experts(sdir, batch)
             race_.returns.append(self._launch(batch, race_.launched))
             race_.launched += len(batch)
             race_.trained += [
@@ -198,6 +200,17 @@ class RacingSweeperImpl:
         tags = {"race_looks": str(race_.state.looks_done), "race_jobs": str(race_.launched), "race": outcome}
         self._tag_parent(tags)
         return race_.returns
+
+    def _plan_experts(self, sdir: Path, batch: list[list[str]]) -> None:
+        """Count the experts a later look's jobs will train first (new seeds: :mod:`ablate.sweep.progress`)."""
+        assert self.config is not None
+        try:
+            from ablate.sweep.plan import items  # torch: the experts' configs and hashes
+
+            plan = items(self.config, jobs=batch)
+            progress.experts_planned(sdir, sum(i.kind == "expert" and not i.done for i in plan))
+        except Exception as err:  # the ETA is a convenience: never the reason a look does not start
+            log.warning("Could not count the experts of the look: %s", err)
 
     def _tune(self, race_: Race) -> None:
         """The tuning phase where the table has one (``table.tune``, :mod:`ablate.sweep.tuning`): the experts' trials
