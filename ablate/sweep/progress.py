@@ -286,14 +286,20 @@ def _per_job(records: list[dict], estimates: Mapping[str, float]) -> dict[str, t
     if not seconds:
         return {}
     per = {kind: (sum(s) / len(s), "") for kind, s in seconds.items()}
-    timed = [kind for kind in seconds if estimates.get(kind)]
-    scale = sum(sum(seconds[k]) for k in timed) / sum(estimates[k] * len(seconds[k]) for k in timed) if timed else 0
+    scale = _scale(records, estimates) or 0.0
     everything = [s for values in seconds.values() for s in values]
     for kind in KINDS:
         if kind not in per:
             guess = scale * estimates.get(kind, 0.0)
             per[kind] = (guess, " as planned") if guess > 0 else (sum(everything) / len(everything), "")
     return per
+
+
+def _scale(records: list[dict], estimates: Mapping[str, float]) -> float | None:
+    """How the trained jobs of kinds the plan estimated came out against their estimates: their seconds (less their
+    stage 1) over the estimates' (None: no such job yet)."""
+    timed = [r for r in records if r["status"] != "SKIPPED" and estimates.get(r.get("kind", "job"))]
+    return sum(_own(r) for r in timed) / sum(estimates[r.get("kind", "job")] for r in timed) if timed else None
 
 
 def _own(record: Mapping) -> float:
@@ -313,9 +319,8 @@ def _expert(
         return None
     if trained:
         return left, sum(trained) / len(trained), ""
-    timed = [r for r in records if r["status"] != "SKIPPED" and estimates.get(r.get("kind", "job"))]
-    scale = sum(_own(r) for r in timed) / sum(estimates[r.get("kind", "job")] for r in timed) if timed else 1.0
-    guess = scale * float(experts.get("seconds", 0.0))
+    scale = _scale(records, estimates)
+    guess = (1.0 if scale is None else scale) * float(experts.get("seconds", 0.0))
     return (left, guess, " as planned") if guess > 0 else None
 
 
