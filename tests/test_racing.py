@@ -12,6 +12,7 @@ from hydra import compose, initialize_config_dir
 from hydra.core.utils import JobReturn, JobStatus
 
 import hydra_plugins.ablate_racing_sweeper._impl as impl
+from ablate.sweep import progress
 from ablate.tables.racing import RacePlan, race, race_lines, wilson
 from hydra_plugins.ablate_racing_sweeper.racing_sweeper import RacingSweeper
 
@@ -188,6 +189,46 @@ def test_a_resumed_race_counts_the_time_its_earlier_sweeps_spent_against_its_bud
     with caplog.at_level("INFO", logger=impl.__name__):
         assert len(resumed(8.0).batches) == 1
     assert "before look 2 (14.0 min spent, 8.0 of them in earlier sweeps, about 12.0 more needed)" in caplog.text
+
+
+class ExpertLauncher(TimedLauncher):
+    """A launcher on a fake clock whose jobs sit on two experts (SMoE §4.3): the first job of each new seed trains
+    both (``expert_min`` each) within it, and every job records its progress as the sweep's callback does."""
+
+    def __init__(self, metric, clock: list[float], sweep_dir: Path, job_min: float, expert_min: float):
+        super().__init__(metric, clock, set(), job_min)
+        self.sweep_dir, self.expert_min, self.seeds = sweep_dir, expert_min, set()
+
+    def launch(self, job_overrides, initial_job_idx):
+        before = self.clock[0]
+        out = FakeLauncher.launch(self, job_overrides, initial_job_idx)
+        total = 0.0
+        for row, seed in self.batches[-1]:
+            experts = [] if seed in self.seeds else [self.expert_min * 60] * 2
+            self.seeds.add(seed)
+            seconds = self.minutes[row] * 60 + sum(experts)
+            progress.finished(self.sweep_dir, "FINISHED", seconds, 2, "job", row, None, experts, sum(experts))
+            total += seconds
+        self.clock[0] = before + total / 2
+        return out
+
+
+def test_a_look_counts_the_experts_its_new_seeds_train(tmp_path, monkeypatch, caplog):
+    # look 1: nine jobs of 2 min, the first job of each of the three seeds training two experts of 10 min: 78 min
+    # of jobs, 39 of wall time. Only U-Net and FuseNet race on: look 2's four jobs train four experts, 24 min. Scaled
+    # from look 1's jobs alone (four ninths of its time) it would look like 17 min, inside a budget of 60 (56).
+    clock = [0.0]
+    monkeypatch.setattr(impl.time, "monotonic", lambda: clock[0])
+    means = {"chinet": 99.0, "unet": 90.0, "fusenet": 90.2}
+    launcher = ExpertLauncher(lambda r, s: means[r] + noise(r, s, 0.5), clock, tmp_path / "sweep", 2.0, 10.0)
+    monkeypatch.setattr(impl.RacingSweeperImpl, "_look_experts", lambda self, batch: 2 * len({b[-1] for b in batch}))
+    sweeper, _ = sweeper_for(tmp_path, monkeypatch, None, "scale.race.budget_min=60", launcher=launcher)
+    with caplog.at_level("INFO", logger=impl.__name__):
+        sweeper.sweep([])
+    assert len(launcher.batches) == 1
+    assert "before look 2 (39.0 min spent, about 24.0 more needed)" in caplog.text
+    assert progress.look_seconds(tmp_path / "sweep", 4, 0, 2) == 4 * 60  # no new seed: the jobs alone, 2 min each
+    assert progress.look_seconds(tmp_path / "none", 4, 4, 2) is None  # no job has trained: nothing to go by
 
 
 def test_the_time_a_race_spent_before_is_its_other_sweeps_spans_of_the_runs_it_uses() -> None:

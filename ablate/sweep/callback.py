@@ -188,12 +188,6 @@ def sweep_context(config: DictConfig) -> SweepContext:
     return SweepContext.of_sweep(launch / str(config.hydra.sweep.dir), launch)
 
 
-def _parallel(config: DictConfig) -> int:
-    """How many jobs of the sweep run at once: the joblib launcher's ``n_jobs``, else 1."""
-    n_jobs = OmegaConf.select(config, "hydra.launcher.n_jobs", default=None)
-    return int(n_jobs) if isinstance(n_jobs, int) and n_jobs > 0 else 1
-
-
 class SweepCallback(Callback):
     """Creates the parent run before the jobs, and closes it, writes the table and reports failures after."""
 
@@ -247,7 +241,7 @@ class SweepCallback(Callback):
             objectives = trial_objectives(tracker, str(config.table.name)) if config.table.get("tune") else None
             plan = log_plan(
                 config,
-                _parallel(config),
+                progress.workers(config),
                 lambda cfg: tracker.finished_run(exp, config_hash(cfg)) is not None,
                 objectives,
             )
@@ -255,7 +249,7 @@ class SweepCallback(Callback):
             progress.experts_planned(sdir, *expert_seconds(plan))
         except Exception as err:  # the plan is a convenience: never the reason a sweep does not start
             log.warning("Could not plan the sweep: %s", err)
-            log.info("Sweep of %d job(s), %s at a time", planned, _parallel(config))
+            log.info("Sweep of %d job(s), %s at a time", planned, progress.workers(config))
 
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._job_started = time.monotonic()
@@ -273,7 +267,7 @@ class SweepCallback(Callback):
             kind = progress.job_kind(overrides)
             ran = stage1.CURRENT  # what the job spent on its experts (ablate.jobs.stage1)
             line = progress.finished(
-                sdir, str(status), seconds, _parallel(config), kind, row, trial, list(ran.trained), ran.seconds
+                sdir, str(status), seconds, progress.workers(config), kind, row, trial, list(ran.trained), ran.seconds
             )
             log.info(line)
         except Exception as err:  # progress is a convenience: never the reason a job fails

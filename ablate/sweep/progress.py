@@ -324,6 +324,32 @@ def _expert(
     return (left, guess, " as planned") if guess > 0 else None
 
 
+def look_seconds(sweep_dir: Path, jobs: int, experts: int, parallel: int) -> float | None:
+    """The wall time of a race's next look of ``jobs`` raced jobs that train ``experts`` experts within them (SMoE
+    §4.3: the new seeds' experts, :mod:`ablate.jobs.stage1`), ``parallel`` at a time, timed as the ETA times the jobs
+    to go (:func:`summary`): each expert at the trained experts' mean (else the plan's estimate, scaled), before
+    the jobs, each at the trained jobs' mean less their stage 1. None where no job of the sweep has trained yet. The
+    racing sweeper weighs a look's cost with it, beside its rows' costs (``hydra_plugins/ablate_racing_sweeper``):
+    a look that races fewer rows than the first trains as many experts per seed."""
+    path = sweep_dir / PROGRESS_FILE
+    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
+    estimates = _read(sweep_dir / ESTIMATES_FILE)
+    per = _per_job([r for r in records if r.get("kind", "job") == "job"], {})
+    if "job" not in per:
+        return None
+    trained = sum(len(r.get("experts", ())) for r in records)
+    known = _read(sweep_dir / EXPERTS_FILE)
+    expert = _expert(records, {"planned": trained + experts, "seconds": known.get("seconds", 0.0)}, estimates)
+    first = [expert[1]] * expert[0] if expert is not None else []
+    return schedule([*first, *[per["job"][0]] * jobs], parallel)
+
+
+def workers(config: DictConfig) -> int:
+    """How many jobs of the sweep of ``config`` run at once: the joblib launcher's ``n_jobs``, else 1."""
+    n_jobs = OmegaConf.select(config, "hydra.launcher.n_jobs", default=None)
+    return int(n_jobs) if isinstance(n_jobs, int) and n_jobs > 0 else 1
+
+
 def schedule(seconds: list[float], parallel: int) -> float:
     """The wall time of jobs of ``seconds``, in order, on ``parallel`` workers, each job on the worker free first."""
     free = [0.0] * max(parallel, 1)

@@ -97,12 +97,15 @@ class Race:
         batch = [self.jobs[r] + [f"seed={s}"] for r in self.state.racing for s in range(self.have[r], n)]
         return look, n, batch, rows
 
-    def over_budget(self, look: int, rows: list[str]) -> bool:
+    def over_budget(self, look: int, rows: list[str], timed: float | None = None) -> bool:
         """Whether the next look would end past the wall-time budget (then :attr:`stopped` says so): this command's
         time since the race began, and the race's time in earlier sweeps where the command resumed it
-        (:attr:`earlier`), as the table's footer counts its wall time."""
+        (:attr:`earlier`), as the table's footer counts its wall time. The look's time is the larger of two
+        estimates: :func:`look_estimate` from the rows' costs, and ``timed``, the look's jobs and the experts they
+        train timed apart (:func:`ablate.sweep.progress.look_seconds`); each misses what the other sees."""
         elapsed = time.monotonic() - self.started
         needed = look_estimate(elapsed, [self.cost(r) for r in self.trained], [self.cost(r) for r in rows])
+        needed = max(needed, timed or 0.0)
         spent = elapsed + self.earlier
         if self.plan.budget_min and spent + needed > self.plan.budget_min * 60:
             before = f", {self.earlier / 60:.1f} of them in earlier sweeps" if self.earlier else ""
@@ -175,17 +178,19 @@ class RacingSweeperImpl:
 
     def _race(self, plan: RacePlan, combos: list[list[str]], swept: set[str], sdir: Path) -> list[list[JobReturn]]:
         """Launch look after look until every comparison is decided, the looks run out or the budget stops it."""
-        race_ = self._start_race(plan, combos, swept)
+        assert self.config is not None
+        race_, workers = self._start_race(plan, combos, swept), progress.workers(self.config)
         self._tune(race_)
         while not race_.state.over:
             look, n, batch, rows = race_.next_look()
-            if race_.over_budget(look, rows):
+            experts = self._look_experts(batch) if look > 1 else 0  # the first look's are in the sweep's plan
+            if race_.over_budget(look, rows, self._look_seconds(sdir, len(batch), experts, workers)):
                 break
             racing = ", ".join(race_.state.racing)
             log.info("Look %d of %d: %d job(s), seeds up to %d for %s", look, len(plan.looks), len(batch), n, racing)
             progress.replan(sdir, race_.launched + len(batch))
-            if look > 1:  # the first look's experts are in the sweep's plan
-                self._plan_experts(sdir, batch)
+            if experts:
+                progress.experts_planned(sdir, experts)
             race_.returns.append(self._launch(batch, race_.launched))
             race_.launched += len(batch)
             race_.trained += [
@@ -201,16 +206,25 @@ class RacingSweeperImpl:
         self._tag_parent(tags)
         return race_.returns
 
-    def _plan_experts(self, sdir: Path, batch: list[list[str]]) -> None:
-        """Count the experts a later look's jobs will train first (new seeds: :mod:`ablate.sweep.progress`)."""
+    @staticmethod
+    def _look_seconds(sdir: Path, jobs: int, experts: int, workers: int) -> float | None:
+        try:
+            return progress.look_seconds(sdir, jobs, experts, workers)
+        except Exception as err:  # an estimate: never the reason a sweep fails
+            log.warning("Could not time the look from the sweep's progress: %s", err)
+            return None
+
+    def _look_experts(self, batch: list[list[str]]) -> int:
+        """The experts a later look's jobs will train first (its new seeds'), for the look's estimate and the
+        sweep's ETA (:mod:`ablate.sweep.progress`); 0 where they cannot be counted."""
         assert self.config is not None
         try:
             from ablate.sweep.plan import items  # torch: the experts' configs and hashes
 
-            plan = items(self.config, jobs=batch)
-            progress.experts_planned(sdir, sum(i.kind == "expert" and not i.done for i in plan))
-        except Exception as err:  # the ETA is a convenience: never the reason a look does not start
+            return sum(i.kind == "expert" and not i.done for i in items(self.config, jobs=batch))
+        except Exception as err:  # an estimate: never the reason a look does not start
             log.warning("Could not count the experts of the look: %s", err)
+            return 0
 
     def _tune(self, race_: Race) -> None:
         """The tuning phase where the table has one (``table.tune``, :mod:`ablate.sweep.tuning`): the experts' trials
