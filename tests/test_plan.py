@@ -11,7 +11,17 @@ from omegaconf import DictConfig, OmegaConf
 from ablate.jobs.spec import best_checkpoint
 from ablate.jobs.steptime import StepTimes
 from ablate.store import config_hash
-from ablate.sweep.plan import estimate, expert_seconds, items, lines, seconds, trains_alone, wall_seconds
+from ablate.sweep.plan import (
+    Item,
+    estimate,
+    expert_seconds,
+    items,
+    lines,
+    row_jobs,
+    seconds,
+    trains_alone,
+    wall_seconds,
+)
 from ablate.sweep.progress import job_overrides
 from tests.test_progress import sweep_config
 
@@ -213,3 +223,17 @@ def test_a_tuning_phases_launches_wait_for_each_other_in_the_wall_time(
     assert wall_seconds(plan, 2) == pytest.approx(90.0)
     assert wall_seconds(plan, 3) == pytest.approx(10 + 10 + 30)
     assert wall_seconds(plan[6:], 2) == pytest.approx(50.0)  # the race alone: one launch
+
+
+def test_the_plan_gives_each_rows_jobs_and_their_estimate_for_the_eta():
+    cfg = OmegaConf.create({})
+    plan = [
+        Item("expert rgb seed 0", "expert rgb", cfg, seconds=900.0),
+        Item("smoe_rgb seed 0", "a", cfg, done=True, seconds=0.0, kind="job", row="smoe_rgb"),  # in the store
+        Item("smoe_rgb seed 1", "a", cfg, seconds=20.0, kind="job", row="smoe_rgb"),
+        Item("smoe_fpn seed 0", "b", cfg, seconds=200.0, kind="job", row="smoe_fpn"),
+        Item("smoe_fpn seed 1", "b", cfg, seconds=280.0, kind="job", row="smoe_fpn"),
+        Item("smoe_fpn trial 0", "c", cfg, seconds=100.0, kind="trial", row="smoe_fpn"),  # a tuning trial: not raced
+    ]
+    # a done job counts among its row's jobs (its record ends it), not in the row's estimate
+    assert row_jobs(plan) == {"smoe_rgb": [2, 20.0], "smoe_fpn": [2, 240.0]}

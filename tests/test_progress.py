@@ -152,6 +152,27 @@ def test_the_experts_a_look_trains_first_are_timed_apart_from_its_jobs():
     assert "(2 expert(s) to train at 8.3 min as planned, 5.0 min per trained job, 2 at a time)" in line
 
 
+def test_raced_jobs_to_go_are_timed_at_their_own_rows_not_at_the_first_rows_to_end(tmp_path):
+    """SMoE Table 1's follow-up: its single-modal rows only test a trained expert (about 35 s a job), its fused rows
+    train for minutes. Its first jobs to end were the single-modal ones, and the ETA once took every job to go, and
+    every expert scaled from them, at about 35 s: 22 min where 105 were due."""
+    start(tmp_path, sweep_config("experiment=chinet_table2", "scale=smoke"))
+    estimated(tmp_path, {"job": 149.0}, {"smoe_rgb": [3, 21.0], "smoe_fpn": [3, 240.0]})
+    experts_planned(tmp_path, 2, 960.0)
+    (tmp_path / ".planned").write_text("6")
+    for _ in range(3):
+        line = finished(tmp_path, "FINISHED", 35.0, 2, "job", "smoe_rgb")
+    # scaled by 105 s against the rows' 63: the experts at 1600 s each, then the FPN's 3 jobs at 400 s: 2400 s
+    assert line.endswith(
+        "ETA 40.0 min (2 expert(s) to train at 26.7 min as planned, trained jobs at their rows' 6.7 min, 2 at a time)"
+    )
+    # an FPN job has trained an expert: the other at its 1000 s, beside the two jobs to go at the row's own 300 s
+    line = finished(tmp_path, "FINISHED", 1300.0, 2, "job", "smoe_fpn", None, [1000.0], 1000.0)
+    assert line.endswith(
+        "ETA 16.7 min (1 expert(s) to train at 16.7 min, trained jobs at their rows' 5.0 min, 2 at a time)"
+    )
+
+
 def test_each_look_adds_its_experts_and_each_job_records_its_stage_one(tmp_path):
     assert start(tmp_path, sweep_config("experiment=chinet_table2", "scale=smoke")) == 3
     experts_planned(tmp_path, 2, 480.0)  # the first look's, from the sweep's plan

@@ -234,7 +234,7 @@ class SweepCallback(Callback):
         log.info("MLflow parent run %s in experiment '%s' (%s)", run_id, config.table.name, tracker.uri)
         planned = progress.start(sdir, config)
         try:
-            from ablate.sweep.plan import expert_seconds, kind_seconds, log_plan  # torch and Lightning: step timing
+            from ablate.sweep.plan import expert_seconds, kind_seconds, log_plan, row_jobs  # torch, Lightning
             from ablate.tables.tuning import trial_objectives
 
             # a resumed tuning phase: its stage-2 trials and raced jobs as the sweeper will launch them
@@ -245,7 +245,7 @@ class SweepCallback(Callback):
                 lambda cfg: tracker.finished_run(exp, config_hash(cfg)) is not None,
                 objectives,
             )
-            progress.estimated(sdir, kind_seconds(plan))
+            progress.estimated(sdir, kind_seconds(plan), row_jobs(plan))
             progress.experts_planned(sdir, *expert_seconds(plan))
         except Exception as err:  # the plan is a convenience: never the reason a sweep does not start
             log.warning("Could not plan the sweep: %s", err)

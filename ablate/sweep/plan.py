@@ -59,6 +59,7 @@ class Item:
     seconds: float | None = None
     how: str = ""
     kind: str = "expert"  # a job's kind (ablate.sweep.progress.job_kind); an expert trains within a job
+    row: str = ""  # a job's row
 
 
 def swept_keys(jobs: list[list[str]]) -> set[str]:
@@ -92,7 +93,7 @@ def items(
         key = " ".join(sorted(o for o in overrides if not o.lstrip("+~").startswith("seed=")))
         trial = cfg.get("trial")  # every trial trains at one seed: named by its number
         label = f"trial {trial}" if trial is not None else f"seed {cfg.seed}"
-        job = Item(f"{row} {label}", key or row, cfg, done=done(cfg), kind=job_kind(overrides))
+        job = Item(f"{row} {label}", key or row, cfg, done=done(cfg), kind=job_kind(overrides), row=row)
         from_trials = trial is not None and bool((cfg.table.get("tune") or {}).get("experts", True))
         for modality in needed(cfg) if cfg.get("experts") and not job.done else []:
             ecfg = expert_config(base or cfg, modality)  # the experts of every trial of a row: without its draws
@@ -187,6 +188,22 @@ def expert_seconds(plan: list[Item]) -> tuple[int, float | None]:
     experts = [i for i in plan if i.kind == "expert" and not i.done]
     timed = [float(i.seconds) for i in experts if i.seconds is not None]
     return len(experts), (sum(timed) / len(timed) if timed else None)
+
+
+def row_jobs(plan: list[Item]) -> dict[str, list[float]]:
+    """Each row's raced jobs in the plan, done ones included, and the mean estimated seconds of those to run (0
+    where none is): ``{row: [jobs, seconds]}``, for the progress lines' ETA (:mod:`ablate.sweep.progress`), whose
+    rows can differ twentyfold (a single-modal row that only tests its expert against a fused row that trains)."""
+    rows: dict[str, list[float]] = {}
+    timed: dict[str, list[float]] = {}
+    for item in plan:
+        if item.kind == "job" and item.row:
+            rows.setdefault(item.row, [0, 0.0])[0] += 1
+            if not item.done and item.seconds is not None:
+                timed.setdefault(item.row, []).append(float(item.seconds))
+    for row, seconds in timed.items():
+        rows[row][1] = sum(seconds) / len(seconds)
+    return rows
 
 
 def kind_seconds(plan: list[Item]) -> dict[str, float]:

@@ -151,9 +151,13 @@ def experts_planned(sweep_dir: Path, count: int, seconds: float | None = None) -
     path.write_text(json.dumps(known))
 
 
-def estimated(sweep_dir: Path, seconds: Mapping[str, float]) -> None:
-    """Record the plan's estimated seconds per job of each kind (:mod:`ablate.sweep.plan`)."""
-    (sweep_dir / ESTIMATES_FILE).write_text(json.dumps({k: round(s, 3) for k, s in seconds.items()}))
+def estimated(sweep_dir: Path, seconds: Mapping[str, float], rows: Mapping[str, Sequence[float]] | None = None) -> None:
+    """Record the plan's estimated seconds per job of each kind, and its raced jobs of each row with their estimated
+    seconds (``{row: [jobs, seconds]}``, :func:`ablate.sweep.plan.row_jobs`)."""
+    known: dict = {k: round(s, 3) for k, s in seconds.items()}
+    if rows:
+        known["rows"] = {row: [int(n), round(float(sec), 3)] for row, (n, sec) in rows.items()}
+    (sweep_dir / ESTIMATES_FILE).write_text(json.dumps(known))
 
 
 def finished(
@@ -183,7 +187,8 @@ def finished(
     planned = int(planned_file.read_text()) if planned_file.exists() else len(records)
     kinds, estimates = _read(sweep_dir / KINDS_FILE), _read(sweep_dir / ESTIMATES_FILE)
     launches, experts_file = _read(sweep_dir / LAUNCHES_FILE), _read(sweep_dir / EXPERTS_FILE)
-    return summary(records, planned, parallel, kinds, estimates, launches, experts_file)
+    rows = estimates.pop("rows", {})
+    return summary(records, planned, parallel, kinds, estimates, launches, experts_file, rows)
 
 
 def _read(path: Path) -> dict:
@@ -198,34 +203,42 @@ def summary(
     estimates: Mapping[str, float] | None = None,
     launches: Mapping[str, list[str]] | None = None,
     experts: Mapping[str, float] | None = None,
+    rows: Mapping[str, Sequence[float]] | None = None,
 ) -> str:
     """The progress line for the finished jobs' ``records`` of ``planned``, ``parallel`` jobs at a time (``kinds``:
     the planned count of each kind but ``job``; ``estimates``: the plan's seconds per job of each kind; ``launches``:
     the rows of each tuned kind's launches; ``experts``: the experts the jobs will train, ``planned``, and the plan's
-    ``seconds`` of one). The ETA takes each kind's trained jobs' mean duration less their stage 1 for its jobs to go
-    (a skipped job costs nothing, but which of the rest will be skipped is not known; a kind without a trained job:
-    see the module), scheduled on the workers in launch order, a tuning trial at its row's mean, the experts to go
-    before the raced jobs (:func:`_wall`)."""
+    ``seconds`` of one; ``rows``: the plan's raced jobs of each row and their estimated seconds). The ETA takes each
+    kind's trained jobs' mean duration less their stage 1 for its jobs to go (a skipped job costs nothing, but which
+    of the rest will be skipped is not known; a kind without a trained job: see the module), scheduled on the
+    workers in launch order, a tuning trial at its row's mean, a raced job at its row's where the plan names its
+    rows (:func:`_raced`), the experts to go before the raced jobs (:func:`_wall`)."""
     done = len(records)
     skipped = sum(r["status"] == "SKIPPED" for r in records)
     failed = sum(r["status"] == "FAILED" for r in records)
     notes = ", ".join(f"{n} {word}" for n, word in ((skipped, "skipped"), (failed, "failed")) if n)
     line = f"Sweep progress: {done}/{planned} jobs finished" + (f" ({notes})" if notes else "")
     left = max(planned - done, 0)
-    per = _per_job(records, estimates or {})
+    per = _per_job(records, estimates or {}, rows or {})
     if not left:
         return line
     to_go = _left(records, planned, kinds or {})
     if not all(kind in per for kind in to_go):
         return line + f", {left} to go"
-    expert = _expert(records, experts or {}, estimates or {}) if to_go.get("job") else None
+    expert = _expert(records, experts or {}, estimates or {}, rows or {}) if to_go.get("job") else None
+    raced = _raced(records, to_go.get("job", 0), per, estimates or {}, rows or {}) if "job" in per else []
     said = ", ".join(f"{_minutes(per[k][0])} per {KINDS[k]}{per[k][1]}" for k in KINDS if to_go.get(k) and k != "job")
     if expert is not None:
         said += (", " if said else "") + f"{expert[0]} expert(s) to train at {_minutes(expert[1])}{expert[2]}"
-    if to_go.get("job"):
+    if to_go.get("job") and rows:
+        low, high = _minutes(min(raced)), _minutes(max(raced))
+        said += (
+            (", " if said else "") + f"{KINDS['job']}s at their rows' {low}" + (f" to {high}" if high != low else "")
+        )
+    elif to_go.get("job"):
         said += (", " if said else "") + f"{_minutes(per['job'][0])} per {KINDS['job']}{per['job'][1]}"
     workers = max(parallel, 1)
-    wall = _wall(records, to_go, per, kinds or {}, launches or {}, workers, expert)
+    wall = _wall(records, to_go, per, kinds or {}, launches or {}, workers, expert, raced)
     return line + f", {left} to go, ETA {_minutes(wall)} ({said}, {workers} at a time)"
 
 
@@ -237,12 +250,14 @@ def _wall(
     launches: Mapping[str, list[str]],
     workers: int,
     expert: tuple[int, float, str] | None = None,
+    raced: Sequence[float] = (),
 ) -> float:
     """The wall time of the jobs to go, kind after kind in launch order. A tuned kind whose launches are known
     (``launches``: its rows; ``kinds``: its planned count, the rows times the trials) runs trial k of its rows to go
     as one launch after another, each trial at its row's trained trials' mean (else its kind's); where the records
     do not account for its jobs to go (a progress file without rows), its jobs are packed as the raced jobs are; the
-    ``expert`` s to go (their count and seconds each) go before the raced jobs."""
+    ``expert`` s to go (their count and seconds each) go before the raced jobs, each of those at its ``raced``
+    seconds where given."""
     total = 0.0
     for kind in KINDS:
         rows, n = launches.get(kind) or [], to_go.get(kind, 0)
@@ -253,7 +268,8 @@ def _wall(
         rounds = [[row for row in rows if (k, row) not in ended] for k in range(trials)]
         if kind == "job" or sum(map(len, rounds)) != n:
             first = [expert[1]] * expert[0] if kind == "job" and expert is not None else []
-            total += schedule([*first, *[per[kind][0]] * n], workers)
+            jobs = list(raced) if kind == "job" and len(raced) == n else [per[kind][0]] * n
+            total += schedule([*first, *jobs], workers)
             continue
         mean = _per_row(records, kind)
         total += sum(schedule([mean.get(row, per[kind][0]) for row in left], workers) for left in rounds)
@@ -276,7 +292,29 @@ def _left(records: list[dict], planned: int, kinds: Mapping[str, int]) -> dict[s
     return {kind: n - ended[kind] for kind, n in counts.items() if n - ended[kind] > 0}
 
 
-def _per_job(records: list[dict], estimates: Mapping[str, float]) -> dict[str, tuple[float, str]]:
+def _raced(
+    records: list[dict],
+    n: int,
+    per: Mapping[str, tuple[float, str]],
+    estimates: Mapping[str, float],
+    rows: Mapping[str, Sequence[float]],
+) -> list[float]:
+    """The seconds of each of the ``n`` raced jobs to go: per row of the plan (``rows``), its jobs not yet ended, each
+    at the row's trained jobs' mean less their stage 1, else at its estimate scaled as :func:`_per_job` scales a
+    kind's; the jobs the plan did not name (a race's later looks) at the raced jobs' mean."""
+    ended = Counter(r.get("row", "") for r in records if r.get("kind", "job") == "job")
+    own, scale = _per_row(records, "job"), _scale(records, estimates, rows)
+    seconds = [
+        own.get(row, float(estimate) * (1.0 if scale is None else scale))
+        for row, (jobs, estimate) in rows.items()
+        for _ in range(max(int(jobs) - ended[row], 0))
+    ][:n]
+    return seconds + [per["job"][0]] * (n - len(seconds))
+
+
+def _per_job(
+    records: list[dict], estimates: Mapping[str, float], rows: Mapping[str, Sequence[float]] | None = None
+) -> dict[str, tuple[float, str]]:
     """Each kind's seconds per job and how they were had: its trained jobs' mean (""), else its estimate scaled by
     the trained jobs' durations over their kinds' estimates (" as planned"), else every trained job's mean."""
     seconds: dict[str, list[float]] = {}
@@ -286,7 +324,7 @@ def _per_job(records: list[dict], estimates: Mapping[str, float]) -> dict[str, t
     if not seconds:
         return {}
     per = {kind: (sum(s) / len(s), "") for kind, s in seconds.items()}
-    scale = _scale(records, estimates) or 0.0
+    scale = _scale(records, estimates, rows) or 0.0
     everything = [s for values in seconds.values() for s in values]
     for kind in KINDS:
         if kind not in per:
@@ -295,11 +333,19 @@ def _per_job(records: list[dict], estimates: Mapping[str, float]) -> dict[str, t
     return per
 
 
-def _scale(records: list[dict], estimates: Mapping[str, float]) -> float | None:
-    """How the trained jobs of kinds the plan estimated came out against their estimates: their seconds (less their
-    stage 1) over the estimates' (None: no such job yet)."""
-    timed = [r for r in records if r["status"] != "SKIPPED" and estimates.get(r.get("kind", "job"))]
-    return sum(_own(r) for r in timed) / sum(estimates[r.get("kind", "job")] for r in timed) if timed else None
+def _scale(
+    records: list[dict], estimates: Mapping[str, float], rows: Mapping[str, Sequence[float]] | None = None
+) -> float | None:
+    """How the trained jobs the plan estimated came out against their estimates: their seconds (less their stage 1)
+    over the estimates' (None: no such job yet), a raced job's estimate its row's where the plan gives ``rows``, else
+    its kind's."""
+
+    def estimate(r: Mapping) -> float:
+        row = (rows or {}).get(r.get("row", "")) if r.get("kind", "job") == "job" else None
+        return float(row[1]) if row and row[1] else float(estimates.get(r.get("kind", "job"), 0.0))
+
+    timed = [r for r in records if r["status"] != "SKIPPED" and estimate(r) > 0]
+    return sum(_own(r) for r in timed) / sum(estimate(r) for r in timed) if timed else None
 
 
 def _own(record: Mapping) -> float:
@@ -308,7 +354,10 @@ def _own(record: Mapping) -> float:
 
 
 def _expert(
-    records: list[dict], experts: Mapping[str, float], estimates: Mapping[str, float]
+    records: list[dict],
+    experts: Mapping[str, float],
+    estimates: Mapping[str, float],
+    rows: Mapping[str, Sequence[float]] | None = None,
 ) -> tuple[int, float, str] | None:
     """The experts to go (planned less trained), their seconds each and how they were had: the trained experts'
     mean (""), else the plan's estimate scaled as :func:`_per_job` scales a kind's (" as planned"); None where none
@@ -319,7 +368,7 @@ def _expert(
         return None
     if trained:
         return left, sum(trained) / len(trained), ""
-    scale = _scale(records, estimates)
+    scale = _scale(records, estimates, rows)
     guess = (1.0 if scale is None else scale) * float(experts.get("seconds", 0.0))
     return (left, guess, " as planned") if guess > 0 else None
 
@@ -334,12 +383,13 @@ def look_seconds(sweep_dir: Path, jobs: int, experts: int, parallel: int) -> flo
     path = sweep_dir / PROGRESS_FILE
     records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
     estimates = _read(sweep_dir / ESTIMATES_FILE)
+    rows = estimates.pop("rows", {})
     per = _per_job([r for r in records if r.get("kind", "job") == "job"], {})
     if "job" not in per:
         return None
     trained = sum(len(r.get("experts", ())) for r in records)
     known = _read(sweep_dir / EXPERTS_FILE)
-    expert = _expert(records, {"planned": trained + experts, "seconds": known.get("seconds", 0.0)}, estimates)
+    expert = _expert(records, {"planned": trained + experts, "seconds": known.get("seconds", 0.0)}, estimates, rows)
     first = [expert[1]] * expert[0] if expert is not None else []
     return schedule([*first, *[per["job"][0]] * jobs], parallel)
 
