@@ -298,9 +298,10 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     # the progress counts the whole sweep from its first job: 4 experts' trials, 2 of stage 2, 2 raced jobs
     done = re.findall(r"Sweep progress: (\d+)/(\d+) jobs finished", out.stdout + out.stderr)
     assert done == [(str(k), "8") for k in range(1, 9)], done
-    # each kind of job to go timed apart: experts' trials, stage 2's trials, raced jobs
+    # each kind of job to go timed apart: experts' trials, stage 2's trials, raced jobs (each at its row's time)
     per = [
         re.findall(r"per ([a-z ]+?)(?: as planned)?[,)]", line)
+        + [kind.strip() for kind in re.findall(r"([a-z ]+?)s at their rows'", line)]
         for line in re.findall(r"Sweep progress: .*", out.stdout + out.stderr)
     ]
     assert per[0] == ["expert trial", "tuning trial", "trained job"], per
