@@ -182,13 +182,23 @@ def finished(
     with file_lock(sweep_dir / ".progress.lock"):
         with open(path, "a") as handle:
             handle.write(json.dumps(record) + "\n")
-        records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        records = _records(path)
     planned_file = sweep_dir / PLANNED_FILE
     planned = int(planned_file.read_text()) if planned_file.exists() else len(records)
-    kinds, estimates = _read(sweep_dir / KINDS_FILE), _read(sweep_dir / ESTIMATES_FILE)
+    kinds, (estimates, rows) = _read(sweep_dir / KINDS_FILE), _estimates(sweep_dir)
     launches, experts_file = _read(sweep_dir / LAUNCHES_FILE), _read(sweep_dir / EXPERTS_FILE)
-    rows = estimates.pop("rows", {})
     return summary(records, planned, parallel, kinds, estimates, launches, experts_file, rows)
+
+
+def _records(path: Path) -> list[dict]:
+    """The finished jobs' records of a progress file (none where it is missing)."""
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
+
+
+def _estimates(sweep_dir: Path) -> tuple[dict, dict]:
+    """The plan's estimates of each kind, and of each row's raced jobs (:func:`estimated`)."""
+    estimates = _read(sweep_dir / ESTIMATES_FILE)
+    return estimates, estimates.pop("rows", {})
 
 
 def _read(path: Path) -> dict:
@@ -380,10 +390,7 @@ def look_seconds(sweep_dir: Path, jobs: int, experts: int, parallel: int) -> flo
     the jobs, each at the trained jobs' mean less their stage 1. None where no job of the sweep has trained yet. The
     racing sweeper weighs a look's cost with it, beside its rows' costs (``hydra_plugins/ablate_racing_sweeper``):
     a look that races fewer rows than the first trains as many experts per seed."""
-    path = sweep_dir / PROGRESS_FILE
-    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
-    estimates = _read(sweep_dir / ESTIMATES_FILE)
-    rows = estimates.pop("rows", {})
+    records, (estimates, rows) = _records(sweep_dir / PROGRESS_FILE), _estimates(sweep_dir)
     per = _per_job([r for r in records if r.get("kind", "job") == "job"], {})
     if "job" not in per:
         return None
