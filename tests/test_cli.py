@@ -1,6 +1,7 @@
 """`python -m ablate` end to end at scale=smoke, as a user runs it: sweeps, tables, skip, failure and resume."""
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -120,6 +121,8 @@ def test_a_row_shared_with_another_table_is_reused_not_retrained(table2):
     out = ablate(cwd, "-m", "experiment=chinet_table3", SERIAL, *TINY)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "Reusing chinet (seed 0)" in out.stdout
+    plan = re.search(r"Sweep plan: (\d+) job\(s\)[^\n]*", out.stdout + out.stderr)
+    assert plan and "; 1 done already (skipped)" in plan[0], plan  # the plan counts the copy: it trains nothing
     _, jobs = runs(cwd, "chinet_table3")
     reused = [r for r in jobs if "reused_from" in r.data.tags]
     assert [r.data.tags["row"] for r in reused] == ["chinet"] and reused[0].data.metrics["det_rate"] >= 0

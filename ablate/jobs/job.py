@@ -189,6 +189,14 @@ def tuned_values(cfg: DictConfig) -> str:
     return json.dumps(values, sort_keys=True, default=str)
 
 
+def done_in_store(tracker: Tracker, exp: str, chash: str, kind: str) -> bool:
+    """Whether :func:`already_done` will skip a job of this config hash and kind: a FINISHED run of it in this
+    table, or, for a raced or swept job, in another table (copied by :func:`reuse`). The sweep's plan counts it so."""
+    if tracker.finished_run(exp, chash) is not None:
+        return True
+    return kind == KIND_JOB and tracker.finished_elsewhere(chash) is not None
+
+
 def already_done(spec: JobSpec, tracker: Tracker, exp: str) -> Outcome | None:
     """SKIPPED where the store holds a FINISHED run of this config (in this table, or copied from another), else
     None (``force=true``: always None)."""

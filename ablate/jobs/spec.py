@@ -53,6 +53,11 @@ def best_checkpoint(table: str, chash: str) -> Path:
     return checkpoint_dir(table, chash) / "best.ckpt"
 
 
+def job_kind(cfg: DictConfig) -> str:
+    """The run kind of job config ``cfg``: a tuning trial where it has a ``trial`` (``table.tune``), else a job."""
+    return KIND_TRIAL if cfg.get("trial") is not None else KIND_JOB
+
+
 def resolved_config(cfg: DictConfig) -> tuple[DictConfig, str, DictConfig | None]:
     """A job's config as it runs and as its config hash holds it: a copy of ``cfg`` with its numerics resolved for
     this machine (:func:`ablate.hardware.resolve`) and a tuning trial's draws applied (:func:`apply_draws`); the
@@ -86,7 +91,7 @@ class JobSpec:
     def of(cls, cfg: DictConfig, context: SweepContext, kind: str | None = None, row: str | None = None) -> JobSpec:
         """The spec of job config ``cfg`` in ``context``; ``row`` names it where the caller knows better than the
         overrides (an expert)."""
-        kind = kind or (KIND_TRIAL if cfg.get("trial") is not None else KIND_JOB)  # a tuning trial (table.tune)
+        kind = kind or job_kind(cfg)
         resolved, numerics, base = resolved_config(cfg)
         name = row or row_name(context.overrides, context.swept, context.row_choice)
         chash = config_hash(resolved)

@@ -234,6 +234,8 @@ class SweepCallback(Callback):
         log.info("MLflow parent run %s in experiment '%s' (%s)", run_id, config.table.name, tracker.uri)
         planned = progress.start(sdir, config)
         try:
+            from ablate.jobs.job import done_in_store
+            from ablate.jobs.spec import job_kind
             from ablate.sweep.plan import expert_seconds, kind_seconds, log_plan, row_jobs  # torch, Lightning
             from ablate.tables.tuning import trial_objectives
 
@@ -242,7 +244,7 @@ class SweepCallback(Callback):
             plan = log_plan(
                 config,
                 progress.workers(config),
-                lambda cfg: tracker.finished_run(exp, config_hash(cfg)) is not None,
+                lambda cfg: done_in_store(tracker, exp, config_hash(cfg), job_kind(cfg)),
                 objectives,
             )
             progress.estimated(sdir, kind_seconds(plan), row_jobs(plan))

@@ -5,7 +5,8 @@ Each job's config is composed from its overrides, as the sweep will launch it (t
 the look's seeds). An expert is planned once per config hash, as :func:`ablate.jobs.experts.ensure_expert` trains
 it; one whose best checkpoint exists is not trained again, nor is one of a tuning phase's stage 2 (its trials copy
 their experts from the experts' chosen trials, :func:`ablate.jobs.job.reuse`), and a job whose config has a FINISHED
-run in the store is skipped (``done``, by the hash its job will have: a trial's draws applied,
+run in the store, in its table or (a raced or swept job) in another that it copies, is skipped (``done``,
+:func:`ablate.jobs.job.done_in_store`, by the hash its job will have: a trial's draws applied,
 :func:`ablate.jobs.spec.resolved_config`). A resumed tuning phase's stage-2 trials and raced jobs are composed on what
 it chose from the trials in the store (:func:`ablate.sweep.tuning.choices`), so that they are found done too. Every
 other job and expert is estimated from the recipe's steps (epochs x training batches, or ``trainer.max_steps``) at a
