@@ -189,12 +189,21 @@ def tuned_values(cfg: DictConfig) -> str:
     return json.dumps(values, sort_keys=True, default=str)
 
 
+def copy_source(tracker: Tracker, chash: str, kind: str) -> Run | None:
+    """The FINISHED run of another table that a job of this config hash and kind copies (:func:`reuse`), or None:
+    for a raced or swept job the same row of another table, for an expert the tuning trial that trained it (stage 2
+    of a tuning phase); a tuning trial copies nothing."""
+    if kind == KIND_JOB:
+        return tracker.finished_elsewhere(chash)
+    if kind == KIND_EXPERT:
+        return tracker.finished_elsewhere(chash, KIND_TRIAL, "expert_hash")
+    return None
+
+
 def done_in_store(tracker: Tracker, exp: str, chash: str, kind: str) -> bool:
     """Whether :func:`already_done` will skip a job of this config hash and kind: a FINISHED run of it in this
-    table, or, for a raced or swept job, in another table (copied by :func:`reuse`). The sweep's plan counts it so."""
-    if tracker.finished_run(exp, chash) is not None:
-        return True
-    return kind == KIND_JOB and tracker.finished_elsewhere(chash) is not None
+    table, or one it copies from another (:func:`copy_source`). The sweep's plan counts it so."""
+    return tracker.finished_run(exp, chash) is not None or copy_source(tracker, chash, kind) is not None
 
 
 def already_done(spec: JobSpec, tracker: Tracker, exp: str) -> Outcome | None:
@@ -212,12 +221,7 @@ def already_done(spec: JobSpec, tracker: Tracker, exp: str) -> Outcome | None:
             spec.config_hash,
         )
         return Outcome("SKIPPED", done.info.run_id, spec.ckpt_dir)
-    if spec.kind == KIND_JOB:  # the same row of another table
-        source = tracker.finished_elsewhere(spec.config_hash)
-    elif spec.kind == KIND_EXPERT:  # the expert's tuning trial that trained it (stage 2 of a tuning phase)
-        source = tracker.finished_elsewhere(spec.config_hash, KIND_TRIAL, "expert_hash")
-    else:
-        source = None
+    source = copy_source(tracker, spec.config_hash, spec.kind)
     return reuse(spec, tracker, exp, source) if source is not None else None
 
 
