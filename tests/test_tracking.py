@@ -124,7 +124,7 @@ def test_the_table_view_is_an_mlflow_shared_view_with_the_metric_columns(tmp_pat
     assert runs_link("http://10.0.0.2:5001/", "7").startswith("http://10.0.0.2:5001/#/experiments/7/runs?")
 
 
-def test_a_run_is_dirty_for_changed_code_not_for_the_tables_a_sweep_wrote(tmp_path, monkeypatch):
+def test_a_run_is_dirty_for_changed_code_not_for_what_a_published_sweep_wrote(tmp_path, monkeypatch):
     import subprocess
 
     def git(*args):
@@ -133,6 +133,7 @@ def test_a_run_is_dirty_for_changed_code_not_for_the_tables_a_sweep_wrote(tmp_pa
     (tmp_path / "results").mkdir()
     (tmp_path / "results" / "t.md").write_text("old table")
     (tmp_path / "model.py").write_text("x = 1")
+    (tmp_path / "README.md").write_text("| old summary line |")
     git("init", "-q")
     git("add", ".")
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "c")
@@ -140,6 +141,7 @@ def test_a_run_is_dirty_for_changed_code_not_for_the_tables_a_sweep_wrote(tmp_pa
     clean = git_commit()
     assert len(clean) == 40
     (tmp_path / "results" / "t.md").write_text("regenerated table")
+    (tmp_path / "README.md").write_text("| new summary line |")
     assert git_commit() == clean
     (tmp_path / "model.py").write_text("x = 2")
     assert git_commit() == clean + "-dirty"

@@ -128,15 +128,16 @@ def flatten(data: Any, prefix: str = "") -> dict[str, str]:
 
 def git_commit(where: str | Path | None = None) -> str:
     """The git commit of the checkout at ``where`` (default: the current directory), with ``-dirty`` when tracked
-    files have changes, or ``unknown`` outside a checkout. ``results/`` does not count: the tables a sweep writes
-    there are outputs, and would otherwise mark every run of the next sweep dirty."""
+    files have changes, or ``unknown`` outside a checkout. ``results/`` and the top-level ``README.md`` do not
+    count: a published sweep writes its tables into the one and their summary lines into the other
+    (:mod:`ablate.tables.index`), outputs that would otherwise mark every run of the next sweep dirty."""
     cwd = None if where is None else str(where)
     try:
         sha = subprocess.run(
             ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True, cwd=cwd
         ).stdout.strip()
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":!results"],
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":!results", ":!README.md"],
             capture_output=True,
             text=True,
             check=True,
