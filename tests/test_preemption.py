@@ -1,5 +1,5 @@
 """Real signals on smoke jobs: SIGTERM (SLURM's preemption) to a job saves its checkpoint, marks its run KILLED
-with the reason and exits 143, and the rerun resumes losing less than an epoch; SIGTERM to a joblib sweep's parent
+with the reason and exits 143, and the rerun resumes losing less than an epoch, and tests as the uninterrupted job does; SIGTERM to a joblib sweep's parent
 takes its workers with it, each job checkpointed and KILLED; ``python -m ablate.report`` during a sweep leaves the
 RUNNING runs out and counts them in the footer."""
 
@@ -68,6 +68,14 @@ def test_sigterm_checkpoints_a_job_marks_it_killed_and_the_rerun_loses_less_than
     )
     assert 0 <= lost < 1
     assert min(steps(client, rerun.info.run_id)) == resumed and total == RESUMED_EPOCHS * per_epoch
+    # the resumed job trained on what the uninterrupted one trains on: the same test metrics, to every digit
+    whole = tmp_path / "uninterrupted"
+    whole.mkdir()
+    seed_data(whole)
+    assert ablate(whole, *job).returncode == 0
+    _, (reference,) = runs(whole, "chinet_table2")
+    tested = ("loss", "det_rate", "iou_free_space", "val/loss")  # the test's loss and scores, the last validation
+    assert {k: reference.data.metrics[k] for k in tested} == {k: rerun.data.metrics[k] for k in tested}
 
 
 def children(pid: int) -> list[int]:

@@ -67,6 +67,7 @@ from tqdm import tqdm
 from ablate.data import DEFAULT_SYNTH, GENERATOR_VERSION, DataError, kitti
 from ablate.data.dataset import LIDAR_DERIVED, MODALITIES, KittiDataset
 from ablate.data.generate import generate, split_frames
+from ablate.data.order import ResumableLoader, trained_batches
 
 LIST_KEYS = ("frame", "condition", "lidar_condition", "instances", "boxes2d")
 #: What ``data.on_bad_frame`` takes: a bad frame is one DataError (``error``) or is left out and logged (``skip``).
@@ -287,16 +288,24 @@ class KittiDataModule(L.LightningDataModule):
             )
         gen = torch.Generator().manual_seed(self.order_seed if shuffle else self.seed)
         # pinned (page-locked) host memory where a CUDA device will read the batches: faster, asynchronous copies
-        return DataLoader(
-            self.datasets[split],
-            self.batch_size,
-            shuffle=shuffle,
+        common = dict(
             num_workers=self.num_workers,
             collate_fn=collate,
-            generator=gen,
             persistent_workers=self.num_workers > 0,
             pin_memory=torch.cuda.is_available(),
         )
+        if shuffle and self._world_size() == 1:  # the same order as shuffle=True, resumable (ablate.data.order)
+            return ResumableLoader(self.datasets[split], self.batch_size, gen, self._trained_batches, **common)
+        # several processes: Lightning's DistributedSampler shuffles, by its seed and the epoch
+        return DataLoader(self.datasets[split], self.batch_size, shuffle=shuffle, generator=gen, **common)
+
+    def _world_size(self) -> int:
+        """The trainer's processes (1 without a trainer)."""
+        trainer = getattr(self, "trainer", None)
+        return int(getattr(trainer, "world_size", 1) or 1) if trainer is not None else 1
+
+    def _trained_batches(self) -> int | None:
+        return trained_batches(getattr(self, "trainer", None))
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train", True)

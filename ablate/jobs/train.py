@@ -30,6 +30,7 @@ from ablate import hardware
 from ablate.jobs.checkpoint import AtomicCheckpointIO, resume_point
 from ablate.jobs.experts import attach as attach_experts
 from ablate.jobs.experts import feature_cache
+from ablate.jobs.generators import GlobalGenerators
 from ablate.jobs.preempt import STOP, SaveOnStop, Stopped
 from ablate.jobs.progress_lines import ProgressLines, progress_bar
 from ablate.jobs.spec import JobSpec
@@ -67,7 +68,8 @@ def fit_and_test(
     on_stop = SaveOnStop(spec.ckpt_dir / "last.ckpt")
     logger = RunLogger(tracker, run_id, spec.outbox)
     rate = LearningRateMonitor(logging_interval="step")  # the learning rate per step, as a metric of the run
-    trainer = build_trainer(cfg, logger, [checkpoint, on_stop, DataCount(logger), rate], spec.ckpt_dir)
+    callbacks = [checkpoint, on_stop, DataCount(logger), rate, GlobalGenerators()]  # generators: exact resumes
+    trainer = build_trainer(cfg, logger, callbacks, spec.ckpt_dir)
     best = attach_experts(cfg, model, experts, tracker, run_id) if cfg.get("experts") else None
     prepare_model(cfg, model)
     if best is None:
