@@ -304,7 +304,7 @@ class KittiDataModule(L.LightningDataModule):
         trainer = getattr(self, "trainer", None)
         return int(getattr(trainer, "world_size", 1) or 1) if trainer is not None else 1
 
-    def _trained_batches(self) -> int | None:
+    def _trained_batches(self) -> tuple[int, float] | None:
         return trained_batches(getattr(self, "trainer", None))
 
     def train_dataloader(self) -> DataLoader:

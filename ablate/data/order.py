@@ -25,11 +25,13 @@ import torch
 from torch.utils.data import DataLoader, Sampler
 
 
-def trained_batches(trainer: Any) -> int | None:
+def trained_batches(trainer: Any) -> tuple[int, float] | None:
     """The batches of the current epoch ``trainer`` has trained on (its loops' ``processed`` count, which a
-    checkpoint written in ``on_train_batch_end`` already counts and ``completed`` does not yet); None without a
-    trainer."""
-    return None if trainer is None else int(trainer.fit_loop.epoch_loop.batch_progress.current.processed)
+    checkpoint written in ``on_train_batch_end`` already counts and ``completed`` does not yet) and the batches of
+    its epoch (``num_training_batches``, which ``limit_train_batches`` may cut); None without a trainer."""
+    if trainer is None:
+        return None
+    return int(trainer.fit_loop.epoch_loop.batch_progress.current.processed), float(trainer.num_training_batches)
 
 
 class FrameOrder(Sampler[int]):
@@ -54,15 +56,16 @@ class FrameOrder(Sampler[int]):
 class ResumableLoader(DataLoader):
     """The training split's loader: shuffled by :class:`FrameOrder`, and resumable (Lightning's ``_Stateful``).
 
-    ``progress`` (optional) gives the batches of the current epoch the trainer has trained on, or None where no
-    trainer runs; then the batches this loader has handed out count."""
+    ``progress`` (optional) gives the batches of the current epoch the trainer has trained on and the batches of
+    its epoch (:func:`trained_batches`), or None where no trainer runs; then the batches this loader has handed
+    out count, of its length."""
 
     def __init__(
         self,
         dataset: Any,
         batch_size: int,
         generator: torch.Generator,
-        progress: Callable[[], int | None] | None = None,
+        progress: Callable[[], tuple[int, float] | None] | None = None,
         **kwargs: Any,
     ) -> None:
         self.order = FrameOrder(len(dataset), generator)
@@ -79,16 +82,16 @@ class ResumableLoader(DataLoader):
             self.handed_out += 1
             yield batch
 
-    def trained(self) -> int:
-        """Batches of the current epoch trained: from ``progress`` where given, else those handed out."""
-        done = self.progress() if self.progress is not None else None
-        return self.handed_out if done is None else int(done)
+    def trained(self) -> tuple[int, float]:
+        """Batches of the current epoch trained, and of the whole epoch: from ``progress`` where it answers."""
+        answer = self.progress() if self.progress is not None else None
+        return answer if answer is not None else (self.handed_out, float(len(self)))
 
     def state_dict(self) -> dict[str, Any]:
         """The generator's state to go on from and the batches of its epoch to skip: at an epoch's end the
         generator as it is (the next epoch draws from there), in the middle of one its state as the epoch began."""
-        done = self.trained()
-        if done >= len(self) or self.epoch_state is None:
+        done, epoch = self.trained()
+        if done >= min(epoch, len(self)) or self.epoch_state is None:
             return {"generator": self.generator.get_state(), "skip_batches": 0}
         return {"generator": self.epoch_state.clone(), "skip_batches": done}
 

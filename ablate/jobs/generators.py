@@ -9,8 +9,9 @@ the training order is saved and restored beside them (:class:`~ablate.data.order
 From a checkpoint written at an epoch's end (``last.ckpt`` after each validation) a resumed job draws exactly
 what the uninterrupted job drew. From one written mid-epoch (a stop, :class:`~ablate.jobs.preempt.SaveOnStop`)
 the training step's draws (dropout) are exact too. Augmentation's are not: its draws for the batch the loader had
-fetched ahead were already taken when the checkpoint was written, and are taken again on resume. CUDA's generators
-are saved where a GPU trains.
+fetched ahead were already taken when the checkpoint was written, and are taken again on resume. Loader workers
+(``data.num_workers`` > 0) draw augmentation from generators of their own, seeded as they start, which a resumed
+job's workers start again: their draws are not restored. CUDA's generators are saved where a GPU trains.
 """
 
 from __future__ import annotations

@@ -65,7 +65,7 @@ class Copy(L.Callback):
             shutil.copy(trainer.checkpoint_callback.last_model_path, self.path)
 
 
-def fit(tmp_path, augment: bool, epochs: int, ckpt=None, copy: Copy | None = None):
+def fit(tmp_path, augment: bool, epochs: int, ckpt=None, copy: Copy | None = None, **options):
     L.seed_everything(0)
     seen: list = []
     net = Net(augment, seen)
@@ -76,6 +76,7 @@ def fit(tmp_path, augment: bool, epochs: int, ckpt=None, copy: Copy | None = Non
         enable_progress_bar=False,
         enable_model_summary=False,
         callbacks=[save, GlobalGenerators(), *([copy] if copy else [])],
+        **options,
     )
     trainer.fit(net, ckpt_path=ckpt)
     return seen, [p.detach().clone() for p in net.parameters()]
@@ -100,4 +101,11 @@ def test_a_job_stopped_mid_epoch_resumes_at_the_next_batch(tmp_path):
     seen, weights = fit(tmp_path, augment=False, epochs=3, copy=Copy((1, 1), None, tmp_path / "stop.ckpt"))
     resumed_seen, resumed = fit(tmp_path, augment=False, epochs=3, ckpt=tmp_path / "stop.ckpt")
     assert resumed_seen == seen[len(seen) - len(resumed_seen) :] and resumed_seen[0] == seen[6]  # epoch 1, batch 2
+    assert all(torch.equal(a, b) for a, b in zip(weights, resumed))
+
+
+def test_an_epoch_cut_short_by_limit_train_batches_resumes_at_the_next_epoch(tmp_path):
+    seen, weights = fit(tmp_path, True, 3, copy=Copy(None, 0, tmp_path / "epoch0.ckpt"), limit_train_batches=2)
+    resumed_seen, resumed = fit(tmp_path, True, 3, ckpt=tmp_path / "epoch0.ckpt", limit_train_batches=2)
+    assert resumed_seen == [s for s in seen if s[0] > 0] and len(resumed_seen) == 4
     assert all(torch.equal(a, b) for a, b in zip(weights, resumed))
