@@ -27,8 +27,9 @@ from hydra.errors import HydraException
 from omegaconf import DictConfig
 
 from ablate import cli
-from ablate.analysis.reproduce import reproduce
+from ablate.analysis.reproduce import reproduce, tuned_config
 from ablate.config import CONF, compose
+from ablate.jobs.spec import apply_draws
 from ablate.store import AccessDenied, ServerUnreachable, Tracker
 from ablate.tables import collect, render_records, table_spec, write_table
 from ablate.tables.index import write_index
@@ -107,13 +108,20 @@ def _load(names: list[str], rest: list[str]) -> int:
 
 
 def recorded_config(runs: pd.DataFrame, base: list[str]) -> Callable[[str], DictConfig]:
-    """The config of a recorded run, composed today from its table, row, seed and scale (records keep no config:
-    a row whose config changed since has another config hash, which the footer's fingerprint check then sees)."""
+    """The config of a recorded run, composed today from its table, row, seed and scale, on the config a tuning
+    phase chose for its row (the records' ``tuned_config``, applied as its job applied it): records keep no
+    config; a row whose config changed since has another config hash, which the footer's fingerprint check sees."""
     by_id = runs.set_index("run_id")
 
     def config(run_id: str) -> DictConfig:
         run = by_id.loc[run_id]
-        return compose(base + [f"row={run['row']}", f"seed={run['seed']}", f"scale={run['scale']}"])
+        overrides = base + [f"row={run['row']}", f"seed={run['seed']}", f"scale={run['scale']}"]
+        cfg = compose(overrides)
+        tuned = tuned_config(runs[runs["row"] == run["row"]], cfg)
+        if tuned:
+            cfg = compose(overrides + tuned)
+            apply_draws(cfg)
+        return cfg
 
     return config
 

@@ -93,6 +93,9 @@ def test_a_matching_fingerprint_flags_nothing_and_a_differing_one_names_its_comp
         "Runs made at commit 8edd5de63f9c (1 runs); the code they build changed since, and the "
         "fingerprints of all 1 rows still match."
     ]
+    mixed = pd.concat([runs(encode(fingerprint)), runs(encode(fingerprint), OLD + "-dirty")], ignore_index=True)
+    both = provenance(mixed, recompute=lambda cfg: fingerprint, config=lambda run_id: None)
+    assert both[0].endswith("the fingerprints of all 1 rows still match.") and both[1].startswith("**Mixed commits**")
     moved = {**fingerprint, "loss": [v * 2 for v in fingerprint["loss"]]}
     flagged = provenance(runs(encode(fingerprint)), recompute=lambda cfg: moved, config=lambda run_id: None)
     assert any("**Numbers may have moved** for row chinet" in line and "loss differs" in line for line in flagged)
@@ -101,3 +104,15 @@ def test_a_matching_fingerprint_flags_nothing_and_a_differing_one_names_its_comp
 def test_a_run_from_a_wheel_says_its_commit_is_unknown():
     lines = provenance(runs("", commit="unknown"))
     assert any("unknown commit (not a git checkout)" in line for line in lines)
+
+
+def test_a_tuned_rows_recorded_fingerprint_recomputes_equal_from_its_records():
+    # the report recomputes a recorded run's fingerprint on the config its row was tuned to (ChiNet Table II's U-Net:
+    # lr 0.00087 and a weight decay), not on the recipe's, which would flag every tuned row once its code changed
+    from ablate.report import recorded_config
+
+    runs = pd.read_csv(ROOT / "results" / "runs" / "chinet_table2.csv")
+    unet = runs[(runs["row"] == "unet") & (runs["seed"] == 0)].iloc[0]
+    cfg = recorded_config(runs, ["experiment=chinet_table2"])(unet["run_id"])
+    assert cfg.task.optimizer.lr == pytest.approx(0.0008727)
+    assert differs(decode(unet["fingerprint"]), compute(cfg)) is None

@@ -193,7 +193,7 @@ def provenance(
         tail = ""
     elif not changed:
         tail = "; no code they build has changed since"
-    elif checked and not any(line.startswith("**") for line in lines):
+    elif checked and not any(line.startswith("**") for line in lines[1 if len(counts) > 1 else 0 :]):
         tail = f"; the code they build changed since, and the fingerprints of all {checked} rows still match"
     else:
         tail = ""
