@@ -160,7 +160,8 @@ def provenance(
     counts = commit.value_counts().sort_index()
     named = ", ".join(f"{c[:12]}{'-dirty' if c.endswith('-dirty') else ''} ({n} runs)" for c, n in counts.items())
     head = f"Runs made at commit {named}"
-    lines = [] if len(counts) == 1 else [f"**Mixed commits**: the rows come from {len(counts)} commits."]
+    mixed = [] if len(counts) == 1 else [f"**Mixed commits**: the rows come from {len(counts)} commits."]
+    lines: list[str] = []  # what is flagged
     targets = set(" ".join(runs["targets"].fillna("")).split()) if "targets" in runs else set()
     shas = {c.removesuffix("-dirty") for c in counts.index} - {"unknown"}
     changed = stale(shas, targets) if targets else {}
@@ -193,11 +194,11 @@ def provenance(
         tail = ""
     elif not changed:
         tail = "; no code they build has changed since"
-    elif checked and not any(line.startswith("**") for line in lines[1 if len(counts) > 1 else 0 :]):
+    elif checked and not any(line.startswith("**") for line in lines):
         tail = f"; the code they build changed since, and the fingerprints of all {checked} rows still match"
     else:
         tail = ""
-    return [head + tail + ".", *lines, *metric_changed(runs, targets)]
+    return [head + tail + ".", *mixed, *lines, *metric_changed(runs, targets)]
 
 
 def metric_changed(runs: pd.DataFrame, targets: set[str]) -> list[str]:
