@@ -195,9 +195,20 @@ def gpu(trainer: DictConfig) -> str | None:
     return torch.cuda.get_device_name(0)
 
 
+def kernels() -> str:
+    """The CPU kernels torch runs here: ATen's instruction set (``ATEN_CPU_CAPABILITY`` selects a lower one on any
+    machine) and oneDNN's cap where ``ONEDNN_MAX_CPU_ISA`` sets one (``AVX512``, ``AVX2; oneDNN AVX2``): results
+    follow them as they follow the CPU."""
+    import torch
+
+    ours = str(torch.backends.cpu.get_cpu_capability())
+    onednn = os.environ.get("ONEDNN_MAX_CPU_ISA", "")
+    return ours + (f"; oneDNN {onednn}" if onednn else "")
+
+
 def tags(cfg: DictConfig) -> dict[str, str]:
     """The numerics and the machine, as run tags: resolved precision, memory format, threads, compile, CPU, ISA,
-    and the GPU (tag ``gpu``) where the job trains on one."""
+    the CPU kernels in use (:func:`kernels`), and the GPU (tag ``gpu``) where the job trains on one."""
     machine = cpu()
     trainer = cfg.trainer
     device = gpu(trainer)
@@ -208,6 +219,7 @@ def tags(cfg: DictConfig) -> dict[str, str]:
         "compile": str(trainer.get("compile", False)),
         "cpu": machine.model,
         "cpu_isa": machine.isa,
+        "cpu_kernels": kernels(),
         **({"gpu": device} if device else {}),
     }
 

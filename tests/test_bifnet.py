@@ -118,7 +118,7 @@ def test_table4_end_to_end_at_smoke_scale(tmp_path):
     # each job kept its test frames' level histograms (each branch's); the verdicts resample seeds and frames
     assert "frames/test_counts.csv" in {a.path for a in client.list_artifacts(fused.info.run_id, "frames")}
     assert (tmp_path / "results" / "runs" / "bifnet_table4.frames.csv.gz").is_file()
-    assert "The verdicts read the seeds-and-frames interval" in text
+    assert "The verdicts and Δ read the interval over seeds and test frames" in text
 
 
 @pytest.mark.parametrize(

@@ -50,6 +50,17 @@ def test_table1_tests_each_model_under_every_condition(tables):
     assert not math.isclose(gated["camera_blank/gate_rgb"], gated["normal/gate_rgb"])
     dgfn = next(r for r in jobs if r.data.tags["row"] == "dgfn")
     assert {"gates.png", "predictions.png"} <= {a.path for a in client.list_artifacts(dgfn.info.run_id)}
+    # each frame's matched detections: AP re-accumulated from them equals the logged AP (ablate.metrics.accumulate)
+    from ablate.store import FRAME_DETECTIONS
+    from ablate.tables.frames import _read_detections, ap_left_out
+
+    path = client.download_artifacts(dgfn.info.run_id, FRAME_DETECTIONS, str(cwd))
+    rows = _read_detections(path)
+    for condition in ("full", "normal", "camera_blank"):
+        mine = rows[(rows["metric"] == "car_moderate") & (rows["condition"] == condition)]
+        whole, left = ap_left_out(mine, "car_moderate")
+        assert whole == pytest.approx(dgfn.data.metrics[f"{condition}/car_moderate"], rel=1e-6, abs=1e-6)
+        assert len(left) == len(set(mine["frame"])) > 1
 
 
 def test_table1_is_written_with_conditions_as_rows(tables):
@@ -76,6 +87,9 @@ def test_table1_is_written_with_conditions_as_rows(tables):
     report = ablate(cwd, "--publish", "experiment=dgfn_table1", module="ablate.report")
     assert report.returncode == 0, report.stderr[-3000:]
     assert (cwd / "results" / "dgfn_table1.md").read_bytes() == before
+    # the detections per frame are published beside the records, and the verdicts read the test frames too
+    assert (cwd / "results" / "runs" / "dgfn_table1.detections.csv.gz").is_file()
+    assert "interval over seeds and test frames" in before.decode()
 
 
 def test_table2_reuses_table1s_dgfn_and_lists_the_papers_other_systems(tables):

@@ -58,7 +58,10 @@ def test_publish_true_writes_the_records_and_the_table_under_results(tmp_path: P
     for name in ("chinet_table2.md", "chinet_table2.png", "runs/chinet_table2.csv", "runs/chinet_table2.frames.csv.gz"):
         assert filecmp.cmp(sweep / name, tmp_path / "results" / name, shallow=False), name
     # the counts per test frame beside the records: the verdicts' interval over the seeds and the test frames
-    assert "The verdicts read the seeds-and-frames interval" in (tmp_path / "results" / "chinet_table2.md").read_text()
+    assert (
+        "The verdicts and Δ read the interval over seeds and test frames"
+        in (tmp_path / "results" / "chinet_table2.md").read_text()
+    )
     again = ablate(tmp_path, "-m", "experiment=chinet_table2", "row=unet,fusenet", *TRY, SERIAL)  # as `make run`
     assert again.returncode == 0, output(again)
     assert published(tmp_path)["results/chinet_table2.md"] == (tmp_path / "results" / "chinet_table2.md").read_bytes()

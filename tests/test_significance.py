@@ -26,9 +26,10 @@ def test_one_value_has_no_interval_and_nans_are_dropped():
     assert mean_ci([1.0, float("nan"), 2.0, 3.0]).method == "t"
 
 
-def test_bootstrap_from_six_values_is_deterministic_and_within_the_range():
-    assert mean_ci([10.0, 11.0, 12.0, 13.0, 30.0]).method == "t"  # five values: Student's t still
-    values = [10.0, 11.0, 12.0, 13.0, 14.0, 30.0]
+def test_bootstrap_from_thirty_values_is_deterministic_and_within_the_range():
+    few = [10.0, 11.0, 12.0, 13.0, 14.0, 15.0, 16.0, 30.0]
+    assert mean_ci(few).method == "t"  # the few seeds a table has: Student's t, never the too narrow percentiles
+    values = [10.0 + i % 5 for i in range(29)] + [30.0]
     a, b = mean_ci(values), mean_ci(values)
     assert a.method == "bootstrap" and (a.lo, a.hi) == (b.lo, b.hi)
     assert 10.0 < a.lo < np.mean(values) < a.hi < 30.0
@@ -45,6 +46,17 @@ def test_paired_difference_over_shared_seeds():
     # paired t: t = 2 / (1 / sqrt 3) = 3.4641 on 2 degrees of freedom -> two-sided p = 0.0742
     assert d.p == pytest.approx(0.0742, abs=5e-4)
     assert not d.significant
+
+
+def test_a_paired_difference_at_eight_seeds_keeps_students_t():
+    ref = pd.Series({str(s): 10.0 for s in range(8)})
+    row = pd.Series({str(s): 10.0 + v for s, v in enumerate([0.1, 0.3, -0.2, 0.5, 0.0, 0.2, 0.4, -0.1])})
+    d = difference(row, ref)
+    from scipy.stats import t
+
+    diffs = row.to_numpy() - 10.0
+    half = t.ppf(0.975, 7) * diffs.std(ddof=1) / math.sqrt(8)
+    assert d.ci.method == "t" and (d.ci.lo, d.ci.hi) == pytest.approx((diffs.mean() - half, diffs.mean() + half))
 
 
 def test_pairing_removes_the_seed_to_seed_spread():
@@ -122,8 +134,8 @@ def test_table_marks_significant_rows_names_the_reference_and_flags_commits():
 def test_the_footer_names_a_t_and_a_bootstrap_ci_once_where_rows_have_different_seed_counts():
     from ablate.tables.columns import tests_used
 
-    # a row of 3 seeds gets a t CI of its difference, one of 8 a bootstrap CI: both are paired t-tests
-    assert tests_used({("paired t", False), ("paired t", True)}) == "paired t, bootstrap CI from n = 6"
+    # unpaired rows of 3 seeds get a t CI of their difference, of 30 a bootstrap CI: both are Welch t-tests
+    assert tests_used({("Welch t", False), ("Welch t", True)}) == "Welch t, bootstrap CI from n = 30"
     assert tests_used({("paired t", False)}) == "paired t"
     assert tests_used({("paired t", True)}) == "paired t, bootstrap CI"
     assert tests_used({("Welch t", False), ("paired t", False)}) == "Welch t, paired t"

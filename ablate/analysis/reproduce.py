@@ -51,6 +51,7 @@ class Reproduction:
     interval: tuple[float, float]
     differences: list[str]  # the numerics that differ from the recorded runs'
     tuned: list[str] = field(default_factory=list)  # the overrides that put the rerun on the row's tuned config
+    resumed: str = ""  # the step the recorded run resumed from a checkpoint at ("" uninterrupted, "?" not recorded)
 
     @property
     def inside(self) -> bool:
@@ -73,6 +74,12 @@ class Reproduction:
         out = [head, verdict]
         if self.tuned:
             out.append(f"rerun on the row's tuned config: {' '.join(self.tuned)}")
+        if self.resumed == "?":
+            out.append("whether the recorded run was resumed is not recorded (its records predate resumed_step)")
+        elif self.resumed:
+            out.append(
+                f"the recorded run was resumed from a checkpoint at step {self.resumed}; the rerun trained uninterrupted"
+            )
         out += [f"differs from the recorded runs: {d}" for d in self.differences] or [
             "same CPU, precision and threads as the recorded runs"
         ]
@@ -158,4 +165,13 @@ def reproduce(
         prediction_interval(values),
         numerics_differ(mine, new.iloc[:1]),
         tuned,
+        recorded_resume(mine, seed),
     )
+
+
+def recorded_resume(mine: pd.DataFrame, seed: int) -> str:
+    """The step the recorded run of ``seed`` resumed at: "" uninterrupted, "?" where the records do not say."""
+    if "resumed_step" not in mine:
+        return "?"
+    step = mine.loc[mine["seed"].astype(str) == str(seed), "resumed_step"].fillna("").astype(str)
+    return "" if not len(step) or step.iloc[0] in ("", "0") else step.iloc[0]

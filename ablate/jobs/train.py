@@ -34,7 +34,7 @@ from ablate.jobs.generators import GlobalGenerators
 from ablate.jobs.preempt import STOP, SaveOnStop, Stopped
 from ablate.jobs.progress_lines import ProgressLines, progress_bar
 from ablate.jobs.spec import JobSpec
-from ablate.store import FRAME_COUNTS, KIND_TRIAL, SKIPPED_FRAMES, RunLogger, Tracker
+from ablate.store import FRAME_COUNTS, FRAME_DETECTIONS, KIND_TRIAL, SKIPPED_FRAMES, RunLogger, Tracker
 
 log = logging.getLogger(__name__)
 # torchmetrics warns when a metric is computed before its first update: a validation epoch whose batches held no
@@ -180,6 +180,7 @@ def test(
     for name, figure in task.figures(sample).items():
         tracker.log_figure(run_id, figure, name)
     log_frame_counts(tracker, run_id, getattr(task, "frame_counts", []))
+    log_frame_detections(tracker, run_id, getattr(task, "frame_detections", []))
     if best and spec.cfg.logger.get("log_checkpoint", True) and Path(best).resolve().parent == spec.ckpt_dir.resolve():
         tracker.log_artifact(run_id, best, "checkpoints")
     return metrics
@@ -210,6 +211,24 @@ def log_frame_counts(tracker: Tracker, run_id: str, counts: list[dict[str, Any]]
         path = Path(folder) / Path(FRAME_COUNTS).name
         pd.DataFrame(rows, columns=["frame", "condition", *(f"c{i}" for i in range(width))]).to_csv(path, index=False)
         tracker.log_artifact(run_id, path, str(Path(FRAME_COUNTS).parent))
+
+
+#: The columns of :data:`ablate.store.FRAME_DETECTIONS`: the frame, its condition, the metric, then the rows of
+#: :mod:`ablate.metrics.accumulate`.
+DETECTION_COLUMNS = ("frame", "condition", "metric", "index", "kind", "cls", "level", "score", "a", "b")
+
+
+def log_frame_detections(tracker: Tracker, run_id: str, rows: list[dict[str, Any]]) -> None:
+    """An AP metric's scored detections per test frame (:attr:`ablate.tasks.base.FusionTask.frame_detections`) as
+    the run's artifact :data:`ablate.store.FRAME_DETECTIONS`, where the task keeps them: what a table resamples the
+    test set of an AP task from (:mod:`ablate.tables.twolevel`)."""
+    if not rows:
+        return
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / Path(FRAME_DETECTIONS).name
+        frame = pd.DataFrame([[r.get(c) for c in DETECTION_COLUMNS] for r in rows], columns=list(DETECTION_COLUMNS))
+        frame.to_csv(path, index=False, compression={"method": "gzip", "mtime": 0})
+        tracker.log_artifact(run_id, path, str(Path(FRAME_DETECTIONS).parent))
 
 
 class DataCount(Callback):

@@ -38,6 +38,7 @@ from torchmetrics import Metric
 from torchmetrics.utilities import dim_zero_cat
 
 from ablate.data.difficulty import MIN_HEIGHT, REFERENCE_HEIGHT, counted
+from ablate.metrics.accumulate import bits
 
 _STATES = (
     "img_sizes",
@@ -228,6 +229,39 @@ class MaskAP(Metric):
             ev.evaluate()
             ev.accumulate()
         return ev.eval["precision"][:, :, :, 0, -1], list(ev.params.catIds)
+
+    def frame_rows(self, iou_type: str = "segm") -> list[dict]:
+        """What re-accumulating AP over any set of the images needs (:mod:`ablate.metrics.accumulate`), per image in
+        update order (``index``) and category: COCOeval's per-image matches of its first ``max_detections``
+        detections (kind ``dt``: score, match and ignore bits per IoU threshold) and its ground truths not ignored
+        (kind ``gt``). AP from them over every image is :meth:`compute`'s."""
+        sizes = self.img_sizes
+        if (sizes.numel() if isinstance(sizes, Tensor) else len(sizes)) == 0:
+            return []
+        gt_data, dt_data = self._datasets()
+        with contextlib.redirect_stdout(io.StringIO()):
+            gt, dt = COCO(), COCO()
+            gt.dataset, dt.dataset = gt_data, dt_data
+            gt.createIndex()
+            dt.createIndex()
+            ev = COCOeval(gt, dt, iouType=iou_type)
+            ev.params.maxDets = [1, 10, self.max_detections]
+            ev.evaluate()
+        p, rows = ev.params, []
+        n_area, n_img, top = len(p.areaRng), len(p.imgIds), p.maxDets[-1]
+        for k, cat in enumerate(p.catIds):
+            for i in range(n_img):
+                e = ev.evalImgs[k * n_area * n_img + i]  # area "all": the first of p.areaRng
+                if e is None:
+                    continue
+                base = {"index": i, "cls": str(cat), "level": 0}
+                npig = int(np.count_nonzero(np.asarray(e["gtIgnore"]) == 0))
+                rows.append(base | {"kind": "gt", "score": np.nan, "a": npig, "b": 0})
+                match = bits(np.asarray(e["dtMatches"])[:, :top] > 0)
+                ignore = bits(np.asarray(e["dtIgnore"])[:, :top].astype(bool))
+                for score, m, g in zip(e["dtScores"][:top], match, ignore):
+                    rows.append(base | {"kind": "dt", "score": float(score), "a": int(m), "b": int(g)})
+        return rows
 
     def compute(self) -> dict[str, Tensor]:
         """Returns map, map_50, map_75 (masks) and bbox_map, bbox_map_50, bbox_map_75 in 0-1 (-1: no GT)."""

@@ -69,6 +69,7 @@ from torchmetrics.utilities import dim_zero_cat
 
 from ablate.data.dataset import CLASSES
 from ablate.data.difficulty import REFERENCE_HEIGHT, counted
+from ablate.metrics.accumulate import N_SAMPLE_PTS, kitti_thresholds
 
 LEVELS = ("easy", "moderate", "hard")
 MIN_HEIGHT, MAX_OCCLUSION, MAX_TRUNCATION = (40.0, 25.0, 25.0), (0, 1, 2), (0.15, 0.30, 0.50)
@@ -76,7 +77,6 @@ MIN_OVERLAP = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5}
 NEIGHBOURS = {"Car": "Van", "Pedestrian": "Person_sitting"}
 #: Label ids of predictions and targets: the dataset's classes first, then the GT-only KITTI types.
 LABEL_NAMES = (*CLASSES, "Van", "Person_sitting", "DontCare")
-N_SAMPLE_PTS = 41
 #: The devkit versions KittiAP follows (``cleanData``'s ground-truth height rule) and the ``evaluator`` tag of each.
 DEVKITS = {"2017": "kitti_object_devkit_2017", "2d_2012": "kitti_object_devkit_2d_2012"}
 _STATES = (
@@ -102,18 +102,7 @@ def overlap(a: np.ndarray, b: np.ndarray, union: bool = True) -> np.ndarray:
     return np.divide(inter, denom, out=np.zeros_like(inter), where=inter > 0)
 
 
-def thresholds(scores: np.ndarray, n_gt: int) -> np.ndarray:
-    """eval.cpp ``getThresholds``: the TP scores whose recalls best approximate 0, 1/40, ..., 1."""
-    v, out, current = np.sort(scores)[::-1], [], 0.0
-    for i in range(len(v)):
-        last = i == len(v) - 1
-        left = (i + 1) / n_gt
-        right = left if last else (i + 2) / n_gt
-        if right - current < current - left and not last:
-            continue
-        out.append(v[i])
-        current += 1.0 / (N_SAMPLE_PTS - 1.0)
-    return np.array(out)
+thresholds = kitti_thresholds  # eval.cpp ``getThresholds``, where the tables re-accumulate AP too
 
 
 def assign(ok: np.ndarray, key: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -264,10 +253,12 @@ class KittiAP(Metric):
         gts = per_image(("gt_boxes", "gt_labels", "gt_level"), "gt_counts")
         return [(*d, *g, overlap(g[0], d[0])) for d, g in zip(dets, gts)]
 
-    def _ap(self, images: list, cls: str, level: int) -> tuple[float, float]:
-        """(ap11, ap40) in percent of ``cls`` at ``level``, -1 with no counted GT (eval.cpp ``eval_class``)."""
+    def _prepared(self, images: list, cls: str, level: int) -> list[tuple[Any, ...]]:
+        """Per image, what ``eval_class`` reads of ``cls`` at ``level``: the candidate pairs, the precision pass's
+        preference, which GTs count, which detections are too short, the scores, which detections may be FPs, the
+        threshold pass's TP scores and the counted GTs."""
         cid, nid, thr = self._id(cls), self._id(NEIGHBOURS.get(cls, "")), self.min_overlap[cls]
-        prepared, scores_tp, n_gt = [], [], 0
+        prepared = []
         for boxes, scores, labels, in_dc, gt_boxes, gt_labels, gt_level, iou in images:
             small = ~counted(boxes[:, 3] - boxes[:, 1], self.image_height, MIN_HEIGHT[level])
             det, gt = (labels == cid) | small, (gt_labels == cid) | (gt_labels == nid)
@@ -278,21 +269,56 @@ class KittiAP(Metric):
             ok, to_small = iou_ > thr, np.append(small_, False)  # to_small[match]: matched a too-short det
             match, _ = assign(ok, np.broadcast_to(scores_, ok.shape), np.ones((1, len(scores_)), bool))
             tp = (match[0] >= 0) & counts & ~to_small[match[0]]
-            scores_tp.append(scores_[match[0][tp]])
-            n_gt += int(counts.sum())
-            prepared.append((ok, np.where(small_, -1.0, iou_), counts, to_small, scores_, fp_able))
+            key = np.where(small_, -1.0, iou_)
+            prepared.append((ok, key, counts, to_small, scores_, fp_able, scores_[match[0][tp]], int(counts.sum())))
+        return prepared
+
+    @staticmethod
+    def _counts(image: tuple[Any, ...], t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The precision pass's TP and FP of one image at the score thresholds ``t``."""
+        ok, key, counts, to_small, scores_, fp_able = image[:6]
+        match, free = assign(ok, key, scores_[None] >= t[:, None])
+        return ((match >= 0) & counts & ~to_small[match]).sum(1), (free & fp_able).sum(1)
+
+    def _ap(self, images: list, cls: str, level: int) -> tuple[float, float]:
+        """(ap11, ap40) in percent of ``cls`` at ``level``, -1 with no counted GT (eval.cpp ``eval_class``)."""
+        prepared = self._prepared(images, cls, level)
+        n_gt = int(sum(p[7] for p in prepared))
         if n_gt == 0:
             return -1.0, -1.0
-        t = thresholds(np.concatenate(scores_tp), n_gt)
+        t = thresholds(np.concatenate([p[6] for p in prepared]), n_gt)
         tp, fp = np.zeros(len(t)), np.zeros(len(t))
-        for ok, key, counts, to_small, scores_, fp_able in prepared:
-            match, free = assign(ok, key, scores_[None] >= t[:, None])
-            tp += ((match >= 0) & counts & ~to_small[match]).sum(1)
-            fp += (free & fp_able).sum(1)
+        for image in prepared:
+            a, b = self._counts(image, t)
+            tp += a
+            fp += b
         precision = np.zeros(N_SAMPLE_PTS)
         precision[: len(t)] = np.divide(tp, tp + fp, out=np.zeros_like(tp), where=tp + fp > 0)
         precision = np.maximum.accumulate(precision[::-1])[::-1]
         return 100 * precision[::4].sum() / 11, 100 * precision[1:].sum() / 40
+
+    def frame_rows(self, cls: str, level: int) -> list[dict]:
+        """What re-accumulating ``cls``'s AP at ``level`` over any set of the images needs, per image in update
+        order (:mod:`ablate.metrics.accumulate`: kind ``gt``, ``tp`` and ``cut`` rows; ``index`` the image)."""
+        n = self.pred_counts
+        if not (n.numel() if isinstance(n, Tensor) else len(n)):
+            return []
+        k = LEVELS.index(level) if isinstance(level, str) else int(level)
+        rows: list[dict] = []
+        for index, image in enumerate(self._prepared(self._images(), cls, k)):
+            base = {"index": index, "cls": cls, "level": k}
+            rows.append(base | {"kind": "gt", "score": np.nan, "a": image[7], "b": 0})
+            rows += [base | {"kind": "tp", "score": float(s), "a": 0, "b": 0} for s in image[6]]
+            cuts = np.unique(image[4])[::-1]
+            if len(cuts):
+                tp, fp = self._counts(image, cuts)
+                d_tp, d_fp = np.diff(tp, prepend=0), np.diff(fp, prepend=0)
+                rows += [
+                    base | {"kind": "cut", "score": float(u), "a": int(a), "b": int(b)}
+                    for u, a, b in zip(cuts, d_tp, d_fp)
+                    if a or b
+                ]
+        return rows
 
     def compute(self) -> dict[str, Tensor]:
         """``{class}/{level}/ap11`` and ``/ap40`` in percent (-1: no counted GT); ``{level}/ap11`` and ``/ap40``:

@@ -32,6 +32,7 @@ from ablate.store.outage import DEFAULT_OUTAGE_S, ServerUnreachable
 from ablate.store.outbox import Outbox
 from ablate.store.tracker import (
     FRAME_COUNTS,
+    FRAME_DETECTIONS,
     KIND_EXPERT,
     KIND_JOB,
     KIND_SWEEP,
@@ -63,6 +64,7 @@ __all__ = [
     "KIND_SWEEP",
     "SKIPPED_FRAMES",
     "FRAME_COUNTS",
+    "FRAME_DETECTIONS",
     "AccessDenied",
     "DiskFull",
     "UNHASHED",

@@ -56,6 +56,8 @@ KIND_EXPERT = "expert"
 SKIPPED_FRAMES = "data/skipped_frames"
 #: A run's artifact of its test metric's counts per test frame (ablate.tables.frames).
 FRAME_COUNTS = "frames/test_counts.csv"
+#: A run's artifact of its AP metric's scored detections per test frame (ablate.metrics.accumulate).
+FRAME_DETECTIONS = "frames/test_detections.csv.gz"
 #: Every experiment's kind (model training, not GenAI). MLflow 3.17's UI still opens on its GenAI view until the
 #: browser's "Model training" switch is set (a per-browser setting, default GenAI), so a sweep also prints
 #: :func:`runs_link`, which sets it.

@@ -21,11 +21,19 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.store import Tracker
-from ablate.tables.collect import collect, made_lines, running, state_lines
+from ablate.tables.collect import collect, made_lines, resumed_lines, running, state_lines
 from ablate.tables.conditions import write_conditions
 from ablate.tables.curves import curves_path, from_store, read_curves, write_curves, write_figure
 from ablate.tables.forest import write_forest
-from ablate.tables.frames import FROM_COUNTS, read_frames, write_frames
+from ablate.tables.frames import (
+    FROM_COUNTS,
+    FROM_DETECTIONS,
+    detections_from_store,
+    read_detections,
+    read_frames,
+    write_detections,
+    write_frames,
+)
 from ablate.tables.frames import from_store as frames_from_store
 from ablate.tables.provenance import Recompute, config_of, provenance
 from ablate.tables.records import read_records, records_path, write_records
@@ -65,7 +73,12 @@ def write_table(
     frames = frames_from_store(tracker, runs) if len(runs) and decomposes else pd.DataFrame()
     if publish and (kept := write_frames(frames, results_dir, str(table.name))) is not None:
         written.append(kept)
-    runs.attrs["frames"] = frames  # the counts per test frame the verdicts resample (ablate.tables.frames)
+    runs.attrs["frames"] = frames  # the counts per test frame the verdicts read (ablate.tables.twolevel)
+    matched = str(table.primary) in FROM_DETECTIONS  # an AP task that keeps its detections per test frame
+    detections = detections_from_store(tracker, runs) if len(runs) and matched else pd.DataFrame()
+    if publish and (kept := write_detections(detections, results_dir, str(table.name))) is not None:
+        written.append(kept)
+    runs.attrs["detections"] = detections
     trials = trials_from_store(tracker, str(table.name))
     if publish and (kept := write_trials(trials, results_dir, str(table.name))) is not None:
         written.append(kept)
@@ -91,6 +104,7 @@ def render_records(
         return None
     runs = read_records(path)
     runs.attrs["frames"] = read_frames(results_dir, str(table.name))
+    runs.attrs["detections"] = read_detections(results_dir, str(table.name))
     trials = read_trials(results_dir, str(table.name))
     footer = footer_lines(runs, fingerprint, config(runs) if config is not None else None, 0)
     written = render(cfg, table, runs, results_dir, footer, None, None, tuning_section(trials, table))
@@ -128,7 +142,9 @@ def footer_lines(
     runs: pd.DataFrame, fingerprint: Recompute | None, config: Callable[[str], DictConfig] | None, in_progress: int
 ) -> list[str]:
     """The footer under a table: how its rows were made, its provenance, and what it leaves out."""
-    return made_lines(runs) + provenance(runs, fingerprint, config) + state_lines(runs, in_progress)
+    return (
+        made_lines(runs) + resumed_lines(runs) + provenance(runs, fingerprint, config) + state_lines(runs, in_progress)
+    )
 
 
 def render(

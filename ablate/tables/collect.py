@@ -51,11 +51,13 @@ def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
             "targets": " ".join(sorted({v for k, v in r.data.params.items() if k.endswith("_target_")})),
             **{f"made_{k}": r.data.tags.get(k, "?") for k in MADE},
             "cpu_isa": r.data.tags.get("cpu_isa", "?"),
+            "cpu_kernels": r.data.tags.get("cpu_kernels", ""),
             "made_gpu": r.data.tags.get("gpu", ""),  # the GPU a job trained on (ablate.hardware.gpu); "" the CPU
             "sweep_id": r.data.tags.get("sweep_id", ""),
             "race_plan": r.data.tags.get("race_plan", ""),
             "tuned_config": r.data.tags.get("tuned_config", ""),  # the config a tuning phase chose for its row
             "reused_from": r.data.tags.get("reused_from", ""),
+            "resumed_step": resumed_step(r.data.tags),
             "started": r.info.start_time,
             # the job's start before its experts were trained (tag ``job_started``; older runs: the run's start)
             "job_started": int(r.data.tags.get("job_started") or r.info.start_time),
@@ -145,6 +147,33 @@ def running(tracker: Tracker, table: str) -> int:
     if exp is None:
         return 0
     return len(tracker.runs(exp, f"attributes.status = 'RUNNING' and tags.kind = '{KIND_JOB}'"))
+
+
+def resumed_step(tags: dict[str, str]) -> str:
+    """The training step a run resumed from a checkpoint at (tag ``resumed_step``, :func:`ablate.jobs.checkpoint.
+    resume_point`); "" for a run trained uninterrupted (from scratch, step 0, or without the tag)."""
+    step = str(tags.get("resumed_step") or "")
+    return "" if step in ("", "0") or tags.get("resumed_from") == "scratch" else step
+
+
+def resumed_lines(runs: pd.DataFrame) -> list[str]:
+    """The footer's line on the runs resumed from a checkpoint (``resumed_step``), or that the records predate
+    the column."""
+    if not len(runs):
+        return []
+    if "resumed_step" not in runs:
+        return ["Resumed runs: not recorded (these records predate the `resumed_step` column)."]
+    steps = runs["resumed_step"].fillna("").astype(str)
+    resumed = runs[(steps != "") & (steps != "0")]
+    if not len(resumed):
+        return []
+    named = ", ".join(
+        f"{r} seed {s} at step {st}" for r, s, st in zip(resumed["row"], resumed["seed"], resumed["resumed_step"])
+    )
+    return [
+        f"**Resumed runs**: {len(resumed)} of {len(runs)} resumed from a checkpoint ({named}); a run resumed before "
+        "resuming restored the training order and generators (6d500ba) is not the computation an uninterrupted run is."
+    ]
 
 
 def state_lines(runs: pd.DataFrame, in_progress: int) -> list[str]:

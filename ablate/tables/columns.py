@@ -7,9 +7,9 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from ablate.tables.frames import RESAMPLES as FRAME_RESAMPLES
-from ablate.tables.frames import judged
-from ablate.tables.racing import RacePlan, RaceState, race, race_lines, recorded_plan, seed_values
+from ablate.tables.decide import machine, undecided
+from ablate.tables.frames import FROM_DETECTIONS
+from ablate.tables.racing import Comparison, RacePlan, RaceState, race, race_lines, recorded_plan, seed_values
 from ablate.tables.significance import (
     BOOTSTRAP_FROM,
     COLLAPSE_RATIO,
@@ -20,6 +20,7 @@ from ablate.tables.significance import (
 )
 from ablate.tables.spec import COSTS, LOWER_IS_BETTER
 from ablate.tables.summary import best_of, fmt, per_seed, reference, signed
+from ablate.tables.twolevel import FramesVariance, frames_variance
 from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, UNDECIDED, WORSE
 
 #: The Δ column's mark of each verdict of the race (ablate.tables.verdicts).
@@ -51,7 +52,7 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
     if raced is not None:
         ref = raced.reference or ref
     ref_name = str(summary.loc[summary["row"] == ref, "name"].iloc[0])
-    cis, deltas, tests = _ci_and_delta(summary, runs, key, ref, raced)
+    cis, deltas, tests = _ci_and_delta(summary, runs, key, ref, raced, table_frames(runs, table))
     columns = {f"{label} 95% CI": cis, f"Δ {label} vs {ref_name} [95% CI]": deltas}
     lines = [
         f"95% CI: of the mean over seeds, Student's t for n < {BOOTSTRAP_FROM}, a percentile bootstrap over "
@@ -60,17 +61,27 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
         + ("*: its 95% CI excludes 0." if raced is None else MARKS_LEGEND)
     ]
     if raced is not None:
-        lines += rope_line(table, label) + race_lines(raced, dict(zip(summary["row"], summary["name"])))
+        names = dict(zip(summary["row"], summary["name"]))
+        lines += rope_line(table, label) + race_lines(raced, names)
+        lines += [todo.words(names, machine(runs)) for todo in undecided(raced, runs).values()]
         if any(c.frames for c in raced.comparisons.values()):
             lines.append(FRAMES_LINE)
-    lines += _top_against_second(summary, runs, key, label, raced)
+        elif str(table.primary) in FROM_DETECTIONS:
+            lines.append(NO_FRAMES_LINE)
+    lines += _top_against_second(summary, runs, key, label, raced, table_frames(runs, table))
     return columns, lines + _disagreeing_seed_lines(summary, runs, table)
 
 
 FRAMES_LINE = (
-    f"The verdicts read the seeds-and-frames interval: a two-level paired bootstrap over the seeds and the test "
-    f"frames ({FRAME_RESAMPLES} resamples, the metric recomputed from each frame's counts; ablate.tables.frames), the "
-    "test set's draw counted as a source of variance beside the seeds; the race stopped on the seeds alone."
+    "The verdicts and Δ read the interval over seeds and test frames: the seeds' variance of the paired differences "
+    "plus the test frames' (a delete-one jackknife over frames, the metric recomputed from each frame's counts or "
+    "re-accumulated from its matched detections), on "
+    "Student's t with the seeds' n − 1 degrees of freedom: never narrower than the seeds' own t interval, and free "
+    "of Monte Carlo error (ablate.tables.twolevel)."
+)
+NO_FRAMES_LINE = (
+    "The verdicts read the seeds alone: these records keep no detections per test frame (they were raced before the "
+    "jobs kept them), so the test set's draw is not counted; the next race of this table adds it."
 )
 
 
@@ -101,16 +112,48 @@ def replay(
         return None
     named = table.get("reference")
     candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
-    state = race(values, rows, candidates or rows[0], plan.with_rope(table), key not in LOWER_IS_BETTER)
-    return judged(state, runs, table)
+    higher = key not in LOWER_IS_BETTER
+    frames_var = table_frames(runs, table) if key == str(table.primary) else None
+    return race(values, rows, candidates or rows[0], plan.with_rope(table), higher, frames_var=frames_var)
+
+
+def table_frames(runs: pd.DataFrame, table: DictConfig) -> FramesVariance | None:
+    """The test frames' variance of a table's primary metric, from the counts per frame its runs kept
+    (``runs.attrs["frames"]``, put there by the table's writer; :mod:`ablate.tables.twolevel`); None without."""
+    frames, detections = runs.attrs.get("frames"), runs.attrs.get("detections")
+    frames = frames if isinstance(frames, pd.DataFrame) else None
+    detections = detections if isinstance(detections, pd.DataFrame) else None
+    primary, condition = str(table.primary), str(table.get("primary_condition") or "")
+    if "/" in primary:  # a conditions table's flattened primary: <condition>/<metric>
+        condition, primary = primary.split("/", 1)
+    return frames_variance(frames, primary, condition, detections)
+
+
+def pair_frames(frames_var: FramesVariance | None, a: str, b: str):  # type: ignore[no-untyped-def]
+    """``frames_var`` for the pair ``a - b`` as a function of the seeds (:func:`ablate.tables.significance.difference`)."""
+    return None if frames_var is None else (lambda seeds: frames_var(a, b, seeds))
+
+
+def at_look(values: pd.Series, raced: RaceState | None, c: Comparison | None) -> pd.Series:
+    """``values`` (by seed) cut to the seeds of the look where the race left comparison ``c``: a figure shown beside a
+    verdict is the one the verdict was reached on."""
+    if raced is None or c is None:
+        return values
+    n = raced.plan.looks[c.look - 1]
+    seeds = pd.to_numeric(pd.Series(values.index, dtype=str), errors="coerce").to_numpy()
+    return values[(seeds >= 0) & (seeds < n)]
 
 
 def _ci_and_delta(
-    summary: pd.DataFrame, runs: pd.DataFrame, key: str, ref: str, raced: RaceState | None
+    summary: pd.DataFrame,
+    runs: pd.DataFrame,
+    key: str,
+    ref: str,
+    raced: RaceState | None,
+    frames_var: FramesVariance | None = None,
 ) -> tuple[list[str], list[str], set[tuple[str, bool]]]:
     """Each row's 95 % CI and difference from ``ref`` (starred when significant, or decided by the race), and the
     (test, bootstrap CI or not) of the differences for :func:`tests_used`."""
-    ref_values = per_seed(runs, ref, key)
     cis: list[str] = []
     deltas: list[str] = []
     tests: set[tuple[str, bool]] = set()
@@ -119,18 +162,32 @@ def _ci_and_delta(
         if row == ref:
             deltas.append("reference")
             continue
-        d = difference(per_seed(runs, row, key), ref_values)
+        d = row_difference(runs, key, row, ref, raced, frames_var)
         if np.isnan(d.ci.lo):
             deltas.append("—" if np.isnan(d.delta) else signed(d.delta))
             continue
-        tests.add((d.kind, d.ci.method == "bootstrap"))
+        tests.add((d.test.removesuffix(", bootstrap CI"), d.ci.method == "bootstrap"))
         mark = (" *" if d.significant else "") if raced is None else MARKS[kind_of(raced, row, ref)]
         deltas.append(f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}]" + mark)
     return cis, deltas, tests
 
 
+def row_difference(
+    runs: pd.DataFrame, key: str, row: str, ref: str, raced: RaceState | None, frames_var: FramesVariance | None
+) -> Difference:
+    """``row`` minus ``ref`` on ``key`` (:func:`ablate.tables.significance.difference`), over the seeds of the look
+    where the race left their comparison, with the test frames' variance where the runs kept counts."""
+    c = raced.comparisons.get(frozenset((row, ref))) if raced is not None else None
+    a, b = (at_look(per_seed(runs, r, key), raced, c) for r in (row, ref))
+    return difference(a, b, pair_frames(frames_var, row, ref))
+
+
 def top_and_second(
-    summary: pd.DataFrame, runs: pd.DataFrame, key: str, raced: RaceState | None
+    summary: pd.DataFrame,
+    runs: pd.DataFrame,
+    key: str,
+    raced: RaceState | None,
+    frames_var: FramesVariance | None = None,
 ) -> tuple[str, str, Difference, str] | None:
     """The top row's and the second's names (the race's where it ranked them, else by mean), their difference on
     ``key``, and the verdict on the top row against the second (:mod:`ablate.tables.verdicts`: the race's where
@@ -144,7 +201,7 @@ def top_and_second(
     if raced is not None and raced.top:
         names = dict(zip(summary["row"], summary["name"]))
         (top, second), (top_name, second_name) = raced.top, (names[raced.top[0]], names[raced.top[1]])
-    d = difference(per_seed(runs, top, key), per_seed(runs, second, key))
+    d = row_difference(runs, key, top, second, raced, frames_var)
     kind = (DIFFERENT if d.significant else UNDECIDED) if raced is None else kind_of(raced, top, second)
     return str(top_name), str(second_name), d, kind
 
@@ -172,21 +229,34 @@ def ahead_words(d: Difference, kind: str, rope: float | None = None) -> str:
 
 
 def _top_against_second(
-    summary: pd.DataFrame, runs: pd.DataFrame, key: str, label: str, raced: RaceState | None
+    summary: pd.DataFrame,
+    runs: pd.DataFrame,
+    key: str,
+    label: str,
+    raced: RaceState | None,
+    frames_var: FramesVariance | None = None,
 ) -> list[str]:
-    """The footer line on the top row against the second (none under two rows)."""
-    found = top_and_second(summary, runs, key, raced)
+    """The footer line on the top row against the second (none under two rows): the figures the verdict was reached
+    on (the race's comparison, at its look and level), so its words never claim more than its interval and p."""
+    found = top_and_second(summary, runs, key, raced, frames_var)
     if found is None:
         return []
     top_name, second_name, d, kind = found
     said = ahead_words(d, kind, raced.plan.rope if raced is not None else None)
-    verdict = (
-        said
-        if np.isnan(d.ci.lo)
-        else f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}], {d.test}, p = {d.p:.3f}: "
-        + said
-        + ("" if raced is None else " (the race's verdict)")
-    )
+    top = raced.top if raced is not None else None
+    c = raced.comparisons.get(frozenset(top)) if raced is not None and top else None
+    if np.isnan(d.ci.lo):
+        verdict = said
+    elif c is not None and top is not None and c.n >= 2:
+        sign = 1 if c.a == top[0] else -1
+        lo, hi = sorted((sign * c.lo, sign * c.hi))
+        share = f"{100 * (1 - 2 * c.level):.1f}%"
+        verdict = (
+            f"{signed(sign * c.delta)} [{signed(lo)}, {signed(hi)}], the {share} interval ({d.test}, n = {c.n}), "
+            f"p = {c.p:.3g} {c.p_words()} against {c.level:.4f} at look {c.look}: {said} (the race's verdict)"
+        )
+    else:
+        verdict = f"{signed(d.delta)} [{signed(d.ci.lo)}, {signed(d.ci.hi)}], {d.test}, p = {d.p:.3f}: " + said
     return [f"Top row {top_name} against the second, {second_name}, on {label}: {verdict}."]
 
 

@@ -3,10 +3,13 @@ its markdown, from the same summary and race the markdown shows.
 
 The CSV has one line per row: its name, n, and per metric the mean, std and 95 % CI of the mean over seeds and the
 paper's value; for the primary metric also the difference from the reference row with its 95 % CI and p-value
-(:func:`ablate.tables.significance.difference`, paired over shared seeds) and the race's verdict on that comparison
+(:func:`ablate.tables.columns.row_difference`, paired over shared seeds, with the test frames' variance where the
+runs kept counts per frame) and the race's verdict on that comparison
 (``better``, ``worse``, ``equivalent``, ``different`` or ``undecided``, :mod:`ablate.tables.verdicts`; empty without
-a race), and the table's δ (``rope``); on the top row, its verdict against the second (``top_vs_second``, as the
-footer says it); and Kendall's τ between our ranking
+a race), and, where the race left it open, about how many seeds per row and CPU hours deciding it would take
+(``decide_seeds``, ``decide_cpu_hours``: :mod:`ablate.tables.decide`; seeds -1 where no number of seeds would), and
+the table's δ (``rope``); on the top row, its verdict against the second (``top_vs_second``, as the footer says it)
+and what deciding that would take (``top_decide_seeds``, ``top_decide_cpu_hours``); and Kendall's τ between our ranking
 and the paper's with the rows it compares (``kendall_tau``, ``kendall_n``). The results summary reads these. The LaTeX table shows mean ± std
 per metric, the best of each column in bold (pandas' ``Styler``; names and labels escaped), with ``\\toprule``/``\\midrule``/``\\bottomrule``.
 """
@@ -19,9 +22,9 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from ablate.tables.columns import ahead_words, kind_of, replayed_race, top_and_second
-from ablate.tables.significance import difference
-from ablate.tables.summary import best_of, kendall, per_seed, reference
+from ablate.tables.columns import ahead_words, kind_of, replayed_race, row_difference, table_frames, top_and_second
+from ablate.tables.decide import ToDecide, undecided
+from ablate.tables.summary import best_of, kendall, reference
 
 
 def numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
@@ -36,23 +39,38 @@ def numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> pd.
     raced = replayed_race(summary, runs, table, key) if len(summary) else None
     ref = (raced.reference if raced is not None else None) or reference(summary, table)
     deltas = []
+    frames_var = table_frames(runs, table)
+    todo = undecided(raced, runs) if raced is not None else {}
+    none = {"decide_seeds": np.nan, "decide_cpu_hours": np.nan}
     for row in summary["row"]:
         if ref is None or row == ref or not len(runs):
-            deltas.append({"delta": np.nan, "delta_lo": np.nan, "delta_hi": np.nan, "p": np.nan, "verdict": ""})
+            deltas.append({"delta": np.nan, "delta_lo": np.nan, "delta_hi": np.nan, "p": np.nan, "verdict": ""} | none)
             continue
-        d = difference(per_seed(runs, row, key), per_seed(runs, ref, key))
+        d = row_difference(runs, key, row, ref, raced, frames_var)
         verdict = "" if raced is None else kind_of(raced, row, ref)
-        deltas.append({"delta": d.delta, "delta_lo": d.ci.lo, "delta_hi": d.ci.hi, "p": d.p, "verdict": verdict})
+        cost = decide_columns(todo.get(frozenset((row, ref))))
+        deltas.append({"delta": d.delta, "delta_lo": d.ci.lo, "delta_hi": d.ci.hi, "p": d.p, "verdict": verdict} | cost)
     out["reference"] = ref or ""
     out = pd.concat([out.reset_index(drop=True), pd.DataFrame(deltas)], axis=1)
-    found = top_and_second(summary, runs, key, raced) if len(runs) else None
+    found = top_and_second(summary, runs, key, raced, frames_var) if len(runs) else None
     rope = raced.plan.rope if raced is not None else None
     out["rope"] = np.nan if rope is None else rope
     out["top_vs_second"] = [
         ahead_words(found[2], found[3], rope) if found is not None and name == found[0] else "" for name in out["name"]
     ]
+    top = decide_columns(todo.get(frozenset(raced.top)) if raced is not None and raced.top else None)
+    for column, value in top.items():
+        out[f"top_{column}"] = [value if found is not None and name == found[0] else np.nan for name in out["name"]]
     out["kendall_tau"], out["kendall_n"] = kendall(summary, key) if len(summary) else (np.nan, 0)
     return out
+
+
+def decide_columns(todo: ToDecide | None) -> dict[str, float]:
+    """The CSV's columns on what deciding a comparison would take (:mod:`ablate.tables.decide`): seeds per row and
+    CPU hours; NaN for a decided comparison, seeds -1 where no number of seeds would decide it."""
+    if todo is None:
+        return {"decide_seeds": np.nan, "decide_cpu_hours": np.nan}
+    return {"decide_seeds": -1 if todo.seeds is None else todo.seeds, "decide_cpu_hours": todo.cpu_hours}
 
 
 def latex(summary: pd.DataFrame, table: DictConfig) -> str:

@@ -1,55 +1,38 @@
-"""The test set as a source of variance: each comparison's interval over the seeds *and* the test frames.
+"""Counts per test frame: what a table needs to count the test set's draw as a source of variance
+(:mod:`ablate.tables.twolevel`).
 
-A table's test split is one draw of frames; a difference smaller than what another draw would move does not carry
-to new data (Bouthillier et al. 2021, "Accounting for variance in machine learning benchmarks", MLSys: data
-sampling is a larger source of variance than the seed in most of their benchmarks). Where a task keeps its test
-metric's counts per test frame (:attr:`ablate.tasks.base.FusionTask.frame_counts`; the run's artifact
-:data:`ablate.store.FRAME_COUNTS`), the table resamples both.
+Where a task keeps its test metric's counts per test frame (:attr:`ablate.tasks.base.FusionTask.frame_counts`; the
+run's artifact :data:`ablate.store.FRAME_COUNTS`), the metric over any subset of frames follows from the counts
+summed over it (:data:`FROM_COUNTS`):
 
-**Counts.** ChiNet's semantic segmentation keeps each frame's 3 x 3 confusion counts (ground truth by prediction,
-:func:`ablate.tasks.semantic.confusion`); its detection rate and IoUs are ratios of their sums over frames. BiFNet's
-road task keeps, per frame and branch, the histograms of its BEV cells' probability levels over road and over
-other cells (:func:`ablate.metrics.road.frame_histograms`, 514 counts): the per-threshold TP and FP over any draw
-of frames follow from their sums, and MaxF from those, as the devkit forms it. Each metric is recomputed exactly
-from the counts (:data:`FROM_COUNTS`). The AP tasks (SMoE's mask AP, DGFN's 11-point box AP) keep none: AP over a
-resample needs each frame's scored detections matched again, which this module does not do. The counts are published beside the table's records
-(``runs/<table>.frames.csv.gz``: run, row, seed, condition, frame, counts), so the intervals render again from the
-records alone.
+* ChiNet's semantic segmentation keeps each frame's 3 x 3 confusion counts (ground truth by prediction,
+  :func:`ablate.tasks.semantic.confusion`); its detection rate and IoUs are ratios of their sums over frames.
+* BiFNet's road task keeps, per frame and branch, the histograms of its BEV cells' probability levels over road and
+  over other cells (:func:`ablate.metrics.road.frame_histograms`, 514 counts): the per-threshold TP and FP over any
+  set of frames follow from their sums, and MaxF from those, as the devkit forms it.
 
-**Two-level paired bootstrap** (:func:`resampled_differences`): each of :data:`RESAMPLES` resamples draws the seeds
-with replacement (the same seeds for both rows: paired) and, independently, the test frames with replacement (the
-same frames for every seed and both rows: the rows are tested on one test set); each (row, seed) metric is computed
-from its counts summed over the drawn frames, and the difference is the mean over the drawn seeds. The two levels
-are the two sources of variance: the seeds' (training) and the frames' (the test set's draw). The interval is the
-resamples' percentile interval; the p-values are the shares of resamples on the other side of 0, of ±δ
-(:func:`frame_tests`).
+The AP tasks keep, per test frame, their evaluator's matches instead (the run's artifact
+:data:`ablate.store.FRAME_DETECTIONS`, :mod:`ablate.metrics.accumulate`): SMoE's mask AP (``map``, COCOeval's
+matches) and DGFN's box AP per class and level (``car_moderate`` ..., the KITTI devkit's), from which AP over any set
+of frames is re-accumulated (:data:`FROM_DETECTIONS`).
 
-**Verdicts** (:func:`rejudge`): each comparison of the race is judged again at the look where it ended, with these
-p-values in place of the t-tests over seeds, the same levels and the same correction over the table's comparisons
-(:mod:`ablate.tables.verdicts`). The race itself stopped on the seeds alone (the sweeper does not read the frames);
-the table's verdicts, its forest plot and its numbers use the seeds-and-frames interval where the runs have counts,
-and the footer says so.
+Both are published beside the table's records (``runs/<table>.frames.csv.gz``: run, row, seed, condition, frame,
+counts; ``runs/<table>.detections.csv.gz``: run, row, seed and the detection rows), so the intervals render again
+from the records alone.
 """
 
 from __future__ import annotations
 
-import math
 import tempfile
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from omegaconf import DictConfig
 
-from ablate.store import FRAME_COUNTS, Tracker
-from ablate.tables.racing import RaceState
+from ablate.metrics.accumulate import COLUMNS, as_arrays, coco_ap, kitti_ap
+from ablate.store import FRAME_COUNTS, FRAME_DETECTIONS, Tracker
 from ablate.tables.records import RUNS_DIR
-from ablate.tables.verdicts import BETTER, EQUIVALENT, WORSE, rejected, verdict
-
-#: Resamples of the two-level bootstrap.
-RESAMPLES = 2000
 
 
 def _rate(c: np.ndarray) -> np.ndarray:
@@ -159,67 +142,84 @@ def counts(frames: pd.DataFrame, row: str, seeds: list[int], condition: str = ""
     return np.stack(out)
 
 
-def resampled_differences(
-    a: np.ndarray, b: np.ndarray, metric: Callable[[np.ndarray], np.ndarray], resamples: int = RESAMPLES, seed: int = 0
-) -> tuple[float, np.ndarray]:
-    """The observed mean difference of ``metric`` between rows ``a`` and ``b`` ([seeds, frames, k] counts, paired
-    by seed and frame) and its :data:`RESAMPLES` two-level bootstrap resamples (see the module)."""
-    rng = np.random.default_rng(seed)
-    n_seeds, n_frames = a.shape[0], a.shape[1]
-    observed = float((metric(a.sum(axis=1)) - metric(b.sum(axis=1))).mean())
-    frame_w = rng.multinomial(n_frames, np.full(n_frames, 1.0 / n_frames), size=resamples).astype(float)
-    seed_w = rng.multinomial(n_seeds, np.full(n_seeds, 1.0 / n_seeds), size=resamples).astype(float) / n_seeds
-    per_seed = metric(np.einsum("rf,sfk->rsk", frame_w, a)) - metric(np.einsum("rf,sfk->rsk", frame_w, b))
-    return observed, (per_seed * seed_w).sum(axis=1)
+def _mask_ap(rows: dict[str, np.ndarray], keep: np.ndarray | None = None) -> float:
+    """SMoE's mask AP (percent) from one run's COCOeval rows (:func:`ablate.metrics.accumulate.coco_ap`)."""
+    value = coco_ap(rows, keep)
+    return 100.0 * value if value >= 0 else float("nan")
 
 
-def frame_tests(observed: float, diffs: np.ndarray, rope: float | None) -> tuple[float, float, float]:
-    """Bootstrap p-values (p_diff, p_beyond, p_equiv) of :class:`ablate.tables.verdicts.PairedTests`' tests: the
-    shares of resamples on the other side of 0 (doubled: two-sided), of δ on the side of the observed mean, and
-    the larger share beyond -δ or δ."""
-    p_diff = min(1.0, 2.0 * min(float((diffs <= 0).mean()), float((diffs >= 0).mean())))
-    if rope is None:
-        return p_diff, math.nan, math.nan
-    beyond = float((diffs <= rope).mean()) if observed > 0 else float((diffs >= -rope).mean())
-    equiv = max(float((diffs <= -rope).mean()), float((diffs >= rope).mean()))
-    return p_diff, beyond, equiv
+def _box_ap(rows: dict[str, np.ndarray], keep: np.ndarray | None = None) -> float:
+    """DGFN's 11-point box AP (percent) of the rows' class and level (:func:`ablate.metrics.accumulate.kitti_ap`)."""
+    if not len(rows["kind"]):
+        return float("nan")
+    value = kitti_ap(rows, str(rows["cls"][0]), int(rows["level"][0]), 11, keep)
+    return value if value >= 0 else float("nan")
 
 
-def rejudge(state: RaceState, frames: pd.DataFrame, table: DictConfig) -> RaceState | None:
-    """``state`` with each comparison judged again on its seeds-and-frames interval (see the module); None where
-    the runs have no counts for the table's primary metric."""
-    key = str(table.primary)
-    if frames.empty or key not in FROM_COUNTS:
+#: Each AP metric whose runs keep their detections per test frame: the metric over any set of frames from them.
+FROM_DETECTIONS: dict[str, Callable[[dict[str, np.ndarray], np.ndarray | None], float]] = {
+    "map": _mask_ap,
+    **{f"{c}_{lv}": _box_ap for c in ("car", "pedestrian", "cyclist") for lv in ("easy", "moderate", "hard")},
+}
+
+
+def detections_path(results_dir: str | Path, table: str) -> Path:
+    """The detections per test frame kept beside a table's records."""
+    return Path(results_dir) / RUNS_DIR / f"{table}.detections.csv.gz"
+
+
+def detections_from_store(tracker: Tracker, runs: pd.DataFrame) -> pd.DataFrame:
+    """The detections per test frame of each of ``runs`` that kept them (a reused run: its source's), long: run_id,
+    row, seed, frame, condition, metric and :data:`ablate.metrics.accumulate.COLUMNS`; empty where none did."""
+    parts = []
+    for _, run in runs.iterrows():
+        source = str(run.get("reused_from") or "") or str(run["run_id"])
+        if FRAME_DETECTIONS not in tracker.list_artifacts(source, str(Path(FRAME_DETECTIONS).parent)):
+            continue
+        with tempfile.TemporaryDirectory() as folder:
+            rows = _read_detections(tracker.download_artifact(source, FRAME_DETECTIONS, folder))
+        ids = pd.DataFrame({"run_id": run["run_id"], "row": run["row"], "seed": run["seed"]}, index=rows.index)
+        parts.append(pd.concat([ids, rows], axis=1))
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+
+
+def write_detections(detections: pd.DataFrame, results_dir: str | Path, table: str) -> Path | None:
+    """``runs/<table>.detections.csv.gz``; None where there are none."""
+    if detections.empty:
         return None
-    condition = str(table.get("primary_condition") or "")
-    plan, levels = state.plan, state.plan.levels()
-    judged = {}
-    for look in sorted({c.look for c in state.comparisons.values()}):
-        at = [(k, c) for k, c in state.comparisons.items() if c.look == look and c.n >= 1]  # 1: over frames alone
-        seeds = list(range(plan.looks[look - 1]))
-        tests = []
-        for _, c in at:
-            a, b = counts(frames, c.a, seeds[: c.n], condition), counts(frames, c.b, seeds[: c.n], condition)
-            if a.shape != b.shape or a.shape[1] == 0:
-                return None  # a run without counts, or rows tested on other frames: no interval over frames
-            observed, diffs = resampled_differences(a, b, FROM_COUNTS[key])
-            tests.append((observed, diffs, frame_tests(observed, diffs, plan.rope)))
-        claims = [rejected([t[2][i] for t in tests], levels[look - 1], plan.multiplicity) for i in (1, 2, 0)]
-        for i, (k, c) in enumerate(at):
-            observed, diffs, _ = tests[i]
-            kind = verdict(claims[0][i], claims[1][i], claims[2][i], observed)
-            lo, hi = np.quantile(diffs, [levels[look - 1], 1 - levels[look - 1]])
-            done = kind in (BETTER, WORSE, EQUIVALENT)
-            p_diff = tests[i][2][0]
-            judged[k] = replace(
-                c, kind=kind, lo=float(lo), hi=float(hi), delta=observed, p=p_diff, decided=done, frames=True
-            )
-    return replace(state, comparisons={k: judged.get(k, c) for k, c in state.comparisons.items()})
+    path = detections_path(results_dir, table)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    detections.to_csv(path, index=False, lineterminator="\n", compression={"method": "gzip", "mtime": 0})
+    return path
 
 
-def judged(state: RaceState, runs: pd.DataFrame, table: DictConfig) -> RaceState:
-    """The race's state as a table reports it: judged again on the seeds-and-frames interval where ``runs`` carry
-    counts per test frame (``runs.attrs["frames"]``, put there by the table's writer), else as the race left it."""
-    frames = runs.attrs.get("frames")
-    again = rejudge(state, frames, table) if isinstance(frames, pd.DataFrame) else None
-    return again if again is not None else state
+def read_detections(results_dir: str | Path, table: str) -> pd.DataFrame:
+    """The detections kept beside a table's records (empty where there are none)."""
+    path = detections_path(results_dir, table)
+    return _read_detections(path) if path.exists() else pd.DataFrame()
+
+
+def _read_detections(path: Path | str) -> pd.DataFrame:
+    rows = pd.read_csv(path, dtype={"frame": str, "condition": str, "metric": str, "kind": str, "cls": str})
+    rows["condition"] = rows["condition"].fillna("")
+    return rows
+
+
+def run_detections(detections: pd.DataFrame, row: str, seed: int, metric: str, condition: str = "") -> pd.DataFrame:
+    """One (row, seed)'s rows of ``metric`` under ``condition``, in the order its evaluator wrote them."""
+    d = detections
+    sel = (d["row"] == row) & (pd.to_numeric(d["seed"]) == seed) & (d["metric"] == metric)
+    return d[sel & (d["condition"].astype(str) == condition)]
+
+
+def ap_left_out(rows: pd.DataFrame, metric: str) -> tuple[float, pd.Series]:
+    """``metric`` over every frame of one run's rows, and with each frame left out (by frame name: a frame tested
+    under several conditions pooled leaves all of its images out)."""
+    arrays = as_arrays({c: rows[c].to_numpy() for c in COLUMNS})
+    frame_of = rows.groupby("index")["frame"].first()
+    compute = FROM_DETECTIONS[metric]
+    left = {}
+    for frame, indices in frame_of.groupby(frame_of).groups.items():
+        keep = frame_of.index.difference(indices).to_numpy()
+        left[str(frame)] = compute(arrays, keep)
+    return compute(arrays, None), pd.Series(left).sort_index()

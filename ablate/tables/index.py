@@ -16,7 +16,9 @@ Readings:
   *holds* where it is ahead of the second by more than the table's δ (or, in a table without one, beyond seed
   noise); it holds *by a lead of uncertain practical size* where it is ahead beyond seed noise but not surely by δ;
   it holds *within ±δ only* where the race finds the two equivalent; it is *not separable* where the race left them
-  undecided (:mod:`ablate.tables.verdicts`). Otherwise it does *not hold*, and the line names our top row.
+  undecided (:mod:`ablate.tables.verdicts`). Otherwise it does *not hold*, and the line names our top row. Where
+  the race left the top row against the second open, the line adds about how many seeds per row and CPU hours
+  deciding it would take (:mod:`ablate.tables.decide`).
 - A table without paper numbers (a follow-up) has no headline.
 """
 
@@ -132,6 +134,14 @@ def summarise_numbers(table: DictConfig, numbers: pd.DataFrame) -> Summary:
         headline = "does not hold"
     else:
         headline = headline_of(verdict)
+    if len(top) and "top_decide_seeds" in top and not np.isnan(seeds := float(top["top_decide_seeds"].iloc[0])):
+        hours = float(top["top_decide_cpu_hours"].iloc[0])
+        cost = "" if np.isnan(hours) else f", about {hours:.1f} CPU h"
+        headline += (
+            "; no number of seeds would decide it"
+            if seeds < 0
+            else f"; deciding it: about {seeds:.0f} seeds per row{cost}"
+        )
     tau, n = float(numbers["kendall_tau"].iloc[0]), int(numbers["kendall_n"].iloc[0])
     shown_tau = "—" if np.isnan(tau) else f"{tau:.2f} ({n} rows)"
     return Summary(str(table.name), str(table.title), ours, paper or "—", shown_tau, headline)

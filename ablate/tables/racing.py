@@ -45,6 +45,7 @@ from omegaconf import DictConfig, OmegaConf
 from scipy import stats
 
 from ablate.tables.collect import latest, under_condition
+from ablate.tables.twolevel import FramesVariance
 from ablate.tables.verdicts import (
     BETTER,
     DIFFERENT,
@@ -53,14 +54,17 @@ from ablate.tables.verdicts import (
     UNDECIDED,
     WORSE,
     PairedTests,
+    adjusted,
     paired_tests,
-    rejected,
     verdict,
     wilson,
     words,
 )
 
 CORRECTIONS = ("bonferroni", "pocock", "obrien_fleming", "none")
+#: The test each verdict rests on (:class:`~ablate.tables.verdicts.PairedTests`' p-value), and how a line names it.
+CLAIM_TESTS = {BETTER: "p_beyond", WORSE: "p_beyond", EQUIVALENT: "p_equiv", DIFFERENT: "p_diff", UNDECIDED: "p_diff"}
+TEST_WORDS = {"p_beyond": "beyond ±δ", "p_equiv": "TOST within ±δ", "p_diff": "against 0"}
 LEVEL = 0.95
 
 
@@ -191,22 +195,35 @@ class Comparison:
     lo: float = math.nan
     hi: float = math.nan
     rope: float | None = None
-    frames: bool = False  # judged on the seeds-and-frames interval (ablate.tables.frames), not the seeds' t-tests
+    frames: bool = False  # the interval adds the test frames' variance (ablate.tables.twolevel) to the seeds'
+    sd: float = math.nan  # the seeds' standard deviation of the paired differences
+    frames_se: float = 0.0  # the test frames' standard error of the mean difference (0: the seeds alone)
+
+    @property
+    def se(self) -> float:
+        """The standard error the tests read: the seeds' and the frames' terms together."""
+        return math.sqrt(self.sd**2 / self.n + self.frames_se**2) if self.n >= 2 else math.nan
 
     def verdict(self) -> str:
         """The verdict in words, where it was reached, with the figures."""
         said = words(self.kind, self.rope)
         state = f"{said} at look {self.look}" if self.kind != UNDECIDED else said
-        if self.n < 2 and not self.frames:
+        if self.n < 2:
             return f"{state} (n = {self.n}: no test below 2 paired seeds)"
-        over = "seeds-and-frames bootstrap" if self.frames else "t"
+        over = "t interval over seeds and test frames" if self.frames else "t interval"
         shown = self.rope is not None or self.frames
         share = f"{100 * (1 - 2 * self.level):.1f}%"
-        interval = f"[{self.lo:+.2f}, {self.hi:+.2f}], the {share} {over} interval; " if shown else ""
+        interval = f"[{self.lo:+.2f}, {self.hi:+.2f}], the {share} {over}; " if shown else ""
+        spread = f"seeds' sd {self.sd:.3g}" + (f", frames' se {self.frames_se:.3g}" if self.frames else "")
         return (
-            f"{state} (n = {self.n}, Δ {self.delta:+.2f} {interval}p = {self.p:.3g} against {self.level:.4f}; "
-            f"P(A > B) = {self.p_ab:.2f} [{self.p_ab_lo:.2f}, {self.p_ab_hi:.2f}])"
+            f"{state} (n = {self.n}, Δ {self.delta:+.2f} {interval}{spread}; p = {self.p:.3g} {self.p_words()} "
+            f"against {self.level:.4f}; P(A > B) = {self.p_ab:.2f} [{self.p_ab_lo:.2f}, {self.p_ab_hi:.2f}])"
         )
+
+    def p_words(self) -> str:
+        """What ``p`` is: the test the verdict rests on, adjusted over the table's comparisons at its look."""
+        test = TEST_WORDS[CLAIM_TESTS.get(self.kind, "p_diff")] if self.rope is not None else "against 0"
+        return f"({test}, adjusted over the look's comparisons)"
 
 
 @dataclass
@@ -261,12 +278,14 @@ def race(
     plan: RacePlan,
     higher_is_better: bool = True,
     stop_after: int | None = None,
+    frames_var: FramesVariance | None = None,
 ) -> RaceState:
     """Replay the race of ``rows`` on ``values``: per row, the primary metric indexed by integer seed.
     ``reference`` is a row, or a list of rows of which the best so far is the reference at each look (the table's
     reading of ``table.reference``, :func:`ablate.tables.summary.reference`). Looks are evaluated in order while their seeds are there (a look none of the racing rows reached
     was not run: the race stops before it), at most ``stop_after`` looks. Returns the state after the last look
-    evaluated, with the rows that need seeds at the next one."""
+    evaluated, with the rows that need seeds at the next one. ``frames_var`` adds the test frames' variance to each
+    comparison's (:mod:`ablate.tables.twolevel`); without it the tests read the seeds alone."""
     state = RaceState(plan, racing=list(rows))
     last = len(plan.looks) if stop_after is None else min(stop_after, len(plan.looks))
     levels = plan.levels()
@@ -286,7 +305,7 @@ def race(
         current = {frozenset(p[:2]) for p in pairs}
         for key in [k for k in state.comparisons if k not in current]:
             del state.comparisons[key]  # an earlier top vs second (or reference) that no longer is one
-        _look(state, [pair for pair in pairs if not decided(state, *pair[:2])], seen, k, levels[k])
+        _look(state, [pair for pair in pairs if not decided(state, *pair[:2])], seen, k, levels[k], frames_var)
         state.looks_done = k + 1
         open_pairs = state.undecided()
         state.racing = [r for r in rows if any(r in (c.a, c.b) for c in open_pairs)]
@@ -294,37 +313,69 @@ def race(
 
 
 def _look(
-    state: RaceState, pairs: list[tuple[str, str, str]], seen: dict[str, pd.Series], k: int, level: float
+    state: RaceState,
+    pairs: list[tuple[str, str, str]],
+    seen: dict[str, pd.Series],
+    k: int,
+    level: float,
+    frames_var: FramesVariance | None = None,
 ) -> None:
     """Test the open comparisons ``pairs`` at look ``k`` (0-based) at ``level``, each kind of claim corrected over
     them (:func:`ablate.tables.verdicts.rejected`), and record each one's verdict: a claim of practical size (beyond
     δ, or equivalent within it) ends it; so does a difference where the table has no δ. A difference found at an
     earlier look stays found."""
     plan = state.plan
-    diffs = [_differences(seen[a], seen[b]) for a, b, _ in pairs]
-    tests = [paired_tests(d, plan.rope) for d in diffs]
-    claims = {
-        kind: rejected([getattr(t, kind) for t in tests], level, plan.multiplicity)
-        for kind in ("p_beyond", "p_equiv", "p_diff")
-    }
+    shared = [_shared(seen[a], seen[b]) for a, b, _ in pairs]
+    diffs = [d for _, d in shared]
+    extra = [
+        frames_var(a, b, seeds) if frames_var is not None and len(seeds) >= 2 else 0.0
+        for (a, b, _), (seeds, _) in zip(pairs, shared)
+    ]
+    tests = [paired_tests(d, plan.rope, v) for d, v in zip(diffs, extra)]
+    family = {kind: adjusted([getattr(t, kind) for t in tests], plan.multiplicity) for kind in CLAIM_TESTS.values()}
+    claims = {kind: [not math.isnan(q) and q <= level for q in ps] for kind, ps in family.items()}
     for i, (a, b, why) in enumerate(pairs):
         key = frozenset((a, b))
-        n, delta, p, p_ab, lo, hi = _paired(diffs[i], tests[i])
+        n, delta, _, p_ab, lo, hi = _paired(diffs[i], tests[i])
         kind = verdict(claims["p_beyond"][i], claims["p_equiv"][i], claims["p_diff"][i], tests[i].mean)
+        p = family[CLAIM_TESTS.get(kind, "p_diff")][i]  # the adjusted p of the claim made (or of the test against 0)
         earlier = state.comparisons.get(key)
         if kind == UNDECIDED and earlier is not None and earlier.kind == DIFFERENT:
-            kind = DIFFERENT
+            continue  # a difference found at an earlier look stays found, with the figures it was found on
         done = kind in (BETTER, WORSE, EQUIVALENT) or (plan.rope is None and kind == DIFFERENT)
         ilo, ihi = tests[i].interval(level)
         state.comparisons[key] = Comparison(
-            a, b, why, k + 1, n, delta, p, level, done, p_ab, lo, hi, kind, ilo, ihi, plan.rope
+            a,
+            b,
+            why,
+            k + 1,
+            n,
+            delta,
+            p,
+            level,
+            done,
+            p_ab,
+            lo,
+            hi,
+            kind,
+            ilo,
+            ihi,
+            plan.rope,
+            frames_var is not None,
+            tests[i].sd,
+            tests[i].frames_se,
         )
 
 
 def _differences(a: pd.Series, b: pd.Series) -> np.ndarray:
     """``a - b`` over the seeds both have."""
-    _, ia, ib = np.intersect1d(a.index.to_numpy(), b.index.to_numpy(), return_indices=True)
-    return a.to_numpy(dtype=float)[ia] - b.to_numpy(dtype=float)[ib]
+    return _shared(a, b)[1]
+
+
+def _shared(a: pd.Series, b: pd.Series) -> tuple[list[int], np.ndarray]:
+    """The seeds both have (in increasing order) and ``a - b`` over them."""
+    seeds, ia, ib = np.intersect1d(a.index.to_numpy(), b.index.to_numpy(), return_indices=True)
+    return [int(s) for s in seeds], a.to_numpy(dtype=float)[ia] - b.to_numpy(dtype=float)[ib]
 
 
 def _first(series: pd.Series | None, n: int) -> pd.Series:

@@ -5,10 +5,11 @@ from which the report renders the table again on any machine, with no store (Dom
 One line per run the table uses (:func:`ablate.tables.collect.collect`: per row and seed the latest FINISHED run,
 at the latest scale): who it is (``table``, ``row``, ``seed``, ``status``, ``scale``, ``config_hash``), the code
 that made it (``git_commit``, its ``fingerprint``, ``evaluator``, ``targets``), where and how (``made_cpu``,
-``cpu_isa``, ``made_gpu``: the GPU, empty on the CPU and absent from older records, ``made_precision``,
+``cpu_isa``, ``cpu_kernels``: the kernels torch ran, :func:`ablate.hardware.kernels`, absent from older records, ``made_gpu``: the GPU, empty on the CPU and absent from older records, ``made_precision``,
 ``made_threads``), when (``started``, ``ended`` in ms, ``seconds``, and
 ``job_started``, the job's start before its experts), the race and
-sweep it belongs to (``race_plan``, ``sweep_id``, ``job_num``, ``reused_from``, ``run_id``), the config a tuning
+sweep it belongs to (``race_plan``, ``sweep_id``, ``job_num``, ``reused_from``, ``run_id``), the training step it
+resumed from a checkpoint at (``resumed_step``, empty for a run trained uninterrupted; absent from older records), the config a tuning
 phase chose for its row (``tuned_config``, empty where the row was not tuned), and one column per
 final metric: the test metrics the table shows (per condition and difficulty where it has them), latency and
 costs. No per-step history, no checkpoints. Numbers are written as Python's shortest round-trip form, so a table
@@ -40,6 +41,7 @@ TEXT = (
     "targets",
     "made_cpu",
     "cpu_isa",
+    "cpu_kernels",
     "made_gpu",
     "made_precision",
     "made_threads",
@@ -47,13 +49,16 @@ TEXT = (
     "race_plan",
     "tuned_config",
     "reused_from",
+    "resumed_step",
 )
 #: The whole-number columns: the job's number in its sweep, its run's start and end (ms since the epoch), and the
 #: job's start before the experts it trained first (``job_started``; absent from records written before it).
 WHOLE = ("job_num", "started", "ended", "job_started")
 #: What a missing or empty text column reads as where records are compared: a run on the CPU names no GPU, and
 #: records written before the column have none; any other column unknown reads ``?``.
-ABSENT = {"made_gpu": "none"}
+ABSENT = {"made_gpu": "none", "cpu_kernels": "not recorded"}
+#: Columns whose absence says nothing (older records): never a difference.
+UNKNOWN_IF_ABSENT = ("cpu_kernels",)
 #: Metrics a record leaves out: the per-epoch ones (their last values) and the test metrics' second names.
 HISTORY = ("train/", "val/", "test/", "epoch", "lr")
 
@@ -69,6 +74,7 @@ def text_of(value: object, column: str) -> str:
 NUMERICS = {
     "made_cpu": "CPU",
     "cpu_isa": "ISA",
+    "cpu_kernels": "kernels",
     "made_gpu": "GPU",
     "made_precision": "precision",
     "made_threads": "threads",
@@ -81,6 +87,8 @@ def numerics_differ(before: pd.DataFrame, now: pd.DataFrame) -> list[str]:
     out = []
     for column, name in NUMERICS.items():
         was, is_ = (sorted({text_of(v, column) for v in runs.get(column, pd.Series([None]))}) for runs in (before, now))
+        if column in UNKNOWN_IF_ABSENT and ABSENT[column] in (*was, *is_):
+            continue  # records made before the column: not known to differ
         if was != is_:
             out.append(f"{name}: {' / '.join(was)} -> {' / '.join(is_)}")
     return out

@@ -1,14 +1,16 @@
 """Confidence intervals and significance over seeds, for the tables (:mod:`ablate.tables`).
 
-* :func:`mean_ci` — a 95 % confidence interval for a row's mean over its seeds: Student's t for n < 6 (the
-  bootstrap's percentiles are too coarse and too narrow on 2-5 values: rliable, Agarwal et al. 2021, keeps
-  t-based intervals there), a percentile bootstrap over seeds from n = 6 on
-  (10 000 resamples, a fixed generator, so the same runs give the same bytes).
+* :func:`mean_ci` — a 95 % confidence interval for a row's mean over its seeds: Student's t for n < 30 (a
+  percentile bootstrap's interval is too narrow at the few seeds a table has: it loses the small-sample correction
+  t carries, Efron & Tibshirani 1993, "An introduction to the bootstrap", sec. 13.3; rliable, Agarwal et al. 2021,
+  keeps t-based intervals there), a percentile bootstrap over seeds from n = 30 on (10 000 resamples, a fixed
+  generator, so the same runs give the same bytes).
 * :func:`difference` — a row against a reference row. Where the two share seeds (same data order and
-  initialisation per seed), the test is *paired*: the CI of the mean per-seed difference, and the paired t-test
-  (``scipy.stats.ttest_rel``). Otherwise Welch's unequal-variance t interval and test (``ttest_ind``,
-  ``equal_var=False``); from n = 6 per side a percentile bootstrap of the difference of means instead of the
-  t interval. A difference is *significant* when its 95 % CI excludes 0.
+  initialisation per seed), the test is *paired*: Student's t interval of the mean per-seed difference and the
+  paired t-test, with the test frames' variance added where the table kept counts per frame
+  (:mod:`ablate.tables.twolevel`: never narrower than the seeds' own t). Otherwise Welch's unequal-variance t
+  interval and test (``ttest_ind``, ``equal_var=False``); from n = 30 per side a percentile bootstrap of the
+  difference of means instead of the t interval. A difference is *significant* when its 95 % CI excludes 0.
 * :func:`disagreeing_seeds` — seeds whose value falls far below the others of their row (a class never learnt,
   a run that diverged): such a row's mean hides a failure, so the report prints it under the table.
 """
@@ -22,9 +24,11 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from ablate.tables.verdicts import paired_tests
+
 LEVEL = 0.95
 #: From this many values on, intervals come from a percentile bootstrap; below it from Student's t.
-BOOTSTRAP_FROM = 6
+BOOTSTRAP_FROM = 30
 RESAMPLES = 10_000
 #: A seed disagrees with its row when its value is below this fraction of the median of the row's other seeds.
 COLLAPSE_RATIO = 0.5
@@ -34,7 +38,7 @@ COLLAPSE_RATIO = 0.5
 class Interval:
     lo: float
     hi: float
-    method: str  # "t", "bootstrap" or "" (fewer than 2 values)
+    method: str  # "t", "t, frames" (seeds and test frames), "bootstrap" or "" (fewer than 2 values)
 
     def excludes_zero(self) -> bool:
         return bool(self.lo > 0 or self.hi < 0)
@@ -58,7 +62,8 @@ class Difference:
 
     @property
     def test(self) -> str:
-        return self.kind + (", bootstrap CI" if self.ci.method == "bootstrap" else "")
+        frames = " over seeds and test frames" if self.ci.method == "t, frames" else ""
+        return self.kind + frames + (", bootstrap CI" if self.ci.method == "bootstrap" else "")
 
 
 def _bootstrap(samples: list[np.ndarray], statistic: Callable[..., np.ndarray]) -> tuple[float, float]:
@@ -92,18 +97,23 @@ def prediction_interval(values: Iterable[float] | pd.Series) -> tuple[float, flo
     return float(x.mean() - half), float(x.mean() + half)
 
 
-def difference(row: pd.Series, ref: pd.Series) -> Difference:
+def difference(row: pd.Series, ref: pd.Series, frames_var: Callable[[list[int]], float] | None = None) -> Difference:
     """``row`` minus ``ref`` (values indexed by seed): mean difference, its 95 % CI and the test's p-value.
 
-    Paired over the shared seeds when there are at least two; unpaired (Welch) otherwise."""
+    Paired over the shared seeds when there are at least two (``frames_var(seeds)``: the test frames' variance of
+    their mean difference, :mod:`ablate.tables.twolevel`); unpaired (Welch) otherwise."""
     row, ref = pd.Series(row, dtype=float).dropna(), pd.Series(ref, dtype=float).dropna()
     shared = row.index.intersection(ref.index)
     if len(shared) >= 2:
+        shared = sorted(shared, key=lambda s: (float(s), str(s)))  # by seed: the same figures in any record order
         d = (row[shared] - ref[shared]).to_numpy()
-        delta = float(d.mean())
-        if np.all(d == d[0]):  # no spread: the t statistic is undefined, the difference is exact
-            return Difference(delta, Interval(delta, delta, "t"), 0.0 if delta else 1.0, True, len(d))
-        return Difference(delta, mean_ci(d), float(stats.ttest_1samp(d, 0.0).pvalue), True, len(d))
+        extra = frames_var([int(float(s)) for s in shared]) if frames_var is not None else 0.0
+        t = paired_tests(d, None, extra)
+        level = (1 - LEVEL) / 2
+        lo, hi = t.interval(level) if t.se > 0 else (t.mean, t.mean)
+        return Difference(
+            t.mean, Interval(lo, hi, "t, frames" if frames_var is not None else "t"), t.p_diff, True, len(d)
+        )
     a, b = row.to_numpy(), ref.to_numpy()
     delta = float(a.mean() - b.mean()) if len(a) and len(b) else np.nan
     if len(a) < 2 or len(b) < 2:

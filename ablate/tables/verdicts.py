@@ -65,7 +65,9 @@ Z_LEVEL = float(stats.norm.ppf(1 - (1 - LEVEL) / 2))
 class PairedTests:
     """The paired tests of one comparison: ``n`` seeds, the mean difference and its standard error, and the p-values
     of the two-sided test against 0 (``p_diff``), the one-sided test beyond ±δ in the direction of the mean
-    (``p_beyond``) and TOST (``p_equiv``); the last two NaN without a δ."""
+    (``p_beyond``) and TOST (``p_equiv``); the last two NaN without a δ. ``sd`` is the seeds' standard deviation of
+    the paired differences and ``frames_se`` the test frames' share of ``se`` (0: the seeds alone; see
+    :func:`paired_tests`)."""
 
     n: int
     mean: float
@@ -73,6 +75,8 @@ class PairedTests:
     p_diff: float
     p_beyond: float
     p_equiv: float
+    sd: float = math.nan
+    frames_se: float = 0.0
 
     def interval(self, level: float) -> tuple[float, float]:
         """The (1 - 2 ``level``) interval of the mean difference: what TOST at ``level`` reads."""
@@ -82,52 +86,76 @@ class PairedTests:
         return self.mean - half, self.mean + half
 
 
-def paired_tests(d: Sequence[float] | np.ndarray, rope: float | None) -> PairedTests:
-    """The tests of :class:`PairedTests` on the paired differences ``d`` (Student's t, n - 1 degrees of freedom); a
-    difference without spread is exact: each test rejects (p = 0) or not (p = 1) by its value."""
+def paired_tests(d: Sequence[float] | np.ndarray, rope: float | None, frames_var: float = 0.0) -> PairedTests:
+    """The tests of :class:`PairedTests` on the paired differences ``d``: Student's t on n - 1 degrees of freedom.
+
+    ``frames_var`` adds the test set as a second source of variance (:mod:`ablate.tables.twolevel`): the variance
+    of the seeds' mean difference over draws of the test frames. The standard error is then the two levels' sum,
+    ``sqrt(s_d^2 / n + frames_var)``, on the seeds' n - 1 degrees of freedom, so the interval is never narrower than
+    the seeds' own t interval and equals it where the frames add nothing. A difference without spread at either
+    level is exact: each test rejects (p = 0) or not (p = 1) by its value."""
     d = np.asarray(d, dtype=float)
     n = len(d)
     if n < 2:
         mean = float(d.mean()) if n else math.nan
         return PairedTests(n, mean, math.nan, math.nan, math.nan, math.nan)
-    mean, se = float(d.mean()), float(d.std(ddof=1) / math.sqrt(n))
+    mean, sd = float(d.mean()), float(d.std(ddof=1))
+    frames_var = max(0.0, float(frames_var))
+    se = math.sqrt(sd * sd / n + frames_var)
     if se == 0:
-        exact = PairedTests(n, mean, 0.0, 0.0 if mean else 1.0, math.nan, math.nan)
+        exact = PairedTests(n, mean, 0.0, 0.0 if mean else 1.0, math.nan, math.nan, 0.0)
         if rope is None:
             return exact
         beyond = 0.0 if abs(mean) > rope else 1.0
-        return PairedTests(n, mean, 0.0, exact.p_diff, beyond, 0.0 if abs(mean) < rope else 1.0)
+        return PairedTests(n, mean, 0.0, exact.p_diff, beyond, 0.0 if abs(mean) < rope else 1.0, 0.0)
+    return t_tests(n, mean, se, rope, sd, math.sqrt(frames_var))
+
+
+def t_tests(
+    n: int, mean: float, se: float, rope: float | None, sd: float = math.nan, frames_se: float = 0.0
+) -> PairedTests:
+    """:class:`PairedTests` of a mean difference ``mean`` with standard error ``se`` > 0 over ``n`` seeds (Student's
+    t, n - 1 degrees of freedom)."""
     df = n - 1  # Student's t: special.stdtr(df, x) is its cdf at x (scipy.stats.t's, without its overhead)
     p_diff = float(2 * special.stdtr(df, -abs(mean) / se))
     if rope is None:
-        return PairedTests(n, mean, se, p_diff, math.nan, math.nan)
+        return PairedTests(n, mean, se, p_diff, math.nan, math.nan, sd, frames_se)
     p_beyond = float(special.stdtr(df, -(abs(mean) - rope) / se))  # H0: |d| <= δ on the side of the observed mean
     p_equiv = float(max(special.stdtr(df, -(mean + rope) / se), special.stdtr(df, (mean - rope) / se)))
-    return PairedTests(n, mean, se, p_diff, p_beyond, p_equiv)
+    return PairedTests(n, mean, se, p_diff, p_beyond, p_equiv, sd, frames_se)
 
 
-def rejected(ps: Sequence[float], level: float, method: str = "holm") -> list[bool]:
-    """Which of the p-values ``ps`` (NaN: no test) are rejected at ``level`` over the family, by ``method`` (see the
-    module)."""
+def adjusted(ps: Sequence[float], method: str = "holm") -> list[float]:
+    """The p-values ``ps`` (NaN: no test) adjusted for the family by ``method`` (see the module), so that a claim is
+    made exactly where its adjusted p is at most the level: Holm's ``max_{j <= r} min(1, (m - j + 1) p_(j))``,
+    Benjamini-Hochberg's ``min_{j >= r} min(1, m p_(j) / j)`` (Wright 1992, Biometrics 48(4)), or ``p`` itself."""
     if method not in MULTIPLICITY:
         raise ValueError(f"table.seeds.multiplicity: {method!r} is not one of {', '.join(MULTIPLICITY)}")
     tested = [i for i, p in enumerate(ps) if not math.isnan(p)]
-    out = [False] * len(ps)
+    out = [math.nan] * len(ps)
     m = len(tested)
     order = sorted(tested, key=lambda i: ps[i])
     if method == "none":
         for i in tested:
-            out[i] = ps[i] <= level
+            out[i] = float(ps[i])
     elif method == "holm":
+        running = 0.0
         for rank, i in enumerate(order):
-            if ps[i] > level / (m - rank):
-                break
-            out[i] = True
-    else:  # bh: the largest rank whose p is under its line, and every smaller p
-        passing = [rank for rank, i in enumerate(order) if ps[i] <= (rank + 1) / m * level]
-        for i in order[: passing[-1] + 1] if passing else []:
-            out[i] = True
+            running = max(running, min(1.0, (m - rank) * ps[i]))
+            out[i] = running
+    else:
+        running = 1.0
+        for rank in range(m - 1, -1, -1):
+            i = order[rank]
+            running = min(running, min(1.0, m * ps[i] / (rank + 1)))
+            out[i] = running
     return out
+
+
+def rejected(ps: Sequence[float], level: float, method: str = "holm") -> list[bool]:
+    """Which of the p-values ``ps`` (NaN: no test) are rejected at ``level`` over the family, by ``method`` (see the
+    module): those whose :func:`adjusted` p is at most ``level``."""
+    return [not math.isnan(q) and q <= level for q in adjusted(ps, method)]
 
 
 def verdict(beyond: bool, equivalent: bool, different: bool, mean: float) -> str:

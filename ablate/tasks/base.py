@@ -116,6 +116,10 @@ class FusionTask(L.LightningModule):
         #: (:mod:`ablate.tables.frames`): one dict per (frame, condition), filled by a subclass whose metric
         #: decomposes over frames (:meth:`keep_frame_counts`); empty for the others.
         self.frame_counts: list[dict[str, Any]] = []
+        #: What re-accumulating an AP metric over any set of test frames needs (:mod:`ablate.metrics.accumulate`):
+        #: its rows per (frame, condition), filled by a subclass whose metric is an AP (:meth:`keep_frame_rows`).
+        self.frame_detections: list[dict[str, Any]] = []
+        self._test_frames: dict[str, list[str]] = {}
 
     def forward(self, batch: dict) -> dict:
         """The model's outputs, in fp32 whatever the autocast precision (ablate.hardware): losses, metrics and NMS
@@ -183,8 +187,21 @@ class FusionTask(L.LightningModule):
         for frame, row in zip(frames, counts.tolist()):
             self.frame_counts.append({"frame": str(frame), "condition": condition, "counts": [int(c) for c in row]})
 
+    def keep_frame_names(self, frames: list[str]) -> None:
+        """The test frames of a batch, in the order the condition's test metric receives them."""
+        self._test_frames.setdefault(self._condition or "", []).extend(str(f) for f in frames)
+
+    def keep_frame_rows(self, rows: list[dict[str, Any]]) -> None:
+        """Keep an AP metric's rows per image (:mod:`ablate.metrics.accumulate`; ``index``: the image in the order
+        the metric received them) under the condition being tested, each named by its frame."""
+        condition = self._condition or ""
+        names = self._test_frames.get(condition, [])
+        for row in rows:
+            if row["index"] < len(names):
+                self.frame_detections.append(row | {"frame": names[row["index"]], "condition": condition})
+
     def on_test_epoch_start(self) -> None:
-        self.frame_counts = []
+        self.frame_counts, self.frame_detections, self._test_frames = [], [], {}
         if self.eval_conditions is None:
             return
         names = self._test_metric_names()
@@ -206,6 +223,7 @@ class FusionTask(L.LightningModule):
             for condition in base:
                 for n, m in self._condition_metrics[condition].items():
                     _merge(self._condition_metrics[pooled][n], m)
+            self._test_frames[pooled] = [f for c in base for f in self._test_frames.get(c, [])]  # merged in this order
         for name in [*([pooled] if pooled else []), *self.eval_conditions.names]:
             with self.under(name):
                 self._eval_end("test")

@@ -44,6 +44,7 @@ from ablate.tables.racing import RacePlan, RaceState, race, table_values
 from ablate.tables.spec import LOWER_IS_BETTER, sweep_params
 from ablate.tables.tuning import from_store as tuning_trials
 from ablate.tables.tuning import last_trials, phase_wall, trial_objectives
+from ablate.tables.twolevel import store_frames
 
 log = logging.getLogger(__name__)
 
@@ -307,7 +308,10 @@ class RacingSweeperImpl:
         race_.earlier = 60 * earlier_wall(runs, self._context().parent_run)
         if race_.trained:
             race_.cost = self._costs(tracker, runs)
-        race_.state = race(values, list(race_.jobs), race_.reference, race_.plan, race_.higher, stop_after=look)
+        frames_var = store_frames(tracker, runs, str(table.primary), str(table.get("primary_condition") or ""))
+        race_.state = race(
+            values, list(race_.jobs), race_.reference, race_.plan, race_.higher, stop_after=look, frames_var=frames_var
+        )
         if race_.state.looks_done < look:
             race_.stopped = f"look {look} gave no values (its jobs failed): the race stopped there"
             return False

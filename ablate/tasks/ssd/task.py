@@ -120,6 +120,8 @@ class DetectionTask(FusionTask):
         metric = getattr(self, f"{stage}_ap")
         metric.image_height = float(size[0])  # KITTI's pixel heights scale with the evaluated frames' height
         metric.update(self.predict(outputs, size), targets)
+        if stage == "test" and "frame" in batch:
+            self.keep_frame_names(list(batch["frame"]))
         gates = getattr(self, f"{stage}_gates", None)
         if gates is not None:
             op = self.model.fusion_modules()[0]
@@ -137,6 +139,11 @@ class DetectionTask(FusionTask):
                     self.log(f"{name}_ap40", _percent(values[f"{cls}/{level}/ap40"]))
             self.log(f"{stage}/ap11", _percent(values["ap11"]), prog_bar=True)
             self.log(f"{stage}/ap40", _percent(values["ap40"]))
+            if stage == "test":  # each class's matches per frame: the tables resample the test set from them
+                for cls in self.classes:
+                    for level in LEVELS:
+                        rows = metric.frame_rows(cls, level)
+                        self.keep_frame_rows([r | {"metric": f"{cls.lower()}_{level}"} for r in rows])
         metric.reset()
         for m, mean in (getattr(self, f"{stage}_gates", None) or {}).items():
             if mean.update_count:

@@ -150,6 +150,8 @@ class InstanceTask(FusionTask):
         preds = self.predict(outputs, size)
         getattr(self, f"{stage}_map").update(preds, targets)
         if stage == "test":
+            if "frame" in batch:
+                self.keep_frame_names(list(batch["frame"]))
             for pred, target, condition in zip(preds, targets, batch.get("condition") or [None] * len(preds)):
                 group = condition_group(condition) if condition is not None else None
                 if f"map_{group}" in self.test_group_map:
@@ -161,6 +163,8 @@ class InstanceTask(FusionTask):
             values = metric.compute()
             for key in ("map", "map_50", "map_75", "bbox_map"):
                 self.log(f"{stage}/{key}", _percent(values[key]), prog_bar=key == "map")
+            if stage == "test":  # the mask AP's matches per frame: the tables resample the test set from them
+                self.keep_frame_rows([r | {"metric": "map"} for r in metric.frame_rows("segm")])
         metric.reset()
         if stage == "test":
             for key, m in self.test_group_map.items():

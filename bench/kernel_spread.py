@@ -1,0 +1,90 @@
+"""How far another CPU's kernels move each seed's result, against the seeds' own spread.
+
+    python bench/kernel_spread.py experiment=bifnet_table4 rows=bifnet_dst_sum,bifnet_dst_cbf seeds=0,1,2 \
+        [kernels=avx2] [out=kernel_spread.json]
+
+Reruns each (row, seed) of a published table here, on the table's configs and seeds (its tuned config where it was
+tuned: :mod:`ablate.analysis.reproduce`), with torch's and oneDNN's kernels held to a lower instruction set
+(``ATEN_CPU_CAPABILITY``, ``ONEDNN_MAX_CPU_ISA``: ``kernels=avx2`` runs the AVX2 EPYC's kernels on any newer CPU),
+and prints, per seed, the published value, the rerun's and the shift; per row, the seeds' standard deviation in the
+records and the shifts' root mean square; and, per pair of rows, the same for their paired difference, the figure a
+verdict reads. The JSON keeps every number. The CPU and the kernels are printed first.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+#: kernels=NAME -> the environment that holds torch's and oneDNN's kernels to it.
+KERNELS = {
+    "avx2": {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2"},
+    "avx512": {"ATEN_CPU_CAPABILITY": "avx512", "ONEDNN_MAX_CPU_ISA": "AVX512_CORE"},
+    "default": {},
+}
+
+
+def main(argv: list[str]) -> int:
+    opts = dict(a.split("=", 1) for a in argv if "=" in a and a.split("=", 1)[0] in ("rows", "seeds", "kernels", "out"))
+    rest = [a for a in argv if a.split("=", 1)[0] not in ("rows", "seeds", "kernels", "out")]
+    kernels = opts.get("kernels", "avx2")
+    os.environ.update(KERNELS[kernels])  # the reruns are subprocesses: they inherit it
+
+    from ablate import hardware
+    from ablate.analysis.reproduce import reproduce
+    from ablate.config import compose
+    from ablate.tables import table_spec
+
+    machine = hardware.cpu()
+    cfg = compose(rest)
+    table = table_spec(cfg)
+    rows, seeds = opts["rows"].split(","), [int(s) for s in opts.get("seeds", "0,1,2").split(",")]
+    print(f"CPU: {machine.model} ({machine.isa}); kernels={kernels} {KERNELS[kernels]}; table {table.name}")
+    found: dict[str, dict[int, tuple[float, float]]] = {}
+    spread: dict[str, float] = {}
+    for row in rows:
+        found[row] = {}
+        for seed in seeds:
+            start = time.monotonic()
+            outcome = reproduce(cfg, [*rest, f"row={row}", f"seed={seed}"])
+            found[row][seed] = (float(outcome.recorded or math.nan), outcome.value)
+            spread[row] = float(np.std(outcome.values, ddof=1))
+            print(
+                f"  {row} seed {seed}: published {outcome.recorded:.4f}, rerun {outcome.value:.4f}, "
+                f"shift {outcome.value - (outcome.recorded or math.nan):+.4f} ({time.monotonic() - start:.0f} s)",
+                flush=True,
+            )
+    print(f"{table.primary}: per row, the seeds' sd in the records against the kernels' shift (root mean square)")
+    for row in rows:
+        shifts = np.array([new - old for old, new in found[row].values()])
+        print(f"  {row}: seeds' sd {spread[row]:.4f}, kernels' shift rms {np.sqrt(np.mean(shifts**2)):.4f}")
+    pairs = [(a, b) for i, a in enumerate(rows) for b in rows[i + 1 :]]
+    for a, b in pairs:
+        old = np.array([found[a][s][0] - found[b][s][0] for s in seeds])
+        new = np.array([found[a][s][1] - found[b][s][1] for s in seeds])
+        print(
+            f"  {a} - {b}: published {old.mean():+.4f} (paired sd {old.std(ddof=1):.4f}), rerun {new.mean():+.4f} "
+            f"(paired sd {new.std(ddof=1):.4f}); the difference's shift rms {np.sqrt(np.mean((new - old) ** 2)):.4f}"
+        )
+    if "out" in opts:
+        payload = {
+            "cpu": machine.model,
+            "isa": machine.isa,
+            "kernels": kernels,
+            "table": str(table.name),
+            "metric": str(table.primary),
+            "seeds_sd": spread,
+            "runs": {r: {str(s): {"published": v[0], "rerun": v[1]} for s, v in found[r].items()} for r in rows},
+        }
+        Path(opts["out"]).write_text(json.dumps(payload, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
