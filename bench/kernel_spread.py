@@ -1,14 +1,16 @@
 """How far another CPU's kernels move each seed's result, against the seeds' own spread.
 
     python bench/kernel_spread.py experiment=bifnet_table4 rows=bifnet_dst_sum,bifnet_dst_cbf seeds=0,1,2 \
-        [kernels=avx2] [out=kernel_spread.json]
+        [kernels=avx2] [out=kernel_spread.json] [store=DIR]
 
 Reruns each (row, seed) of a published table here, on the table's configs and seeds (its tuned config where it was
 tuned: :mod:`ablate.analysis.reproduce`), with torch's and oneDNN's kernels held to a lower instruction set
 (``ATEN_CPU_CAPABILITY``, ``ONEDNN_MAX_CPU_ISA``: ``kernels=avx2`` runs the AVX2 EPYC's kernels on any newer CPU),
 and prints, per seed, the published value, the rerun's and the shift; per row, the seeds' standard deviation in the
 records and the shifts' root mean square; and, per pair of rows, the same for their paired difference, the figure a
-verdict reads. The JSON keeps every number. The CPU and the kernels are printed first.
+verdict reads. The JSON keeps every number. The CPU and the kernels are printed first. ``store=DIR`` keeps one
+store for every rerun, so that each seed's experts train once for all the rows that start from them (seeds inner,
+rows outer: list the fused rows first).
 """
 
 from __future__ import annotations
@@ -31,8 +33,9 @@ KERNELS = {
 
 
 def main(argv: list[str]) -> int:
-    opts = dict(a.split("=", 1) for a in argv if "=" in a and a.split("=", 1)[0] in ("rows", "seeds", "kernels", "out"))
-    rest = [a for a in argv if a.split("=", 1)[0] not in ("rows", "seeds", "kernels", "out")]
+    own = ("rows", "seeds", "kernels", "out", "store")
+    opts = dict(a.split("=", 1) for a in argv if "=" in a and a.split("=", 1)[0] in own)
+    rest = [a for a in argv if a.split("=", 1)[0] not in own]
     kernels = opts.get("kernels", "avx2")
     os.environ.update(KERNELS[kernels])  # the reruns are subprocesses: they inherit it
 
@@ -52,7 +55,8 @@ def main(argv: list[str]) -> int:
         found[row] = {}
         for seed in seeds:
             start = time.monotonic()
-            outcome = reproduce(cfg, [*rest, f"row={row}", f"seed={seed}"])
+            keep = Path(opts["store"]) if "store" in opts else None  # one store: each seed's experts trained once
+            outcome = reproduce(cfg, [*rest, f"row={row}", f"seed={seed}"], keep=keep)
             found[row][seed] = (float(outcome.recorded or math.nan), outcome.value)
             spread[row] = float(np.std(outcome.values, ddof=1))
             print(

@@ -137,11 +137,10 @@ def summarise_numbers(table: DictConfig, numbers: pd.DataFrame) -> Summary:
     if len(top) and "top_decide_seeds" in top and not np.isnan(seeds := float(top["top_decide_seeds"].iloc[0])):
         hours = float(top["top_decide_cpu_hours"].iloc[0])
         cost = "" if np.isnan(hours) else f", about {hours:.1f} CPU h"
-        headline += (
-            "; no number of seeds would decide it"
-            if seeds < 0
-            else f"; deciding it: about {seeds:.0f} seeds per row{cost}"
+        todo = (
+            "no number of seeds would decide it" if seeds < 0 else f"deciding it: about {seeds:.0f} seeds per row{cost}"
         )
+        headline = f"top row vs second open; {todo}" if headline == "—" else f"{headline}; {todo}"
     tau, n = float(numbers["kendall_tau"].iloc[0]), int(numbers["kendall_n"].iloc[0])
     shown_tau = "—" if np.isnan(tau) else f"{tau:.2f} ({n} rows)"
     return Summary(str(table.name), str(table.title), ours, paper or "—", shown_tau, headline)

@@ -1,0 +1,90 @@
+"""What deciding an undecided comparison would take (ablate.tables.decide), against simulated tables, and the
+committed tables' words against their own numbers."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from ablate.tables.decide import POWER, job_cpu_hours, seeds_to_decide
+from ablate.tables.verdicts import paired_tests
+
+RESULTS = Path(__file__).resolve().parents[1] / "results"
+
+
+def decided_share(n: int, mean: float, sd: float, frames_se: float, rope: float | None, level: float) -> float:
+    """The share of 2000 simulated comparisons at ``n`` seeds that reach the claim the estimate aims at: the paired
+    differences drawn around ``mean`` with the seeds' sd, all moved by one draw of the test set (``frames_se``),
+    tested with the frames' variance added as the tables add it."""
+    rng = np.random.default_rng(int(1000 * abs(mean)) + n)
+    hits = 0
+    for _ in range(2000):
+        d = mean + rng.normal(0, frames_se) + rng.normal(0, sd, n)
+        t = paired_tests(d, rope, frames_se**2)
+        if rope is None:
+            hits += t.p_diff <= level
+        elif abs(mean) > rope:
+            hits += t.p_beyond <= level
+        else:
+            hits += t.p_equiv <= level
+    return hits / 2000
+
+
+@pytest.mark.parametrize(
+    "mean,sd,frames_se,rope",
+    [
+        (0.5, 0.4, 0.0, 0.2),  # beyond δ, the seeds alone
+        (0.5, 0.4, 0.03, 0.2),  # beyond δ, with the test set's variance
+        (0.05, 0.3, 0.02, 0.3),  # equivalent within ±δ
+        (0.4, 0.6, 0.05, None),  # different, a table without δ
+    ],
+)
+def test_the_estimated_seeds_decide_about_the_share_they_promise(mean, sd, frames_se, rope) -> None:
+    level = 0.0167
+    n = seeds_to_decide(mean, sd, frames_se, rope, level)
+    assert n is not None and 3 <= n <= 200
+    share = decided_share(n, mean, sd, frames_se, rope, level)
+    assert share == pytest.approx(POWER, abs=0.06)
+    assert decided_share(max(2, n // 2), mean, sd, frames_se, rope, level) < POWER - 0.1  # fewer seeds: less often
+
+
+def test_no_number_of_seeds_decides_what_the_test_set_alone_leaves_open() -> None:
+    assert seeds_to_decide(0.25, 0.1, 0.05, 0.2, 0.0167) is None  # 0.05 beyond δ, the frames' se alone 0.05
+    assert seeds_to_decide(0.2, 0.1, 0.0, 0.2, 0.0167) is None  # on δ
+
+
+def test_a_jobs_cpu_hours_are_its_wall_time_by_its_threads_and_a_copy_costs_nothing() -> None:
+    runs = pd.DataFrame(
+        {
+            "row": ["a", "a", "b", "c"],
+            "seconds": [3600.0, 7200.0, 1800.0, 0.1],
+            "made_threads": ["2", "2", "1", "1"],
+            "reused_from": ["", "", "", "abc"],
+        }
+    )
+    assert job_cpu_hours(runs, "a") == pytest.approx(3.0)  # median of 2 h and 4 h of CPU
+    assert job_cpu_hours(runs, "c") == pytest.approx(job_cpu_hours(runs.iloc[:3], "zzz"))  # a copy: the table's
+
+
+CLAIMS = re.compile(r"ahead|beyond seed noise")
+FIGURES = re.compile(r"\[(?P<lo>[−+\-0-9.]+), (?P<hi>[−+\-0-9.]+)\].*?p = (?P<p>[0-9.e\-]+)(?:[^:]*?against (?P<level>0\.[0-9]+))?")
+
+
+def number(text: str) -> float:
+    return float(text.replace("−", "-"))
+
+
+@pytest.mark.parametrize("path", sorted(RESULTS.glob("*_table*.md")), ids=lambda p: p.name)
+def test_no_line_of_a_published_table_claims_more_than_its_interval_and_p(path: Path) -> None:
+    for line in path.read_text().splitlines():
+        if not line.startswith(("Top row", "Headline")) or not CLAIMS.search(line.split(":")[-1]):
+            continue
+        found = FIGURES.search(line)
+        assert found, line
+        lo, hi = number(found["lo"]), number(found["hi"])
+        assert not lo <= 0 <= hi, line
+        assert float(found["p"]) < float(found["level"] or 0.05), line
