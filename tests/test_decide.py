@@ -71,7 +71,9 @@ def test_a_jobs_cpu_hours_are_its_wall_time_by_its_threads_and_a_copy_costs_noth
 
 
 CLAIMS = re.compile(r"ahead|beyond seed noise")
-FIGURES = re.compile(r"\[(?P<lo>[−+\-0-9.]+), (?P<hi>[−+\-0-9.]+)\].*?p = (?P<p>[0-9.e\-]+)(?:[^:]*?against (?P<level>0\.[0-9]+))?")
+FIGURES = re.compile(
+    r"\[(?P<lo>[−+\-0-9.]+), (?P<hi>[−+\-0-9.]+)\].*?p = (?P<p>[0-9.e\-]+)(?:[^:]*?against (?P<level>0\.[0-9]+))?"
+)
 
 
 def number(text: str) -> float:

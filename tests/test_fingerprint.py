@@ -116,3 +116,28 @@ def test_a_tuned_rows_recorded_fingerprint_recomputes_equal_from_its_records():
     cfg = recorded_config(runs, ["experiment=chinet_table2"])(unet["run_id"])
     assert cfg.task.optimizer.lr == pytest.approx(0.0008727)
     assert differs(decode(unet["fingerprint"]), compute(cfg)) is None
+
+
+def test_across_instruction_sets_rounding_is_not_a_change_but_a_changed_model_still_is(chinet):
+    # measured across AVX-512, AVX2 and SSE kernels: the loss after two steps moves up to 9 %, the model's
+    # outputs within 3e-4 (ablate.store.fingerprint.ACROSS)
+    _, fingerprint = chinet
+    rounded = {**fingerprint, "loss": [v * 1.05 for v in fingerprint["loss"]], "metric": fingerprint["metric"]}
+    rounded["model"] = [v * (1 + 3e-4) for v in fingerprint["model"]]
+    assert differs(fingerprint, rounded) == "model"  # like with like: flagged
+    assert differs(fingerprint, rounded, across_kernels=True) is None
+    changed = {**fingerprint, "model": [v * 1.01 for v in fingerprint["model"]]}
+    assert differs(fingerprint, changed, across_kernels=True) == "model"
+    assert differs(fingerprint, {**fingerprint, "data": [v + 1 for v in fingerprint["data"]]}, True) == "data"
+
+
+def test_a_run_recorded_on_avx512_is_compared_across_kernels_where_today_runs_others(chinet, monkeypatch):
+    _, fingerprint = chinet
+    one = runs(encode(fingerprint)).assign(cpu_isa="avx2 avx512f avx512_bf16")
+    moved = {**fingerprint, "loss": [v * 1.05 for v in fingerprint["loss"]]}
+    monkeypatch.setattr("ablate.hardware.kernels", lambda: "AVX2; oneDNN AVX2")
+    lines = provenance(one, recompute=lambda cfg: moved, config=lambda run_id: None)
+    assert not any("Numbers may have moved" in line for line in lines) and "other kernels" in lines[0]
+    monkeypatch.setattr("ablate.hardware.kernels", lambda: "AVX512")
+    lines = provenance(one, recompute=lambda cfg: moved, config=lambda run_id: None)
+    assert any("**Numbers may have moved** for row chinet" in line and "loss differs" in line for line in lines)

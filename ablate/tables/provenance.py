@@ -30,7 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from ablate.metrics import EVALUATORS
 from ablate.store import Tracker
-from ablate.store.fingerprint import decode, differs
+from ablate.store.fingerprint import decode, differs, kernel_family
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -139,8 +139,20 @@ def fingerprint_check(
     with_tag = runs[runs["fingerprint"].fillna("") != ""] if "fingerprint" in runs else runs.iloc[0:0]
     for row, sel in with_tag.groupby("row", sort=True):
         first = sel.sort_values("seed").iloc[0]
-        out[str(row)] = differs(decode(first["fingerprint"]), recompute(config(first["run_id"])))
+        across = across_kernels(first)
+        out[str(row)] = differs(decode(first["fingerprint"]), recompute(config(first["run_id"])), across)
     return out
+
+
+def across_kernels(run: pd.Series) -> bool:
+    """Whether a recorded run's fingerprint came from other kernels than today's (:func:`ablate.store.fingerprint.
+    kernel_family`): then only the components that rounding does not move are compared."""
+    recorded = kernel_family(str(run.get("cpu_kernels") or ""), str(run.get("cpu_isa") or ""))
+    if not recorded:
+        return False
+    from ablate.hardware import kernels  # imports torch: only where a fingerprint is recomputed
+
+    return recorded != kernel_family(kernels())
 
 
 def provenance(
@@ -165,11 +177,12 @@ def provenance(
     targets = set(" ".join(runs["targets"].fillna("")).split()) if "targets" in runs else set()
     shas = {c.removesuffix("-dirty") for c in counts.index} - {"unknown"}
     changed = stale(shas, targets) if targets else {}
-    checked = 0
+    checked, crossed = 0, False
     for sha, files in changed.items():
         sel = runs[commit.str.removesuffix("-dirty") == sha]
         has = sel["fingerprint"].fillna("") != "" if "fingerprint" in sel else pd.Series(False, index=sel.index)
         if recompute is not None and config is not None and has.any():
+            crossed |= any(across_kernels(run) for _, run in sel[has].iterrows())
             for row, component in fingerprint_check(sel[has], recompute, config).items():
                 checked += 1
                 if component is not None:
@@ -195,7 +208,11 @@ def provenance(
     elif not changed:
         tail = "; no code they build has changed since"
     elif checked and not any(line.startswith("**") for line in lines):
-        tail = f"; the code they build changed since, and the fingerprints of all {checked} rows still match"
+        tail = f"; the code they build changed since, and the fingerprints of all {checked} rows still match" + (
+            " (recomputed on other kernels than the runs': their data, model and schedule, which rounding does not move)"
+            if crossed
+            else ""
+        )
     else:
         tail = ""
     return [head + tail + ".", *mixed, *lines, *metric_changed(runs, targets)]
