@@ -138,3 +138,17 @@ def test_the_verdicts_are_the_same_whatever_order_the_records_list_the_runs_in()
     assert len(seen) == 1
     ((comparison,),) = seen
     assert comparison[-1] > 0  # the frames were read, in every order alike
+
+
+def test_another_cpus_kernels_widen_the_seeds_term_where_the_table_measured_them() -> None:
+    from omegaconf import OmegaConf
+
+    from ablate.tables.columns import kernels_sd
+
+    d = np.array([0.20, 0.25, 0.22])
+    seeds, both = paired_tests(d, 0.1), paired_tests(d, 0.1, 0.0, kernels_sd=0.08)
+    assert both.se == pytest.approx(np.sqrt((d.var(ddof=1) + 0.08**2) / 3))
+    assert both.p_beyond > seeds.p_beyond and both.interval(0.0167)[0] < seeds.interval(0.0167)[0]
+    assert kernels_sd(OmegaConf.create({"kernels_sd": None})) == 0.0
+    with pytest.raises(ValueError, match="table.kernels_sd"):
+        kernels_sd(OmegaConf.create({"kernels_sd": -1}))

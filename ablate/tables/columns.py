@@ -64,6 +64,11 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
         names = dict(zip(summary["row"], summary["name"]))
         lines += rope_line(table, label) + race_lines(raced, names)
         lines += [todo.words(names, machine(runs)) for todo in undecided(raced, runs).values()]
+        if kernels_sd(table):
+            lines.append(
+                f"Each seed's paired difference carries another CPU's kernels' variance too (sd {kernels_sd(table):g}, "
+                "measured by rerunning this table's seeds on AVX2 kernels: docs/verdicts.md), added to the seeds'."
+            )
         if any(c.frames for c in raced.comparisons.values()):
             lines.append(FRAMES_LINE)
         elif str(table.primary) in FROM_DETECTIONS:
@@ -114,7 +119,21 @@ def replay(
     candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
     higher = key not in LOWER_IS_BETTER
     frames_var = table_frames(runs, table) if key == str(table.primary) else None
-    return race(values, rows, candidates or rows[0], plan.with_rope(table), higher, frames_var=frames_var)
+    kernels = kernels_sd(table)
+    return race(
+        values, rows, candidates or rows[0], plan.with_rope(table), higher, frames_var=frames_var, kernels_sd=kernels
+    )
+
+
+def kernels_sd(table: DictConfig) -> float:
+    """The standard deviation another CPU's kernels add to a seed's paired difference, where the table measured it
+    (``table.kernels_sd``: ``bench/kernel_spread.py``, docs/verdicts.md); 0 where it did not."""
+    value = table.get("kernels_sd")
+    if value is None:
+        return 0.0
+    if not isinstance(value, int | float) or isinstance(value, bool) or value < 0:
+        raise ValueError(f"table.kernels_sd: {value!r} must be a number >= 0 (or null: not measured)")
+    return float(value)
 
 
 def table_frames(runs: pd.DataFrame, table: DictConfig) -> FramesVariance | None:

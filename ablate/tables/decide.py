@@ -1,7 +1,8 @@
 """What deciding an undecided comparison would take: about how many seeds per row, and how many CPU hours.
 
-At the spread a comparison shows (the seeds' standard deviation of the paired differences ``s`` and the test
-frames' standard error ``f``, :mod:`ablate.tables.twolevel`), the standard error at n seeds is
+At the spread a comparison shows (the seeds' standard deviation of the paired differences ``s``, with another CPU's
+kernels' where the table measured it, and the test frames' standard error ``f``, :mod:`ablate.tables.twolevel`), the
+standard error at n seeds is
 ``se(n) = sqrt(s² / n + f²)``: more seeds shrink the seeds' term, never the test set's. Taking the observed mean
 difference ``Δ`` as the truth (the usual reading of a sample-size estimate: Julious 2004, Stat. Med. 23(12),
 "Sample sizes for clinical trials with normal data", sec. 3 for equivalence), the claim the race could still reach
@@ -110,7 +111,7 @@ def to_decide(c, plan, open_count: int, runs: pd.DataFrame) -> ToDecide:  # type
     """:class:`ToDecide` for the undecided comparison ``c`` (:class:`ablate.tables.racing.Comparison`) of a race on
     ``plan`` with ``open_count`` comparisons open, priced from ``runs``' job times."""
     level = plan.levels()[-1] / max(1, open_count)
-    n = seeds_to_decide(c.delta, c.sd, c.frames_se, plan.rope, level)
+    n = seeds_to_decide(c.delta, math.hypot(c.sd, c.kernels_sd), c.frames_se, plan.rope, level)
     if n is None:
         return ToDecide(c.a, c.b, None, 0, math.nan, level)
     have = {r: _seeds(runs, r) for r in (c.a, c.b)}

@@ -198,11 +198,12 @@ class Comparison:
     frames: bool = False  # the interval adds the test frames' variance (ablate.tables.twolevel) to the seeds'
     sd: float = math.nan  # the seeds' standard deviation of the paired differences
     frames_se: float = 0.0  # the test frames' standard error of the mean difference (0: the seeds alone)
+    kernels_sd: float = 0.0  # the sd another CPU's kernels add to each seed's difference (table.kernels_sd)
 
     @property
     def se(self) -> float:
         """The standard error the tests read: the seeds' and the frames' terms together."""
-        return math.sqrt(self.sd**2 / self.n + self.frames_se**2) if self.n >= 2 else math.nan
+        return math.sqrt((self.sd**2 + self.kernels_sd**2) / self.n + self.frames_se**2) if self.n >= 2 else math.nan
 
     def verdict(self) -> str:
         """The verdict in words, where it was reached, with the figures."""
@@ -214,7 +215,11 @@ class Comparison:
         shown = self.rope is not None or self.frames
         share = f"{100 * (1 - 2 * self.level):.1f}%"
         interval = f"[{self.lo:+.2f}, {self.hi:+.2f}], the {share} {over}; " if shown else ""
-        spread = f"seeds' sd {self.sd:.3g}" + (f", frames' se {self.frames_se:.3g}" if self.frames else "")
+        spread = (
+            f"seeds' sd {self.sd:.3g}"
+            + (f", kernels' sd {self.kernels_sd:.3g}" if self.kernels_sd else "")
+            + (f", frames' se {self.frames_se:.3g}" if self.frames else "")
+        )
         return (
             f"{state} (n = {self.n}, Δ {self.delta:+.2f} {interval}{spread}; p = {self.p:.3g} {self.p_words()} "
             f"against {self.level:.4f}; P(A > B) = {self.p_ab:.2f} [{self.p_ab_lo:.2f}, {self.p_ab_hi:.2f}])"
@@ -279,13 +284,15 @@ def race(
     higher_is_better: bool = True,
     stop_after: int | None = None,
     frames_var: FramesVariance | None = None,
+    kernels_sd: float = 0.0,
 ) -> RaceState:
     """Replay the race of ``rows`` on ``values``: per row, the primary metric indexed by integer seed.
     ``reference`` is a row, or a list of rows of which the best so far is the reference at each look (the table's
     reading of ``table.reference``, :func:`ablate.tables.summary.reference`). Looks are evaluated in order while their seeds are there (a look none of the racing rows reached
     was not run: the race stops before it), at most ``stop_after`` looks. Returns the state after the last look
     evaluated, with the rows that need seeds at the next one. ``frames_var`` adds the test frames' variance to each
-    comparison's (:mod:`ablate.tables.twolevel`); without it the tests read the seeds alone."""
+    comparison's (:mod:`ablate.tables.twolevel`); without it the tests read the seeds alone. ``kernels_sd`` adds the
+    variance another CPU's kernels add to each seed (``table.kernels_sd``)."""
     state = RaceState(plan, racing=list(rows))
     last = len(plan.looks) if stop_after is None else min(stop_after, len(plan.looks))
     levels = plan.levels()
@@ -305,7 +312,8 @@ def race(
         current = {frozenset(p[:2]) for p in pairs}
         for key in [k for k in state.comparisons if k not in current]:
             del state.comparisons[key]  # an earlier top vs second (or reference) that no longer is one
-        _look(state, [pair for pair in pairs if not decided(state, *pair[:2])], seen, k, levels[k], frames_var)
+        to_test = [pair for pair in pairs if not decided(state, *pair[:2])]
+        _look(state, to_test, seen, k, levels[k], frames_var, kernels_sd)
         state.looks_done = k + 1
         open_pairs = state.undecided()
         state.racing = [r for r in rows if any(r in (c.a, c.b) for c in open_pairs)]
@@ -319,6 +327,7 @@ def _look(
     k: int,
     level: float,
     frames_var: FramesVariance | None = None,
+    kernels_sd: float = 0.0,
 ) -> None:
     """Test the open comparisons ``pairs`` at look ``k`` (0-based) at ``level``, each kind of claim corrected over
     them (:func:`ablate.tables.verdicts.rejected`), and record each one's verdict: a claim of practical size (beyond
@@ -331,7 +340,7 @@ def _look(
         frames_var(a, b, seeds) if frames_var is not None and len(seeds) >= 2 else 0.0
         for (a, b, _), (seeds, _) in zip(pairs, shared)
     ]
-    tests = [paired_tests(d, plan.rope, v) for d, v in zip(diffs, extra)]
+    tests = [paired_tests(d, plan.rope, v, kernels_sd) for d, v in zip(diffs, extra)]
     family = {kind: adjusted([getattr(t, kind) for t in tests], plan.multiplicity) for kind in CLAIM_TESTS.values()}
     claims = {kind: [not math.isnan(q) and q <= level for q in ps] for kind, ps in family.items()}
     for i, (a, b, why) in enumerate(pairs):
@@ -364,6 +373,7 @@ def _look(
             frames_var is not None,
             tests[i].sd,
             tests[i].frames_se,
+            tests[i].kernels_sd,
         )
 
 

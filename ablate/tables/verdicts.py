@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -77,6 +77,7 @@ class PairedTests:
     p_equiv: float
     sd: float = math.nan
     frames_se: float = 0.0
+    kernels_sd: float = 0.0
 
     def interval(self, level: float) -> tuple[float, float]:
         """The (1 - 2 ``level``) interval of the mean difference: what TOST at ``level`` reads."""
@@ -86,29 +87,33 @@ class PairedTests:
         return self.mean - half, self.mean + half
 
 
-def paired_tests(d: Sequence[float] | np.ndarray, rope: float | None, frames_var: float = 0.0) -> PairedTests:
+def paired_tests(
+    d: Sequence[float] | np.ndarray, rope: float | None, frames_var: float = 0.0, kernels_sd: float = 0.0
+) -> PairedTests:
     """The tests of :class:`PairedTests` on the paired differences ``d``: Student's t on n - 1 degrees of freedom.
 
     ``frames_var`` adds the test set as a second source of variance (:mod:`ablate.tables.twolevel`): the variance
     of the seeds' mean difference over draws of the test frames. The standard error is then the two levels' sum,
     ``sqrt(s_d^2 / n + frames_var)``, on the seeds' n - 1 degrees of freedom, so the interval is never narrower than
     the seeds' own t interval and equals it where the frames add nothing. A difference without spread at either
-    level is exact: each test rejects (p = 0) or not (p = 1) by its value."""
+    level is exact: each test rejects (p = 0) or not (p = 1) by its value. ``kernels_sd``: the standard deviation
+    another CPU's kernels add to each seed's paired difference, where the table measured it (``table.kernels_sd``,
+    :mod:`ablate.tables.twolevel`): added to the seeds' variance, ``sqrt((s_d^2 + kernels_sd^2) / n + frames_var)``."""
     d = np.asarray(d, dtype=float)
     n = len(d)
     if n < 2:
         mean = float(d.mean()) if n else math.nan
         return PairedTests(n, mean, math.nan, math.nan, math.nan, math.nan)
     mean, sd = float(d.mean()), float(d.std(ddof=1))
-    frames_var = max(0.0, float(frames_var))
-    se = math.sqrt(sd * sd / n + frames_var)
+    frames_var, kernels_sd = max(0.0, float(frames_var)), float(kernels_sd or 0.0)
+    se = math.sqrt((sd * sd + kernels_sd * kernels_sd) / n + frames_var)
     if se == 0:
         exact = PairedTests(n, mean, 0.0, 0.0 if mean else 1.0, math.nan, math.nan, 0.0)
         if rope is None:
             return exact
         beyond = 0.0 if abs(mean) > rope else 1.0
         return PairedTests(n, mean, 0.0, exact.p_diff, beyond, 0.0 if abs(mean) < rope else 1.0, 0.0)
-    return t_tests(n, mean, se, rope, sd, math.sqrt(frames_var))
+    return replace(t_tests(n, mean, se, rope, sd, math.sqrt(frames_var)), kernels_sd=kernels_sd)
 
 
 def t_tests(

@@ -40,6 +40,7 @@ from ablate.sweep import progress
 from ablate.sweep.tuning import Experts, TuneSpec, expert_row, tune
 from ablate.tables import table_spec
 from ablate.tables.collect import earlier_wall, job_runs, row_seconds
+from ablate.tables.columns import kernels_sd
 from ablate.tables.racing import RacePlan, RaceState, race, table_values
 from ablate.tables.spec import LOWER_IS_BETTER, sweep_params
 from ablate.tables.tuning import from_store as tuning_trials
@@ -310,7 +311,14 @@ class RacingSweeperImpl:
             race_.cost = self._costs(tracker, runs)
         frames_var = store_frames(tracker, runs, str(table.primary), str(table.get("primary_condition") or ""))
         race_.state = race(
-            values, list(race_.jobs), race_.reference, race_.plan, race_.higher, stop_after=look, frames_var=frames_var
+            values,
+            list(race_.jobs),
+            race_.reference,
+            race_.plan,
+            race_.higher,
+            stop_after=look,
+            frames_var=frames_var,
+            kernels_sd=kernels_sd(table),
         )
         if race_.state.looks_done < look:
             race_.stopped = f"look {look} gave no values (its jobs failed): the race stopped there"
