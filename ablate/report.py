@@ -18,6 +18,7 @@ writes that row's section of ``results/precision_parity.md`` from its fp32 and b
 from __future__ import annotations
 
 import sys
+import time
 from argparse import Namespace
 from collections.abc import Callable
 from pathlib import Path
@@ -82,15 +83,19 @@ def _main(parsed: Namespace) -> int:
 
 
 def _from_records(names: list[str], rest: list[str]) -> int:
-    """Render each table from its run records; one line for each table that has none."""
+    """Render each table from its run records; one line for each table that has none, and the time it took."""
+    start, rendered = time.monotonic(), 0
     for name in names:
         base = rest + [f"experiment={name}"]
         paths = render_records(compose(base), RESULTS, fingerprint, lambda runs: recorded_config(runs, base))
         if paths is None:
             print(f"{name}: no run records yet ({records_path(RESULTS, name)}); its table is left as it is")
             continue
+        rendered += 1
         for path in paths:
             print(path)
+    minutes, seconds = divmod(round(time.monotonic() - start), 60)
+    print(f"{rendered} table(s) rendered from their records in {minutes} min {seconds:02d} s", file=sys.stderr)
     return 0
 
 
