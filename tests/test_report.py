@@ -2,6 +2,8 @@
 
 import math
 
+import numpy as np
+import pandas as pd
 import pytest
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
@@ -198,3 +200,11 @@ def test_a_rows_job_time_is_its_runs_and_a_copied_run_counts_its_sources(tmp_pat
     job(mine, "ssd", 4_000, 10.0)
     tracker.copy_run(source, mine, {"row": "dgfn", "seed": "0"})
     assert row_seconds(tracker, job_runs(tracker, "table_ii")) == {"dgfn": 19 * 60.0, "ssd": 9.5 * 60}
+
+
+def test_a_column_where_every_row_ties_bolds_none_and_one_best_is_bold():
+    from ablate.tables.summary import bold_of
+
+    assert np.isnan(bold_of(pd.Series([1.85, 1.85, np.nan]), "max_f"))
+    assert bold_of(pd.Series([1.0, 2.0]), "max_f") == 2.0 and bold_of(pd.Series([1.0, 2.0]), "latency_ms") == 1.0
+    assert bold_of(pd.Series([3.0]), "max_f") == 3.0  # one row: its value

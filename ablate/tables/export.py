@@ -24,7 +24,7 @@ from omegaconf import DictConfig
 
 from ablate.tables.columns import ahead_words, kind_of, replayed_race, row_difference, table_frames, top_and_second
 from ablate.tables.decide import ToDecide, undecided
-from ablate.tables.summary import best_of, kendall, reference
+from ablate.tables.summary import bold_of, kendall, reference
 
 
 def numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> pd.DataFrame:
@@ -82,7 +82,7 @@ def latex(summary: pd.DataFrame, table: DictConfig) -> str:
         shown[str(label)] = [
             "--" if np.isnan(m) else f"{m:.2f}" + ("" if np.isnan(s) else f" $\\pm$ {s:.2f}") for m, s in zip(mean, std)
         ]
-        best[str(label)] = best_of(mean, metric)
+        best[str(label)] = bold_of(mean, metric)
     means = {str(label): summary[f"{metric}_mean"].astype(float).tolist() for metric, label in table.metrics.items()}
 
     def bold(column: pd.Series) -> list[str]:

@@ -24,7 +24,7 @@ from ablate.tables.columns import costs, significance  # noqa: E402
 from ablate.tables.export import write_numbers  # noqa: E402
 from ablate.tables.provenance import provenance  # noqa: E402
 from ablate.tables.spec import COSTS  # noqa: E402
-from ablate.tables.summary import best_of, fmt, kendall, summarise  # noqa: E402
+from ablate.tables.summary import bold_of, fmt, kendall, summarise  # noqa: E402
 
 
 def metric_columns(summary: pd.DataFrame, table: DictConfig, keys: list[str]) -> dict[str, list[str]]:
@@ -32,13 +32,13 @@ def metric_columns(summary: pd.DataFrame, table: DictConfig, keys: list[str]) ->
     columns: dict[str, list[str]] = {}
     for key in keys:
         label = table.metrics[key]
-        best = best_of(summary[f"{key}_mean"], key)
+        best = bold_of(summary[f"{key}_mean"], key)
         columns[f"{label} (ours)"] = [
             fmt(m, s, m == best) for m, s in zip(summary[f"{key}_mean"], summary[f"{key}_std"])
         ]
         paper = summary[f"{key}_paper"]
         if paper.notna().any():
-            pbest = best_of(paper, key)
+            pbest = bold_of(paper, key)
             columns[f"{label} (paper)"] = [fmt(p, np.nan, p == pbest) for p in paper]
     return columns
 

@@ -61,6 +61,13 @@ def best_of(values: pd.Series, key: str) -> float:
     return values.min() if key in LOWER_IS_BETTER else values.max()
 
 
+def bold_of(values: pd.Series, key: str) -> float:
+    """The value a table's column bolds: its best (:func:`best_of`), none (NaN) where every row has the same value,
+    so that a tie of all rows is not shown as a win."""
+    known = pd.Series(values, dtype=float).dropna()
+    return np.nan if len(known) > 1 and known.nunique() == 1 else best_of(known, key)
+
+
 def kendall(summary: pd.DataFrame, key: str) -> tuple[float, int]:
     """Kendall's tau between our row ranking and the paper's on ``key``, and the number of rows compared."""
     both = summary[[f"{key}_mean", f"{key}_paper"]].dropna() if len(summary) else pd.DataFrame()
