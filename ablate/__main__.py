@@ -1,5 +1,7 @@
 """`python -m ablate [-m] key=value ...`: run one job, or a Hydra multirun sweep of jobs."""
 
+import os
+import sys
 import warnings
 from pathlib import Path
 
@@ -25,6 +27,16 @@ def main(cfg: DictConfig) -> str:
     from ablate.jobs.job import main as run_job  # torch and Lightning: imported once a job runs, not for a bad option
 
     return run_job(cfg)
+
+
+def script() -> None:
+    """The ``ablate`` console script: :func:`main` with the folder it runs in first on ``sys.path``, as
+    ``python -m ablate`` has it, so that a ``_target_`` naming a user's own module there (``my_ops.Product``) is found
+    by either command."""
+    here = os.getcwd()
+    if here not in sys.path and "" not in sys.path:
+        sys.path.insert(0, here)
+    main()
 
 
 if __name__ == "__main__":
