@@ -17,6 +17,7 @@ import sys
 import textwrap
 from collections.abc import Callable, Sequence
 from functools import cache
+from pathlib import Path
 from typing import Any, NoReturn
 
 #: The exit status of a bad option (argparse's own).
@@ -111,11 +112,19 @@ def names(text: str) -> list[str]:
     return [x for x in text.split(",") if x]
 
 
+def as_typed(prog: str, argv0: str | None = None) -> str:
+    """A command's name as the user typed it: the console script's (``ablate-report``) where that ran, else ``prog``
+    (``python -m ablate.report``)."""
+    name = Path(sys.argv[0] if argv0 is None else argv0).name
+    return name if name.startswith("ablate") and not name.endswith(".py") else prog
+
+
 def command(prog: str, doc: str | None, usage: str, epilog: str) -> Parser:
     """The parser of the command ``prog``: its ``usage`` (``%(prog)s`` for ``prog``; lines after the first indented
     under it), its description ``doc`` (its module's docstring), Hydra's overrides as positional arguments
     (``overrides``), the ``epilog`` after the options (its exit statuses)."""
     usage = usage.replace("\n", "\n" + " " * len("usage: "))
+    prog = as_typed(prog)
     parser = Parser(
         prog=prog, usage=usage, description=plain(doc), epilog=epilog, formatter_class=Formatter, allow_abbrev=False
     )

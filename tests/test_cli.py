@@ -2,6 +2,8 @@
 
 import json
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -170,3 +172,15 @@ def test_diagnose_without_the_tables_checkpoints_names_the_command_that_makes_th
     assert out.returncode == 1
     assert "error: no checkpoint for row smoe_early seed 0" in out.stderr
     assert "python -m ablate -m experiment=smoe_table2" in out.stderr
+
+
+def test_a_commands_help_names_it_as_the_user_typed_it():
+    from ablate.cli import as_typed
+
+    assert as_typed("python -m ablate.report", "/venv/bin/ablate-report") == "ablate-report"
+    assert as_typed("python -m ablate.report", "/repo/ablate/report.py") == "python -m ablate.report"
+    assert as_typed("python -m ablate.report", "/venv/bin/pytest") == "python -m ablate.report"
+    done = subprocess.run(
+        [str(Path(sys.executable).parent / "ablate-report"), "--help"], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0 and done.stdout.startswith("usage: ablate-report [-h]")
