@@ -195,10 +195,11 @@ def row_difference(
     runs: pd.DataFrame, key: str, row: str, ref: str, raced: RaceState | None, frames_var: FramesVariance | None
 ) -> Difference:
     """``row`` minus ``ref`` on ``key`` (:func:`ablate.tables.significance.difference`), over the seeds of the look
-    where the race left their comparison, with the test frames' variance where the runs kept counts."""
+    where the race left their comparison, with the test frames' variance where the runs kept counts and the kernels'
+    where the table measured it (as the race reads them)."""
     c = raced.comparisons.get(frozenset((row, ref))) if raced is not None else None
     a, b = (at_look(per_seed(runs, r, key), raced, c) for r in (row, ref))
-    return difference(a, b, pair_frames(frames_var, row, ref))
+    return difference(a, b, pair_frames(frames_var, row, ref), c.kernels_sd if c is not None else 0.0)
 
 
 def top_and_second(

@@ -64,7 +64,8 @@ def seeds_to_decide(mean: float, sd: float, frames_se: float, rope: float | None
 
 
 def job_cpu_hours(runs: pd.DataFrame, row: str) -> float:
-    """The median CPU hours of one job of ``row`` in a table's runs or records (wall seconds times threads), over
+    """The median CPU hours of one job of ``row`` in a table's runs or records (wall seconds from the job's start,
+    its experts included where the records say when it began, times threads), over
     the runs trained in this table (a run copied from another took no time here; a row of copies only is priced at
     the table's other jobs); NaN where they have no times."""
     if not len(runs) or not ("seconds" in runs or {"started", "ended"} <= set(runs.columns)):
@@ -73,7 +74,10 @@ def job_cpu_hours(runs: pd.DataFrame, row: str) -> float:
     sel = trained[trained["row"].astype(str) == row]
     sel = sel if len(sel) else trained  # a row copied from another table: a job of this table's, as a guide
     threads = pd.to_numeric(sel.get("made_threads", pd.Series(1, index=sel.index)), errors="coerce").fillna(1)
-    wall = sel["seconds"] if "seconds" in sel else (sel["ended"] - sel["started"]) / 1000.0
+    if "job_started" in sel and (pd.to_numeric(sel["job_started"], errors="coerce") > 0).all():
+        wall = (pd.to_numeric(sel["ended"]) - pd.to_numeric(sel["job_started"])) / 1000.0  # with its experts
+    else:
+        wall = sel["seconds"] if "seconds" in sel else (sel["ended"] - sel["started"]) / 1000.0
     cpu = pd.to_numeric(wall, errors="coerce") * threads
     return float(cpu.median() / 3600) if cpu.notna().any() else math.nan
 

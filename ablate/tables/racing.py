@@ -443,7 +443,8 @@ def race_lines(state: RaceState, names: Mapping[str, str]) -> list[str]:
         if state.looks_done < len(state.plan.looks):
             why = (
                 f"the race ended after look {state.looks_done} of {len(state.plan.looks)} "
-                "(its wall-time budget, or failed jobs; the sweep's run says which)"
+                "(its wall-time budget, failed jobs, or a race that decided on a narrower interval than the table's "
+                "verdicts read now; the sweep's run says which)"
             )
         else:
             why = "after the last look"
