@@ -9,6 +9,7 @@ the runs), so the two never disagree."""
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -59,8 +60,8 @@ def plot(state: RaceState, table: DictConfig) -> Figure:
     )
     ax.set_ylim(-0.7, len(comparisons) - 0.3)
     ax.margins(x=0.15)  # room for the words beside the outermost points
-    ax.set_xlabel(f"Δ {label} (mean over paired seeds; bar: the interval the verdict read)")
-    ax.set_title(f"{table.title}: the race's verdicts", fontsize=9)
+    ax.set_xlabel(f"Δ {label}\n(mean over paired seeds; bar: the interval the verdict read)", fontsize=9)
+    ax.set_title(textwrap.fill(f"{table.title}: the race's verdicts", 70), fontsize=9)
     if rope is not None:
         ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
@@ -74,6 +75,6 @@ def write_forest(table: DictConfig, runs: pd.DataFrame, results_dir: str | Path)
         return None
     path = Path(results_dir) / f"{table.name}_verdicts.png"
     fig = plot(state, table)
-    fig.savefig(path, dpi=100, metadata={"Software": None})
+    fig.savefig(path, dpi=100, metadata={"Software": None}, bbox_inches="tight", pad_inches=0.1)  # long row names
     plt.close(fig)
     return path
