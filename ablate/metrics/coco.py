@@ -221,12 +221,28 @@ class MaskAP(Metric):
             {"images": images, "annotations": dt_anns, "categories": categories},
         )
 
-    def _evaluate(self, gt: COCO, dt: COCO, iou_type: str) -> tuple[np.ndarray, list[int]]:
-        """COCOeval precision [T, R, K] at area 'all' and the last maxDets, silenced."""
+    def _cocos(self) -> tuple[COCO, COCO]:
+        """The ground truth and the detections as indexed COCO datasets (:meth:`_datasets`), silenced."""
+        gt_data, dt_data = self._datasets()
+        with contextlib.redirect_stdout(io.StringIO()):
+            gt, dt = COCO(), COCO()
+            gt.dataset, dt.dataset = gt_data, dt_data
+            gt.createIndex()
+            dt.createIndex()
+        return gt, dt
+
+    def _matched(self, gt: COCO, dt: COCO, iou_type: str) -> COCOeval:
+        """COCOeval over them with this metric's ``max_detections``, its per-image matching done, silenced."""
         ev = COCOeval(gt, dt, iouType=iou_type)
         ev.params.maxDets = [1, 10, self.max_detections]
         with contextlib.redirect_stdout(io.StringIO()):
             ev.evaluate()
+        return ev
+
+    def _evaluate(self, gt: COCO, dt: COCO, iou_type: str) -> tuple[np.ndarray, list[int]]:
+        """COCOeval precision [T, R, K] at area 'all' and the last maxDets, silenced."""
+        ev = self._matched(gt, dt, iou_type)
+        with contextlib.redirect_stdout(io.StringIO()):
             ev.accumulate()
         return ev.eval["precision"][:, :, :, 0, -1], list(ev.params.catIds)
 
@@ -238,15 +254,7 @@ class MaskAP(Metric):
         sizes = self.img_sizes
         if (sizes.numel() if isinstance(sizes, Tensor) else len(sizes)) == 0:
             return []
-        gt_data, dt_data = self._datasets()
-        with contextlib.redirect_stdout(io.StringIO()):
-            gt, dt = COCO(), COCO()
-            gt.dataset, dt.dataset = gt_data, dt_data
-            gt.createIndex()
-            dt.createIndex()
-            ev = COCOeval(gt, dt, iouType=iou_type)
-            ev.params.maxDets = [1, 10, self.max_detections]
-            ev.evaluate()
+        ev = self._matched(*self._cocos(), iou_type)
         p, rows = ev.params, []
         n_area, n_img, top = len(p.areaRng), len(p.imgIds), p.maxDets[-1]
         for k, cat in enumerate(p.catIds):
@@ -269,12 +277,7 @@ class MaskAP(Metric):
         sizes = self.img_sizes
         if (sizes.numel() if isinstance(sizes, Tensor) else len(sizes)) == 0:
             return {f"{p}{k}": torch.tensor(-1.0) for p in ("", "bbox_") for k in keys}
-        gt_data, dt_data = self._datasets()
-        with contextlib.redirect_stdout(io.StringIO()):
-            gt, dt = COCO(), COCO()
-            gt.dataset, dt.dataset = gt_data, dt_data
-            gt.createIndex()
-            dt.createIndex()
+        gt, dt = self._cocos()
 
         def mean(p: np.ndarray) -> float:
             valid = p[p > -1]

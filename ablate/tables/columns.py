@@ -3,6 +3,8 @@ reference row (:func:`significance`), and latency, parameters and MACs (:func:`c
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
@@ -148,7 +150,7 @@ def table_frames(runs: pd.DataFrame, table: DictConfig) -> FramesVariance | None
     return frames_variance(frames, primary, condition, detections)
 
 
-def pair_frames(frames_var: FramesVariance | None, a: str, b: str):  # type: ignore[no-untyped-def]
+def pair_frames(frames_var: FramesVariance | None, a: str, b: str) -> Callable[[list[int]], float] | None:
     """``frames_var`` for the pair ``a - b`` as a function of the seeds (:func:`ablate.tables.significance.difference`)."""
     return None if frames_var is None else (lambda seeds: frames_var(a, b, seeds))
 

@@ -31,6 +31,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from ablate.tables.racing import Comparison, RacePlan, RaceState
+
 #: The share of tables the estimate's n decides, at the spread observed.
 POWER = 0.8
 #: The most seeds per row an estimate looks at.
@@ -111,8 +113,8 @@ class ToDecide:
         )
 
 
-def to_decide(c, plan, open_count: int, runs: pd.DataFrame) -> ToDecide:  # type: ignore[no-untyped-def]
-    """:class:`ToDecide` for the undecided comparison ``c`` (:class:`ablate.tables.racing.Comparison`) of a race on
+def to_decide(c: Comparison, plan: RacePlan, open_count: int, runs: pd.DataFrame) -> ToDecide:
+    """:class:`ToDecide` for the undecided comparison ``c`` of a race on
     ``plan`` with ``open_count`` comparisons open, priced from ``runs``' job times."""
     level = plan.levels()[-1] / max(1, open_count)
     n = seeds_to_decide(c.delta, math.hypot(c.sd, c.kernels_sd), c.frames_se, plan.rope, level)
@@ -128,7 +130,7 @@ def _seeds(runs: pd.DataFrame, row: str) -> int:
     return int((runs["row"].astype(str) == row).sum()) if len(runs) and "row" in runs else 0
 
 
-def undecided(raced, runs: pd.DataFrame) -> dict[frozenset[str], ToDecide]:  # type: ignore[no-untyped-def]
+def undecided(raced: RaceState, runs: pd.DataFrame) -> dict[frozenset[str], ToDecide]:
     """:class:`ToDecide` of each comparison a race (:class:`ablate.tables.racing.RaceState`) left open."""
     still = [c for c in raced.undecided() if c.n >= 2]
     return {frozenset((c.a, c.b)): to_decide(c, raced.plan, len(still), runs) for c in still}

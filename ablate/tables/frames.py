@@ -94,27 +94,39 @@ def frames_path(results_dir: str | Path, table: str) -> Path:
 def from_store(tracker: Tracker, runs: pd.DataFrame) -> pd.DataFrame:
     """The counts per test frame of each of ``runs`` that has them (a reused run: its source's), long: run_id, row,
     seed, condition, frame, c0 .. ; empty where no run has them."""
+    counts = _from_store(tracker, runs, FRAME_COUNTS, _read)
+    return counts.fillna(0) if len(counts) else counts
+
+
+def _from_store(
+    tracker: Tracker, runs: pd.DataFrame, artifact: str, read: Callable[[Path], pd.DataFrame]
+) -> pd.DataFrame:
+    """``artifact`` of each of ``runs`` that logged it (a reused run: its source's), read by ``read``, each row
+    prefixed with its run's run_id, row and seed; empty where no run has it."""
     parts = []
     for _, run in runs.iterrows():
         source = str(run.get("reused_from") or "") or str(run["run_id"])
-        if FRAME_COUNTS not in tracker.list_artifacts(source, str(Path(FRAME_COUNTS).parent)):
+        if artifact not in tracker.list_artifacts(source, str(Path(artifact).parent)):
             continue
         with tempfile.TemporaryDirectory() as folder:
-            path = tracker.download_artifact(source, FRAME_COUNTS, folder)
-            counts = _read(path)
-        ids = pd.DataFrame({"run_id": run["run_id"], "row": run["row"], "seed": run["seed"]}, index=counts.index)
-        parts.append(pd.concat([ids, counts], axis=1))  # one concat: 514 columns inserted one by one fragment
-    return pd.concat(parts, ignore_index=True).fillna(0) if parts else pd.DataFrame()
+            kept = read(Path(tracker.download_artifact(source, artifact, folder)))
+        ids = pd.DataFrame({"run_id": run["run_id"], "row": run["row"], "seed": run["seed"]}, index=kept.index)
+        parts.append(pd.concat([ids, kept], axis=1))  # one concat: 514 columns inserted one by one fragment
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+
+
+def _write(kept: pd.DataFrame, path: Path) -> Path | None:
+    """``kept`` as gzipped CSV at ``path`` (the same bytes for the same rows); None where it is empty."""
+    if kept.empty:
+        return None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    kept.to_csv(path, index=False, lineterminator="\n", compression={"method": "gzip", "mtime": 0})
+    return path
 
 
 def write_frames(frames: pd.DataFrame, results_dir: str | Path, table: str) -> Path | None:
     """``runs/<table>.frames.csv.gz``; None where there are no counts."""
-    if frames.empty:
-        return None
-    path = frames_path(results_dir, table)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    frames.to_csv(path, index=False, lineterminator="\n", compression={"method": "gzip", "mtime": 0})
-    return path
+    return _write(frames, frames_path(results_dir, table))
 
 
 def read_frames(results_dir: str | Path, table: str) -> pd.DataFrame:
@@ -131,15 +143,12 @@ def _read(path: Path) -> pd.DataFrame:
     return frames.fillna(0)
 
 
-def counts(frames: pd.DataFrame, row: str, seeds: list[int], condition: str = "") -> np.ndarray:
-    """[seeds, frames, k] counts of ``row`` for ``seeds`` under ``condition``, frames in one order for every row."""
+def run_counts(frames: pd.DataFrame, row: str, seed: int, condition: str = "") -> pd.DataFrame:
+    """One (row, seed)'s counts under ``condition``, by frame name: [frames, k]."""
     sel = frames[(frames["row"] == row) & (frames["condition"].astype(str) == condition)]
+    one = sel[pd.to_numeric(sel["seed"]) == seed].sort_values("frame")
     columns = [c for c in frames.columns if c.startswith("c") and c[1:].isdigit()]
-    out = []
-    for seed in seeds:
-        one = sel[pd.to_numeric(sel["seed"]) == seed].sort_values("frame")
-        out.append(one[columns].to_numpy(dtype=float))
-    return np.stack(out)
+    return one.set_index(one["frame"].astype(str))[columns].astype(float)
 
 
 def _mask_ap(rows: dict[str, np.ndarray], keep: np.ndarray | None = None) -> float:
@@ -171,26 +180,12 @@ def detections_path(results_dir: str | Path, table: str) -> Path:
 def detections_from_store(tracker: Tracker, runs: pd.DataFrame) -> pd.DataFrame:
     """The detections per test frame of each of ``runs`` that kept them (a reused run: its source's), long: run_id,
     row, seed, frame, condition, metric and :data:`ablate.metrics.accumulate.COLUMNS`; empty where none did."""
-    parts = []
-    for _, run in runs.iterrows():
-        source = str(run.get("reused_from") or "") or str(run["run_id"])
-        if FRAME_DETECTIONS not in tracker.list_artifacts(source, str(Path(FRAME_DETECTIONS).parent)):
-            continue
-        with tempfile.TemporaryDirectory() as folder:
-            rows = _read_detections(tracker.download_artifact(source, FRAME_DETECTIONS, folder))
-        ids = pd.DataFrame({"run_id": run["run_id"], "row": run["row"], "seed": run["seed"]}, index=rows.index)
-        parts.append(pd.concat([ids, rows], axis=1))
-    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+    return _from_store(tracker, runs, FRAME_DETECTIONS, _read_detections)
 
 
 def write_detections(detections: pd.DataFrame, results_dir: str | Path, table: str) -> Path | None:
     """``runs/<table>.detections.csv.gz``; None where there are none."""
-    if detections.empty:
-        return None
-    path = detections_path(results_dir, table)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    detections.to_csv(path, index=False, lineterminator="\n", compression={"method": "gzip", "mtime": 0})
-    return path
+    return _write(detections, detections_path(results_dir, table))
 
 
 def read_detections(results_dir: str | Path, table: str) -> pd.DataFrame:

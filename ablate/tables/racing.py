@@ -200,11 +200,6 @@ class Comparison:
     frames_se: float = 0.0  # the test frames' standard error of the mean difference (0: the seeds alone)
     kernels_sd: float = 0.0  # the sd another CPU's kernels add to each seed's difference (table.kernels_sd)
 
-    @property
-    def se(self) -> float:
-        """The standard error the tests read: the seeds' and the frames' terms together."""
-        return math.sqrt((self.sd**2 + self.kernels_sd**2) / self.n + self.frames_se**2) if self.n >= 2 else math.nan
-
     def verdict(self) -> str:
         """The verdict in words, where it was reached, with the figures."""
         said = words(self.kind, self.rope)

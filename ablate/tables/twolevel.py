@@ -48,6 +48,7 @@ from ablate.tables.frames import (
     ap_left_out,
     detections_from_store,
     from_store,
+    run_counts,
     run_detections,
 )
 
@@ -59,13 +60,16 @@ def jackknife_variance(a: np.ndarray, b: np.ndarray, metric: Callable[[np.ndarra
     """The delete-one jackknife variance over frames of ``mean_s [metric(a_s) - metric(b_s)]``, where ``a`` and ``b``
     are [seeds, frames, k] counts paired by seed and frame and ``metric`` maps counts summed over frames ([..., k])
     to the metric; 0 with fewer than two frames."""
-    n_frames = a.shape[1]
-    if n_frames < 2:
-        return 0.0
-    left_a = a.sum(axis=1, keepdims=True) - a  # [seeds, frames, k]: every frame but one
-    left_b = b.sum(axis=1, keepdims=True) - b
-    theta = np.nan_to_num(metric(left_a) - metric(left_b)).mean(axis=0)  # [frames]
-    return float((n_frames - 1) / n_frames * ((theta - theta.mean()) ** 2).sum())
+    return variance_of(
+        [(pd.Series(left_out_of(x, metric)), pd.Series(left_out_of(y, metric))) for x, y in zip(a, b, strict=True)]
+    )
+
+
+def left_out_of(counts: np.ndarray, metric: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """The metric of one run's counts [frames, k] with each frame left out in turn: [frames]."""
+    if not len(counts):
+        return np.zeros(0)
+    return np.nan_to_num(metric(counts.sum(axis=0, keepdims=True) - counts))
 
 
 #: left_out(row, seed) -> a run's metric with each test frame left out in turn, by frame name.
@@ -77,12 +81,8 @@ def counts_left_out(frames: pd.DataFrame, primary: str, condition: str = "") -> 
     metric = FROM_COUNTS[primary]
 
     def left_out(row: str, seed: int) -> pd.Series:
-        sel = frames[(frames["row"] == row) & (frames["condition"].astype(str) == condition)]
-        one = sel[pd.to_numeric(sel["seed"]) == seed].sort_values("frame")
-        columns = [c for c in frames.columns if c.startswith("c") and c[1:].isdigit()]
-        c = one[columns].to_numpy(dtype=float)
-        values = np.nan_to_num(metric(c.sum(axis=0, keepdims=True) - c)) if len(c) else np.zeros(0)
-        return pd.Series(values, index=one["frame"].astype(str).to_numpy())
+        counts = run_counts(frames, row, seed, condition)
+        return pd.Series(left_out_of(counts.to_numpy(), metric), index=counts.index)
 
     return left_out
 
@@ -137,13 +137,6 @@ def frames_variance(
         return pairs[key]
 
     return frames_var
-
-
-def has_frames(frames: pd.DataFrame | None, primary: str, detections: pd.DataFrame | None = None) -> bool:
-    """Whether a table's verdicts read the two-level interval: its runs kept counts or detections for its primary
-    metric."""
-    counts = frames is not None and not frames.empty and primary in FROM_COUNTS
-    return counts or (detections is not None and not detections.empty and primary in FROM_DETECTIONS)
 
 
 def store_frames(tracker: Tracker, runs: pd.DataFrame, primary: str, condition: str = "") -> FramesVariance | None:
