@@ -300,3 +300,21 @@ def test_a_bad_plan_stops_the_sweep_with_one_line_before_any_job(tmp_path, monke
         sweeper.sweep([])
     assert capsys.readouterr().err.strip() == "error: table.seeds.looks: [3, 2] must increase strictly"
     assert launcher.batches == []
+
+
+def test_one_seed_a_row_gives_no_verdict_anywhere(tmp_path, monkeypatch, caplog):
+    # equal values at one seed: no spread to test against, so neither "equivalent" nor "undecided" is claimed
+    values = {"chinet": pd.Series({0: 95.0}), "unet": pd.Series({0: 95.0})}
+    state = race(values, ["chinet", "unet"], "unet", RacePlan((1,), rope=0.5))
+    (c,) = state.comparisons.values()
+    assert (
+        c.verdict() == "no verdict (n = 1: a test needs 2 paired seeds or more)" and c.short() == "no verdict (n = 1)"
+    )
+    said = race_lines(state, {})
+    assert "No verdict, fewer than 2 paired seeds: chinet vs unet (race 2 seeds or more)." in said
+    assert not any("undecided" in line or "equivalent" in line for line in said[1:]), said
+    sweeper, _ = sweeper_for(tmp_path, monkeypatch, lambda r, s: 95.0, "scale.race.looks=[1]")
+    with caplog.at_level("INFO"):
+        sweeper.sweep(["row=chinet,unet"])
+    assert "no verdict, fewer than 2 paired seeds: chinet vs unet" in caplog.text
+    assert "(n = 1: a test needs 2 paired seeds or more)" in caplog.text and "undecided" not in caplog.text

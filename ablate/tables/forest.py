@@ -23,7 +23,7 @@ from omegaconf import DictConfig  # noqa: E402
 from ablate.tables.columns import replay  # noqa: E402
 from ablate.tables.racing import Comparison, RaceState, table_values  # noqa: E402
 from ablate.tables.spec import row_names  # noqa: E402
-from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, UNDECIDED, WORSE, words  # noqa: E402
+from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, UNDECIDED, WORSE  # noqa: E402
 
 COLOURS = {BETTER: "tab:green", WORSE: "tab:red", EQUIVALENT: "tab:blue", DIFFERENT: "tab:orange", UNDECIDED: "grey"}
 
@@ -51,7 +51,7 @@ def plot(state: RaceState, table: DictConfig) -> Figure:
         if not math.isnan(c.lo):
             ax.plot([c.lo, c.hi], [y, y], color=colour, linewidth=2.5)
         ax.plot([c.delta], [y], "o", color=colour)
-        ax.annotate(words(c.kind, rope), (c.delta, y), xytext=(0, 6), textcoords="offset points", fontsize=7,
+        ax.annotate(c.short(), (c.delta, y), xytext=(0, 6), textcoords="offset points", fontsize=7,
                     ha="center", color=colour)  # fmt: skip
     ax.set_yticks(
         range(len(comparisons)),

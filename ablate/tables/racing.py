@@ -66,6 +66,8 @@ CORRECTIONS = ("bonferroni", "pocock", "obrien_fleming", "none")
 CLAIM_TESTS = {BETTER: "p_beyond", WORSE: "p_beyond", EQUIVALENT: "p_equiv", DIFFERENT: "p_diff", UNDECIDED: "p_diff"}
 TEST_WORDS = {"p_beyond": "beyond ±δ", "p_equiv": "TOST within ±δ", "p_diff": "against 0"}
 LEVEL = 0.95
+#: What a comparison of fewer than 2 paired seeds says: no spread, so no test and no verdict.
+NO_VERDICT = "no verdict"
 
 
 @dataclass(frozen=True)
@@ -202,10 +204,10 @@ class Comparison:
 
     def verdict(self) -> str:
         """The verdict in words, where it was reached, with the figures."""
+        if self.n < 2:
+            return f"{NO_VERDICT} (n = {self.n}: a test needs 2 paired seeds or more)"
         said = words(self.kind, self.rope)
         state = f"{said} at look {self.look}" if self.kind != UNDECIDED else said
-        if self.n < 2:
-            return f"{state} (n = {self.n}: no test below 2 paired seeds)"
         over = "t interval over seeds and test frames" if self.frames else "t interval"
         shown = self.rope is not None or self.frames
         share = f"{100 * (1 - 2 * self.level):.1f}%"
@@ -219,6 +221,10 @@ class Comparison:
             f"{state} (n = {self.n}, Δ {self.delta:+.2f} {interval}{spread}; p = {self.p:.3g} {self.p_words()} "
             f"against {self.level:.4f}; P(A > B) = {self.p_ab:.2f} [{self.p_ab_lo:.2f}, {self.p_ab_hi:.2f}])"
         )
+
+    def short(self) -> str:
+        """The verdict in a few words, as the table's figure labels it."""
+        return words(self.kind, self.rope) if self.n >= 2 else f"{NO_VERDICT} (n = {self.n})"
 
     def p_words(self) -> str:
         """What ``p`` is: the test the verdict rests on, adjusted over the table's comparisons at its look."""
@@ -444,7 +450,10 @@ def race_lines(state: RaceState, names: Mapping[str, str]) -> list[str]:
         else:
             why = "after the last look"
         for kind, head in ((UNDECIDED, "Left undecided"), (DIFFERENT, "Different, of uncertain practical size")):
-            open_ = [f"{names.get(c.a, c.a)} vs {names.get(c.b, c.b)}" for c in still if c.kind == kind]
+            open_ = [f"{names.get(c.a, c.a)} vs {names.get(c.b, c.b)}" for c in still if c.kind == kind and c.n >= 2]
             if open_:
                 lines.append(f"{head}, {why}: {', '.join(open_)}.")
+        unseen = [f"{names.get(c.a, c.a)} vs {names.get(c.b, c.b)}" for c in still if c.n < 2]
+        if unseen:
+            lines.append(f"No verdict, fewer than 2 paired seeds: {', '.join(unseen)} (race 2 seeds or more).")
     return lines

@@ -119,8 +119,11 @@ class Race:
         return False
 
     def outcome(self) -> str:
-        open_ = [f"{c.a} vs {c.b}" for c in self.state.undecided()]
-        return self.stopped or (f"left undecided after the last look: {', '.join(open_)}" if open_ else "all decided")
+        open_ = [f"{c.a} vs {c.b}" for c in self.state.undecided() if c.n >= 2]
+        unseen = [f"{c.a} vs {c.b}" for c in self.state.undecided() if c.n < 2]
+        said = [f"left undecided after the last look: {', '.join(open_)}"] if open_ else []
+        said += [f"no verdict, fewer than 2 paired seeds: {', '.join(unseen)}"] if unseen else []
+        return self.stopped or ("; ".join(said) or "all decided")
 
 
 class RacingSweeperImpl:
