@@ -22,9 +22,10 @@ run: setup
 	$(PY) -m ablate -m experiment=chinet_table2
 
 # the test files spread over every core, one file per worker at a time (module fixtures are built once; the Ray and
-# PostgreSQL tests of one file never run beside each other)
+# PostgreSQL tests of one file never run beside each other), in the order tests/conftest.py gives them, slowest
+# first: pytest-xdist would otherwise hand out the files with the most tests first and leave the slow ones for last
 test: setup
-	$(PY) -m pytest -q -n auto --dist loadfile
+	$(PY) -m pytest -q -n auto --dist loadfile --no-loadscope-reorder
 
 # ruff (lint and format) on everything; mypy (every function annotated) on the package and the sweeper plugin
 lint: setup

@@ -29,7 +29,7 @@ from omegaconf import DictConfig
 
 from ablate import cli
 from ablate.analysis.reproduce import reproduce, tuned_config
-from ablate.config import CONF, compose
+from ablate.config import CONF, compose, composition_error
 from ablate.jobs.spec import apply_draws
 from ablate.store import AccessDenied, ServerUnreachable, Tracker
 from ablate.tables import collect, render_records, table_spec, write_table
@@ -56,8 +56,11 @@ def main(argv: list[str] | None = None) -> int:
     args = cli.report(__doc__, argv)
     try:
         return _main(args)
-    except (AccessDenied, ServerUnreachable, HydraException) as err:  # a store refusing or silent; a bad override
+    except (AccessDenied, ServerUnreachable) as err:  # a store refusing or silent
         print(f"error: {err}", file=sys.stderr)
+        return 1
+    except HydraException as err:  # a bad override: experiment=<unknown>, a user's config without its search path
+        print(f"error: {composition_error(err)}", file=sys.stderr)
         return 1
 
 

@@ -20,38 +20,39 @@ def kitti_root() -> Path:
     return SHARED_KITTI
 
 
-#: The slowest test files (end to end: sweeps, servers, clusters), slowest first by their --durations (at 2 workers
-#: beside a table's race on 2 cores, in seconds: test_cli 219, test_tracking_outage 174, test_dgfn 155,
-#: test_launchers 137, test_tracking_server 127, test_reproduce 119, test_records 107, then 98 and less). `make test`
-#: spreads whole files over the workers in the order they are collected (pytest-xdist's --dist loadfile): these
-#: start first, and the quick files fill in around them at the end, instead of one slow file starting last beside an
-#: idle worker. test_mlflow_ui comes after test_cli, whose smoke store it shares (tests/shared.py): the store is made
-#: by then.
+#: The slowest test files (end to end: sweeps, servers, clusters), slowest first by their --durations (summed per
+#: file, 2 workers on the 2-core AVX2 EPYC, in seconds: test_cli 244, test_dgfn 217, test_launchers 183,
+#: test_tracking_outage 178, test_tracking_server 150, test_preemption 150, test_reproduce 131, test_ddp 117, then
+#: 100 and less). `make test` spreads whole files over the workers in the order they are collected (pytest-xdist's
+#: --dist loadfile, with --no-loadscope-reorder, without which it hands out the files with the most tests first):
+#: these start first, and the quick files fill in around them at the end, instead of one slow file starting last
+#: beside an idle worker. test_mlflow_ui comes after test_cli, whose smoke store it shares (tests/shared.py): the
+#: store is made by then.
 SLOW_FIRST = [
     "test_cli.py",
-    "test_tracking_outage.py",
     "test_dgfn.py",
     "test_launchers.py",
+    "test_tracking_outage.py",
     "test_tracking_server.py",
-    "test_reproduce.py",
-    "test_records.py",
-    "test_ddp.py",
     "test_preemption.py",
+    "test_reproduce.py",
+    "test_ddp.py",
     "test_tuning.py",
-    "test_bifnet.py",
+    "test_tutorial.py",
     "test_plan.py",
     "test_numerics_jobs.py",
     "test_publish.py",
+    "test_bifnet.py",
     "test_verdicts.py",
+    "test_records.py",
+    "test_wheel.py",
     "test_mlflow_ui.py",
     "test_check_paper.py",
-    "test_commands.py",
     "test_checkpoint_faults.py",
-    "test_wheel.py",
-    "test_own_operator.py",
+    "test_commands.py",
+    "test_layers.py",
     "test_system_metrics.py",
     "test_progress_lines.py",
-    "test_layers.py",
     "test_tracking_race.py",
     "data/test_masks.py",
     "test_racing.py",

@@ -89,6 +89,15 @@ def test_your_seeds_are_placed_in_the_published_rows_prediction_interval() -> No
     tuned = '{"task.optimizer.lr": 0.0008727, "task.optimizer.weight_decay": null}'
     line = compare(ours, theirs.assign(tuned_config=tuned), table).splitlines()[-1]
     assert line.endswith("; tuned config: lr=0.0008727, weight_decay=default -> the recipe |"), line
+    # the same values given on the command line: the config hashes per seed are the published ones
+    hashed = {"seed": [0, 1], "config_hash": ["a0", "a1"]}
+    mine = ours.assign(**hashed)
+    line = compare(mine, theirs.assign(tuned_config=tuned, seed=[0, 1, 2], config_hash=["a0", "a1", "a2"]), table)
+    assert line.splitlines()[-1].endswith("; same config |") and "tuned config" not in line
+    line = compare(mine.assign(config_hash=["b0", "b1"]), theirs.assign(seed=[0, 1, 2], config_hash="a"), table)
+    assert line.splitlines()[-1].endswith(
+        "; another config (its hash differs from the published one's at the same seed) |"
+    )
     # yours trained on a GPU, the published rows on the CPU (records from before the column name none)
     line = compare(ours.assign(made_gpu="NVIDIA H200"), theirs, table).splitlines()[-1]
     assert "GPU: none -> NVIDIA H200" in line, line

@@ -4,8 +4,10 @@
 for each row, the user's mean of the table's primary metric beside the published mean (from the committed records,
 :mod:`ablate.tables.records`), how many of the user's seeds lie inside the published row's 95 % prediction interval
 for a new seed (:func:`ablate.tables.significance.prediction_interval`: the range one new run should fall in), and
-which of CPU, ISA, precision, threads and the tuned config differ from the published runs' (a published row
-raced on the config a tuning phase chose for it, :mod:`ablate.sweep.tuning`, while ``make run`` races the recipe). Results follow the instruction set's
+which of CPU, ISA, precision and threads differ from the published runs', and whether each row ran the published
+config: compared by its hash (the same config whatever route set its values), else by the tuned config (a
+published row raced on the config a tuning phase chose for it, :mod:`ablate.sweep.tuning`, while ``make run``
+races the recipe). Results follow the instruction set's
 kernels and the thread count (a reduction adds in another order), so a machine of another ISA is expected to give
 other numbers for the same seed, inside the interval rather than equal to it.
 """
@@ -31,7 +33,7 @@ def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> s
     mine, published = under_condition(mine, table), under_condition(published, table)
     lines = [
         "| Row | Yours (mean, n) | Published (mean, n) | Published 95 % PI for a new seed | Your seeds inside | "
-        "Numerics or tuned config that differ |",
+        "Numerics that differ; config |",
         "|:--|--:|--:|:--|--:|:--|",
     ]
     for spec in table.rows:
@@ -53,15 +55,34 @@ def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> s
 
 def differing(mine: pd.DataFrame, published: pd.DataFrame) -> str:
     """``name: published -> yours`` for each of :data:`ablate.tables.records.NUMERICS` whose values differ, then the
-    tuned configs where they differ (``the recipe`` for an untuned row, :func:`ablate.tables.tuning.config_text`)."""
+    config: ``same config`` where every seed both have ran the published config hash (however its values were
+    set: a tuning phase, or its draws given on the command line), else the tuned configs where they differ (``the
+    recipe`` for an untuned row, :func:`ablate.tables.tuning.config_text`), else that the hashes differ."""
     out = numerics_differ(published, mine)
+    same = same_config(mine, published)
+    if same:
+        return "; ".join([*out, "same config"])
     before, now = (
         sorted({config_text(str(c)) for c in runs.get("tuned_config", pd.Series([""])).fillna("")})
         for runs in (published, mine)
     )
     if before != now:
         out.append(f"tuned config: {' / '.join(before)} -> {' / '.join(now)}")
+    elif same is False:
+        out.append("another config (its hash differs from the published one's at the same seed)")
     return "; ".join(out)
+
+
+def same_config(mine: pd.DataFrame, published: pd.DataFrame) -> bool | None:
+    """Whether each seed both have ran the same config (hash, :func:`ablate.store.config_hash`: the seed is part of
+    it); None where they share no seed or the records carry no hash."""
+    if "config_hash" not in mine or "config_hash" not in published:
+        return None
+    a, b = (runs.dropna(subset=["config_hash"]).groupby("seed")["config_hash"].agg(set) for runs in (mine, published))
+    shared = sorted(set(a.index) & set(b.index))
+    if not shared:
+        return None
+    return all(a[seed] == b[seed] for seed in shared)
 
 
 def against_published(mine: pd.DataFrame, table: DictConfig, results: Path) -> str | None:

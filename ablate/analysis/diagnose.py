@@ -44,12 +44,13 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
+from hydra.errors import HydraException  # noqa: E402
 from hydra.utils import instantiate  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from ablate import cli  # noqa: E402
-from ablate.config import compose  # noqa: E402
+from ablate.config import compose, composition_error  # noqa: E402
 from ablate.jobs.experts import EXPERTS_TABLE, expert_config, load_model  # noqa: E402
 from ablate.jobs.spec import CHECKPOINTS, best_checkpoint  # noqa: E402
 from ablate.store import Tracker, config_hash  # noqa: E402
@@ -176,6 +177,9 @@ def main(argv: list[str] | None = None) -> int:
         result = diagnose(parsed.overrides, experts_only)
     except (MissingCheckpoint, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
+        return 1
+    except HydraException as err:  # experiment=<unknown>, or a user's config without its hydra.searchpath
+        print(f"error: {composition_error(err)}", file=sys.stderr)
         return 1
     out = Path("results")
     out.mkdir(exist_ok=True)

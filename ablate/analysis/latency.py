@@ -31,6 +31,7 @@ from pathlib import Path
 
 import pandas as pd
 import torch
+from hydra.errors import HydraException
 from hydra.utils import instantiate
 from mlflow.entities import Run
 from omegaconf import DictConfig
@@ -38,6 +39,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from ablate import cli, hardware
 from ablate.config import compose as compose_root
+from ablate.config import composition_error
 from ablate.jobs import fingerprint
 from ablate.jobs.experts import expert_config, load_model
 from ablate.jobs.spec import best_checkpoint
@@ -221,7 +223,11 @@ def main(argv: list[str] | None = None) -> int:
     :func:`ablate.cli.latency` (``--help`` and a bad option end the process there, status 0 and 2): time the table's
     rows, log the figures to their runs and rewrite the table; 1 where the store has no runs of the table."""
     args = cli.latency(__doc__, argv).overrides
-    cfg = compose_root(args)
+    try:
+        cfg = compose_root(args)
+    except HydraException as err:  # experiment=<unknown>, or a user's config without its hydra.searchpath
+        print(f"error: {composition_error(err)}", file=sys.stderr)
+        return 1
     tracker = Tracker.from_config(cfg)
     if tracker.find_experiment(cfg.table.name) is None:
         print(f"error: no runs for table '{cfg.table.name}' in {tracker.uri}", file=sys.stderr)

@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from ablate.analysis.compare import against_published
 from ablate.analysis.latency import measure
-from ablate.config import CONF, compose
+from ablate.config import CONF, composer
 from ablate.jobs import fingerprint, stage1
 from ablate.jobs.preempt import GRACE_S, alive, install_parent
 from ablate.store import (
@@ -139,7 +139,7 @@ def publish(paths: list[Path], source: Path, results: Path, config: DictConfig) 
         copies.append(target)
     experiments = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
     fixed = [o for o in fixed_overrides(config) if not o.startswith("experiment=")]
-    specs = [table_spec(compose([*fixed, f"experiment={name}"])) for name in experiments]
+    specs = [table_spec(composer(config)([*fixed, f"experiment={name}"])) for name in experiments]
     return copies + write_index(specs, RESULTS, "README.md")  # the driver runs in the launch directory
 
 
@@ -291,7 +291,7 @@ class SweepCallback(Callback):
         failures = context.failures()
         if config.get("comp_time", {}).get("after_sweep") and config.table.rows:
             try:
-                measure(config, tracker, compose, fixed_overrides(config), only_if_missing=True)
+                measure(config, tracker, composer(config), fixed_overrides(config), only_if_missing=True)
             except Exception as err:  # the table is written all the same, its latency column empty
                 log.error("Could not time the rows side by side (python -m ablate.latency): %s", err)
         try:

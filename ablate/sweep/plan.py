@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 from omegaconf import DictConfig, OmegaConf
 
-from ablate.config import compose
+from ablate.config import composer
 from ablate.jobs.experts import expert_config, job_config, needed
 from ablate.jobs.spec import best_checkpoint, resolved_config
 from ablate.jobs.steptime import StepTimes, step_times
@@ -83,6 +83,7 @@ def items(
     hashed, has a FINISHED run; ``objectives``: the tuning trials' in the store, where a resumed sweep has them,
     :func:`ablate.sweep.progress.job_overrides`), or of its ``jobs`` (a race's later look)."""
     jobs = job_overrides(config, objectives) if jobs is None else jobs
+    compose = composer(config)  # with the sweep's own config folders (hydra.searchpath), as its jobs compose
     swept = swept_keys(jobs)
     experts: dict[str, Item] = {}
     planned: list[Item] = []

@@ -35,7 +35,7 @@ from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
-from ablate.config import compose
+from ablate.config import composer
 from ablate.store import file_lock, row_name
 from ablate.sweep.tuning import Experts, TuneSpec, choices
 from ablate.tables.spec import LOWER_IS_BETTER, sweep_params
@@ -101,7 +101,7 @@ def job_overrides(config: DictConfig, objectives: Mapping[str, Mapping[int, floa
     trials: list[list[str]] = []
     raced: dict[str, list[str]] = {row: [] for row in rows}
     if spec is not None:  # the experts' trials first, where rows sit on experts; a single-modal row is its expert
-        experts = Experts.of(rows, compose) if spec.experts else Experts()
+        experts = Experts.of(rows, composer(config)) if spec.experts else Experts()
         fixed: list[str] = []
         if objectives:  # a resumed phase: what it chose so far
             higher = str(OmegaConf.select(config, "table.primary", default="")) not in LOWER_IS_BETTER

@@ -328,7 +328,15 @@ def costs(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> tuple
             columns[table.metrics.get(key, COSTS[key])] = ["—" if np.isnan(v) else f"{v:.2f}" for v in values]
     lines = []
     if np.all(np.isnan(med)):
-        lines.append(f"{label}: not measured yet (`python -m ablate.latency experiment={table.name}`).")
+        if not table.rows:  # an ad-hoc sweep: no experiment to name, no rows to load side by side
+            lines.append(
+                f"{label}: not measured (an ad-hoc sweep; `python -m ablate.latency` times an experiment's rows)."
+            )
+        else:
+            lines.append(
+                f"{label}: not measured yet (`python -m ablate.latency experiment={table.name}`, with the sweep's "
+                "`hydra.searchpath=[file://...]` where its experiment lives in a folder of your own)."
+            )
         return columns, lines
     load, cores = runs.get("latency_load", pd.Series(dtype=float)).max(), runs["latency_cores"].max()
     rounds = (

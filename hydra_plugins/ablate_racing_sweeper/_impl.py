@@ -33,7 +33,7 @@ from hydra.plugins.launcher import Launcher
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf
 
-from ablate.config import compose
+from ablate.config import composer
 from ablate.store import AccessDenied, ServerUnreachable, SweepContext, Tracker, row_name
 from ablate.store.context import SWEPT_FILE
 from ablate.sweep import progress
@@ -258,7 +258,7 @@ class RacingSweeperImpl:
                 print(f"error: {err}; the tuning phase stopped: the same command resumes it", file=sys.stderr)
                 raise SystemExit(1) from None
 
-        experts = Experts.of(race_.jobs, compose) if spec.experts else Experts()
+        experts = Experts.of(race_.jobs, composer(self.config)) if spec.experts else Experts()
         earlier = self._earlier_trials(name) if spec.budget_min else 0.0
         tuned = tune(spec, name, race_.jobs, experts, launch, objectives, earlier=earlier)
         values = tuned.objectives
