@@ -19,5 +19,14 @@ def _channels(names: Sequence[str]) -> dict[str, int]:
     return {str(n): MODALITIES[n] for n in names}
 
 
+def _docs() -> str:
+    """Config resolver ``${ablate_docs:}``: the folder of the documentation installed with the package (a
+    checkout's docs/), for the commands' --help."""
+    from pathlib import Path
+
+    return str(Path(__file__).resolve().parent / "docs")
+
+
 OmegaConf.register_new_resolver("channels", _channels, replace=True)
+OmegaConf.register_new_resolver("ablate_docs", _docs, replace=True)
 register_resolvers()

@@ -24,6 +24,8 @@ from typing import Any, NoReturn
 USAGE = 2
 TRUE, FALSE = ("true", "1", "yes"), ("false", "0", "no")
 OVERRIDES_HELP = "Hydra overrides of conf/config.yaml, e.g. experiment=chinet_table2 logger.tracking_uri=URI"
+#: The documentation installed with the package (a checkout's docs/ folder).
+DOCS = Path(__file__).resolve().parent / "docs"
 
 
 class Formatter(argparse.HelpFormatter):
@@ -122,8 +124,10 @@ def as_typed(prog: str, argv0: str | None = None) -> str:
 def command(prog: str, doc: str | None, usage: str, epilog: str) -> Parser:
     """The parser of the command ``prog``: its ``usage`` (``%(prog)s`` for ``prog``; lines after the first indented
     under it), its description ``doc`` (its module's docstring), Hydra's overrides as positional arguments
-    (``overrides``), the ``epilog`` after the options (its exit statuses)."""
+    (``overrides``), the ``epilog`` after the options (its exit statuses), then where the installed documentation
+    is (:data:`DOCS`)."""
     usage = usage.replace("\n", "\n" + " " * len("usage: "))
+    epilog = f"{epilog.rstrip()}\n\ndocumentation: {DOCS / 'guide.md'} (installed with the package)\n"
     prog = as_typed(prog)
     parser = Parser(
         prog=prog, usage=usage, description=plain(doc), epilog=epilog, formatter_class=Formatter, allow_abbrev=False

@@ -3,6 +3,7 @@
 import sqlite3
 
 import pytest
+import sqlalchemy.exc
 from omegaconf import OmegaConf
 
 from ablate.store import config_hash, flatten, git_commit
@@ -145,3 +146,29 @@ def test_a_run_is_dirty_for_changed_code_not_for_what_a_published_sweep_wrote(tm
     assert git_commit() == clean
     (tmp_path / "model.py").write_text("x = 2")
     assert git_commit() == clean + "-dirty"
+
+
+def test_a_dataset_two_jobs_record_at_once_links_the_second_run_and_other_errors_stay(tmp_path, monkeypatch):
+    first, second = Tracker(sqlite_uri(tmp_path)), Tracker(sqlite_uri(tmp_path))
+    exp = first.experiment_id("t")
+    runs = [t.start(exp, f"job {i}", {"kind": "job"}) for i, t in enumerate((first, second))]
+    first.log_dataset(runs[0], "synth-abc", "d1", "/data/synth-abc", {"train": 12})
+    real = second._client.log_inputs
+    calls = []
+
+    def raced(*args, **kwargs):  # what the loser of the race sees: the other job's insert of the same dataset
+        calls.append(args)
+        if len(calls) == 1:
+            raise sqlalchemy.exc.IntegrityError(
+                "INSERT INTO datasets", {}, sqlite3.IntegrityError("UNIQUE constraint failed: datasets.digest")
+            )
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(second._client, "log_inputs", raced)
+    second.log_dataset(runs[1], "synth-abc", "d1", "/data/synth-abc", {"train": 12})
+    assert len(calls) == 2
+    inputs = [second._client.get_run(r).inputs.dataset_inputs for r in runs]
+    assert [[d.dataset.digest for d in i] for i in inputs] == [["d1"], ["d1"]]
+    monkeypatch.setattr(second._client, "log_inputs", lambda *a, **k: (_ for _ in ()).throw(ValueError("bad input")))
+    with pytest.raises(ValueError, match="bad input"):
+        second.log_dataset(runs[1], "synth-abc", "d1", "/data/synth-abc", {"train": 12})

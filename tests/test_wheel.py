@@ -6,6 +6,7 @@ site-packages."""
 from __future__ import annotations
 
 import os
+import re
 import site
 import subprocess
 import sys
@@ -47,6 +48,13 @@ def test_the_wheel_runs_a_smoke_table_and_the_report_from_an_empty_folder(tmp_pa
         cwd=work, env=env, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert report.returncode == 0, report.stderr[-3000:]
+    # each command's --help points to documentation that was installed with it
+    for command in ("ablate", "ablate-report"):
+        said = subprocess.run(
+            [str(env_dir / "bin" / command), "--help"], cwd=work, env=env, capture_output=True, text=True, timeout=120
+        ).stdout
+        pages = [Path(p) for p in re.findall(r"(/\S+\.md)", said)]
+        assert pages and all(p.is_file() and packages in p.parents for p in pages), said[-1500:]
     for name in ("mlflow.db", "results/chinet_table2.md", "results/runs/chinet_table2.csv", "data"):
         assert (work / name).exists(), name
     assert sorted(p for p in (packages / "ablate").rglob("*") if "__pycache__" not in p.parts) == installed

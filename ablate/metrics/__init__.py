@@ -23,7 +23,7 @@
 Each job records the evaluator its test metrics follow as the run's ``evaluator`` tag
 (:attr:`ablate.tasks.base.FusionTask.evaluator`). :data:`EVALUATORS` names today's default of each metric module
 whose rule has changed since runs were made; the report (:func:`ablate.tables.provenance.provenance`) says so under a table
-whose runs import such a module but did not record that evaluator. results/README.md lists the same per table.
+whose runs import such a module but did not record that evaluator. docs/metrics.md lists the same per table.
 """
 
 #: Today's evaluator, by metric module: the ``evaluator`` tag a run of a task that builds the module's metric with

@@ -284,7 +284,15 @@ class Tracker:
         ``digest``, where it lies (``source``) and its frames per split (the dataset's profile)."""
         dataset = Dataset(name, digest, "local", json.dumps({"uri": source}), None, json.dumps({"frames": frames}))
         context = InputTag("mlflow.data.context", "training")
-        self.call(self._client.log_inputs, run_id, datasets=[DatasetInput(dataset, tags=[context])])
+        inputs = [DatasetInput(dataset, tags=[context])]
+        try:
+            self.call(self._client.log_inputs, run_id, datasets=inputs)
+        except Exception as err:
+            if not inserted_beside(err):
+                raise
+            # two jobs of a sweep recorded the same new dataset at once: MLflow's store looks it up, finds none, and
+            # the second insert breaks the unique key; now it exists, and the run is linked to it
+            self.call(self._client.log_inputs, run_id, datasets=inputs)
 
     @contextmanager
     def system_metrics(self, run_id: str, on: bool, interval_s: float = 10.0) -> Iterator[None]:
@@ -322,3 +330,10 @@ def rows(metrics: dict[str, float], step: int = 0) -> list[Row]:
     """``metrics`` at ``step`` as metric rows stamped now (ms), sorted by key."""
     now = int(time.time() * 1000)
     return [(k, float(v), now, int(step)) for k, v in sorted(metrics.items())]
+
+
+def inserted_beside(err: Exception) -> bool:
+    """Whether ``err`` is a unique key broken by another writer's insert of the same row (SQLite's and PostgreSQL's
+    words for it, as SQLAlchemy and MLflow pass them on)."""
+    text = str(err)
+    return "UNIQUE constraint failed" in text or "duplicate key value violates unique constraint" in text

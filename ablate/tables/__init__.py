@@ -82,6 +82,7 @@ def write_table(
     trials = trials_from_store(tracker, str(table.name))
     if publish and (kept := write_trials(trials, results_dir, str(table.name))) is not None:
         written.append(kept)
+    runs.attrs["trials"] = trials  # what the tuning phase spent (ablate.tables.cost)
     config = lambda run_id: config_of(tracker, run_id)  # noqa: E731
     footer = footer_lines(runs, fingerprint, config, running(tracker, table.name))
     written += render(cfg, table, runs, results_dir, footer, tracker, parent_run, tuning_section(trials, table))
@@ -106,6 +107,7 @@ def render_records(
     runs.attrs["frames"] = read_frames(results_dir, str(table.name))
     runs.attrs["detections"] = read_detections(results_dir, str(table.name))
     trials = read_trials(results_dir, str(table.name))
+    runs.attrs["trials"] = trials  # what the tuning phase spent (ablate.tables.cost)
     footer = footer_lines(runs, fingerprint, config(runs) if config is not None else None, 0)
     written = render(cfg, table, runs, results_dir, footer, None, None, tuning_section(trials, table))
     written += tuning_figure(trials, table, results_dir)

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
+from ablate.tables.cost import table_cost
 from ablate.tables.decide import machine, undecided
 from ablate.tables.frames import FROM_DETECTIONS
 from ablate.tables.racing import Comparison, RacePlan, RaceState, race, race_lines, recorded_plan, seed_values
@@ -66,6 +67,7 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
         names = dict(zip(summary["row"], summary["name"]))
         lines += rope_line(table, label) + race_lines(raced, names)
         lines += [todo.words(names, machine(runs)) for todo in undecided(raced, runs).values()]
+        lines.append(table_cost(raced, runs).words())
         if kernels_sd(table):
             lines.append(
                 f"Each seed's paired difference carries another CPU's kernels' variance too (sd {kernels_sd(table):g}, "

@@ -23,6 +23,7 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.tables.columns import ahead_words, kind_of, replayed_race, row_difference, table_frames, top_and_second
+from ablate.tables.cost import table_cost
 from ablate.tables.decide import ToDecide, undecided
 from ablate.tables.summary import bold_of, kendall, reference
 
@@ -62,6 +63,10 @@ def numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> pd.
     for column, value in top.items():
         out[f"top_{column}"] = [value if found is not None and name == found[0] else np.nan for name in out["name"]]
     out["kendall_tau"], out["kendall_n"] = kendall(summary, key) if len(summary) else (np.nan, 0)
+    spent = table_cost(raced, runs) if raced is not None else None  # the table's, on every line
+    out["cpu_min"] = np.nan if spent is None else spent.total_min
+    out["decided"] = np.nan if spent is None else spent.decided
+    out["cpu_min_per_decision"] = np.nan if spent is None else spent.per_decision_min
     return out
 
 
