@@ -41,7 +41,14 @@ class Formatter(argparse.HelpFormatter):
                 lead = "- " if bullet else ""
                 body = " ".join(item[bullet.end() if bullet else 0 :].split())
                 items.append(
-                    textwrap.fill(body, width, initial_indent=indent + lead, subsequent_indent=indent + " " * len(lead))
+                    textwrap.fill(
+                        body,
+                        width,
+                        initial_indent=indent + lead,
+                        subsequent_indent=indent + " " * len(lead),
+                        break_long_words=False,  # a path stays whole, to copy
+                        break_on_hyphens=False,
+                    )
                 )
             out.append("\n".join(items))
         return "\n\n".join(out)

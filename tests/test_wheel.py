@@ -53,7 +53,7 @@ def test_the_wheel_runs_a_smoke_table_and_the_report_from_an_empty_folder(tmp_pa
         said = subprocess.run(
             [str(env_dir / "bin" / command), "--help"], cwd=work, env=env, capture_output=True, text=True, timeout=120
         ).stdout
-        pages = [Path(p) for p in re.findall(r"(/\S+\.md)", said)]
+        pages = [Path(p) for p in re.findall(r"(/\S+/docs/[a-z]+\.md)", said)]
         assert pages and all(p.is_file() and packages in p.parents for p in pages), said[-1500:]
     for name in ("mlflow.db", "results/chinet_table2.md", "results/runs/chinet_table2.csv", "data"):
         assert (work / name).exists(), name

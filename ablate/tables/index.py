@@ -94,6 +94,12 @@ def headline_of(verdict: str) -> str:
     return "not separable from seed noise"
 
 
+#: A table's footer line on what its evidence cost (:meth:`ablate.tables.cost.Cost.words`).
+COST = re.compile(
+    r"Cost of the evidence: (?P<total>[0-9.]+) CPU min .*?(?:for (?P<decided>[0-9]+) of [0-9]+ comparison|and none of)"
+)
+
+
 def summarise_table(table: DictConfig, text: str) -> Summary:
     """The summary line of ``table`` (its spec) from ``text`` (its markdown)."""
     top = TOP.search(text)
@@ -109,7 +115,13 @@ def summarise_table(table: DictConfig, text: str) -> Summary:
     else:
         headline = headline_of(top["verdict"])
     shown_tau = "—" if tau is None else f"{float(tau['tau']):.2f}" + (f" ({tau['n']} rows)" if tau["n"] else "")
-    return Summary(str(table.name), str(table.title), ours, paper or "—", shown_tau, headline)
+    spent = COST.search(text)  # the footer's line (ablate.tables.cost), as its numbers give it
+    cost = "—"
+    if spent:
+        total, decided = float(spent["total"]), int(spent["decided"] or 0)
+        per = total / decided if decided else float("nan")
+        cost = cost_of(pd.DataFrame({"cpu_min": [total], "decided": [decided], "cpu_min_per_decision": [per]}))
+    return Summary(str(table.name), str(table.title), ours, paper or "—", shown_tau, headline, cost)
 
 
 def summarise_numbers(table: DictConfig, numbers: pd.DataFrame) -> Summary:
