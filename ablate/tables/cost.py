@@ -32,9 +32,8 @@ class Cost:
     race_min: float
     decided: int
     compared: int
-    job_starts: bool = (
-        True  # the records keep each job's start (else each run's: experts trained before it are left out)
-    )
+    # whether the records keep each job's start (else each run's: the experts trained before it are left out)
+    job_starts: bool = True
 
     @property
     def total_min(self) -> float:
