@@ -6,7 +6,11 @@ import warnings
 from pathlib import Path
 
 import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig
+
+from ablate.options import OptionError, check
 
 # conf/hydra/launcher/ray.yaml and submitit_local.yaml replace the plugins' configs of the same names, holding
 # exactly their keys. Hydra 1.3 still validates a file against a ConfigStore entry of the same name and warns that
@@ -24,9 +28,28 @@ CONFIGS = str(Path(__file__).resolve().parent / "conf")
 
 @hydra.main(version_base="1.3", config_path=CONFIGS, config_name="config")
 def main(cfg: DictConfig) -> str:
+    """One job: its options checked first (:mod:`ablate.options`), before it imports torch or opens the store."""
+    try:
+        check(cfg, Path(HydraConfig.get().runtime.cwd))
+    except OptionError as err:
+        return refused(err)
     from ablate.jobs.job import main as run_job  # torch and Lightning: imported once a job runs, not for a bad option
 
     return run_job(cfg)
+
+
+def refused(err: OptionError) -> str:
+    """A job whose option is refused, before any run: one line and status 1; in a sweep, a note for the sweep's
+    summary, as a job that fails leaves (``ablate.jobs.job.main``), and the other jobs go on."""
+    if HydraConfig.get().mode != RunMode.MULTIRUN:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(1)
+    from ablate.store import SweepContext, row_name  # MLflow: a sweep's job has it loaded already
+
+    context = SweepContext.current()
+    row = row_name(context.overrides, context.swept, context.row_choice)
+    context.record_failure(f"{context.job_num}_{row.replace(' ', '_').replace('/', '-')}", str(err))
+    return "FAILED"
 
 
 def script() -> None:

@@ -163,8 +163,8 @@ def own(parser: Parser, args: argparse.Namespace, keys: dict[str, Callable[[str]
 
 
 def report(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Namespace:
-    """``python -m ablate.report [--publish | --load | --reproduce | --parity] [key=value ...]``: ``publish``,
-    ``load``, ``reproduce`` and ``parity`` (bools),
+    """``python -m ablate.report [--publish | --load | --seal | --reproduce | --parity] [key=value ...]``:
+    ``publish``, ``load``, ``seal``, ``reproduce`` and ``parity`` (bools),
     ``overrides``. ``--reproduce`` needs ``experiment=`` and ``row=``, ``--parity`` ``experiment=`` and one
     ``row=``."""
     parser = command(
@@ -173,12 +173,14 @@ def report(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Names
         usage="%(prog)s [-h] [experiment=<table>] [key=value ...]\n"
         "%(prog)s --publish [experiment=<table>] [key=value ...]\n"
         "%(prog)s --load [experiment=<table>] [key=value ...]\n"
+        "%(prog)s --seal [experiment=<table>]\n"
         "%(prog)s --reproduce experiment=<table> row=<row> [seed=N] [key=value ...]\n"
         "%(prog)s --parity experiment=<table> row=<row> [key=value ...]",
         epilog="exit status:\n"
         "- 0: written; --reproduce: the rerun lies inside the row's prediction interval\n"
         "- 1: a store that refuses this client, an override that does not compose, no runs of the table named "
-        "(--reproduce, --parity: of the row)\n"
+        "(--reproduce, --parity: of the row), records that are not what was published (each named, with its line; "
+        "the other tables rendered)\n"
         "- 2: a bad option, one error: line on stderr; --reproduce: also a rerun outside the row's prediction "
         "interval, its verdict on stdout and no error: line",
     )
@@ -194,6 +196,13 @@ def report(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Names
         action="store_true",
         help="load the published run records into your store (mlflow.db unless logger.tracking_uri or "
         "MLFLOW_TRACKING_URI says otherwise), marked as imported, so that `mlflow ui` shows the runs behind the tables",
+    )
+    mode.add_argument(
+        "--seal",
+        action="store_true",
+        help="after an intended edit of a table's run records (results/runs/<table>.*): check that each file parses "
+        "and seal them again (results/runs/<table>.seal.json), so that the report renders from them; every table's "
+        "without experiment=",
     )
     mode.add_argument(
         "--reproduce",

@@ -3,7 +3,7 @@
 The CPUs that run this project differ. On one with bf16 in hardware (AMX, or AVX-512 BF16) bf16 autocast with
 channels_last tensors trains the ChiNet family about 2.5x faster than fp32; on one with AVX2 only, bf16 autocast is
 emulated and 9-33x slower, and channels_last alone gains 7-13 % on some families and loses 12 % on ChiNet
-(``bench/bench_precision.py``; README.md, "Numerics and throughput"). So the precision follows the hardware:
+(``bench/bench_precision.py``; docs/numerics.md). So the precision follows the hardware:
 ``trainer.precision: auto`` is resolved when a job starts (:func:`resolve`), and the resolved value, never
 ``auto``, goes into the job's config, its config hash, its params and its tags.
 

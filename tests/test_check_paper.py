@@ -16,6 +16,7 @@ from ablate.capacity import estimates as paper_estimates
 from ablate.capacity import measure as paper_measure
 from ablate.capacity import rows as paper_rows
 from ablate.config import compose
+from ablate.tables import published
 
 #: One row per family: SMoE on frozen ResNet-101 experts (instance), DGFN's two VGG-16 SSD trunks with GFUs
 #: (detection), ChiNet (semantic), BiFNet with DST and CBF (road).
@@ -116,7 +117,7 @@ def test_gpu_hours_are_macs_times_six_flops_a_frame_over_the_sustained_peak():
 
 
 def test_a_failing_row_is_reported_with_its_error_and_the_command_fails(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(paper_check, "RESULTS", tmp_path)
+    monkeypatch.setattr(published, "RESULTS", tmp_path)
     monkeypatch.setattr(paper_rows, "experiments", lambda: ["chinet_table3"])
     figures = {
         "params": 10,
@@ -155,7 +156,7 @@ def test_a_failing_row_is_reported_with_its_error_and_the_command_fails(tmp_path
 
 
 def test_a_budget_leaves_rows_for_a_later_run(tmp_path, monkeypatch):
-    monkeypatch.setattr(paper_check, "RESULTS", tmp_path)
+    monkeypatch.setattr(published, "RESULTS", tmp_path)
     monkeypatch.setattr(paper_rows, "experiments", lambda: ["chinet_table3"])
     monkeypatch.setattr(paper_check, "run_isolated", lambda *a, **k: pytest.fail("over the budget"))
     assert paper_check.main(["budget_min=-1"]) == 0
@@ -163,7 +164,7 @@ def test_a_budget_leaves_rows_for_a_later_run(tmp_path, monkeypatch):
 
 
 def test_gpu_measurements_stand_beside_the_estimates_with_their_ratio_and_divergence(tmp_path, monkeypatch):
-    monkeypatch.setattr(paper_check, "RESULTS", tmp_path)
+    monkeypatch.setattr(published, "RESULTS", tmp_path)
     monkeypatch.setattr(paper_rows, "experiments", lambda: ["chinet_table3"])
     monkeypatch.setattr(paper_check, "run_isolated", lambda *a, **k: pytest.fail("over the budget"))
     gpu = [
@@ -215,7 +216,7 @@ def test_gpu_measurements_stand_beside_the_estimates_with_their_ratio_and_diverg
 
 @pytest.mark.parametrize("name", ["paper_scale.json", "paper_scale_gpu.json"])
 def test_a_truncated_figures_file_is_one_error_naming_it(name, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(paper_check, "RESULTS", tmp_path)
+    monkeypatch.setattr(published, "RESULTS", tmp_path)
     monkeypatch.setattr(paper_check, "run_isolated", lambda *a, **k: pytest.fail("nothing runs"))
     (tmp_path / name).write_text('{"measured": {"a": ')
     assert paper_check.main(["reuse=true"]) == 2
@@ -349,7 +350,7 @@ def test_long_rows_train_twice_the_recipes_steps_at_every_scale():
 
 
 def test_reuse_counts_only_the_missing_frozen_macs_and_keeps_the_steps(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(paper_check, "RESULTS", tmp_path)
+    monkeypatch.setattr(published, "RESULTS", tmp_path)
     monkeypatch.setattr(paper_rows, "experiments", lambda: ["smoe_table2"])
     monkeypatch.setattr(paper_check, "run_isolated", lambda *a, **k: pytest.fail("reuse=true times no step"))
     entries = paper_rows.describe(paper_rows.plan())
@@ -390,3 +391,21 @@ def test_reuse_counts_only_the_missing_frozen_macs_and_keeps_the_steps(tmp_path,
     assert again[json.dumps(stale)] == figures  # a measurement of another config is kept, not lost
     monkeypatch.setattr(paper_check, "count_isolated", lambda *a, **k: pytest.fail("counted twice"))
     assert paper_check.main(["reuse=true"]) == 0
+
+
+def test_a_count_that_fails_is_its_rows_error_and_the_other_rows_are_counted(monkeypatch):
+    # each count runs in a process of its own: whatever it raises (the model's, the data's) is that row's result
+    entries = [
+        {"frozen": True, "key": k, "spec": ("smoe_table1", row, None)} for k, row in (("a", "fpn"), ("b", "late"))
+    ]
+    measured = {k: {"where": f"smoe_table1/{k}", "macs": 10} for k in ("a", "b")}
+
+    def count(spec, data_dir, overrides=()):
+        if spec[1] == "fpn":
+            raise KeyError("conv9")
+        return {"macs": 10, "macs_frozen": 4, "feature_bytes": 2**20}
+
+    monkeypatch.setattr(paper_check, "count_isolated", count)
+    out = paper_check.recount(entries, measured, echo=lambda _: None)
+    assert out["a"]["count_error"] == "KeyError: 'conv9'" and "macs_frozen" not in out["a"]
+    assert out["b"]["macs_frozen"] == 4 and "count_error" not in out["b"]

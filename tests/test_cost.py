@@ -12,7 +12,8 @@ import pytest
 
 from ablate.tables.cost import race_minutes, table_cost, tuning_minutes
 from ablate.tables.index import cost_of
-from ablate.tables.racing import RacePlan, race
+from ablate.tables.raceplan import RacePlan
+from ablate.tables.racing import race
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 MIN = 60_000  # ms

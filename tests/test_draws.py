@@ -39,6 +39,7 @@ def test_the_draws_are_common_to_the_rows_and_each_parameters_are_its_own() -> N
         ({"task.optimizer.lr": "0.001"}, "is a value, not an interval"),
         ({"task.optimizer.lr": "tag(log, interval(0, 1))"}, "a log interval needs a positive start"),
         ({"task.optimizer.lr": "interval(1e-4"}, "does not parse"),
+        ({"task.optimizer.lr": "tag(log, uniform(1e-4, 1e-2))"}, "does not parse: .*Unknown function 'uniform'"),
     ],
 )
 def test_a_space_that_is_not_a_sweep_is_one_clear_error_naming_the_parameter(space: dict, message: str) -> None:

@@ -12,8 +12,8 @@ from omegaconf import open_dict
 from ablate.analysis.reproduce import tuned_config
 from ablate.config import compose
 from ablate.jobs.experts import expert_config, job_config
-from ablate.jobs.job import tuned_values
 from ablate.jobs.spec import JobSpec
+from ablate.jobs.tags import tuned_values
 from ablate.store import KIND_TRIAL, SweepContext, config_hash
 
 FUSED = ["experiment=bifnet_table4", "row=bifnet_dst_sum", "scale=cpu", "tune=lr_wd"]  # composed, never trained

@@ -154,9 +154,7 @@ def test_the_slurm_launcher_is_the_plugins_schema_with_the_projects_defaults():
         compose_launcher("hydra/launcher=slurm", "hydra.launcher.partiton=gpu")
 
 
-@pytest.mark.filterwarnings(
-    "ignore:(?s).*validated against ConfigStore"
-)  # pytest resets the filter of ablate.sweep.callback
+@pytest.mark.filterwarnings("ignore:(?s).*validated against ConfigStore")  # pytest resets the filter of ablate.__main__
 def test_the_ray_launcher_never_passes_an_object_store_size_to_a_running_cluster():
     need("ray", "hydra_plugins.hydra_ray_launcher")
     init = compose_launcher("hydra/launcher=ray", "hydra.launcher.ray.init.address=auto").launcher.ray.init

@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parent.parent / "ablate"
 #: for the commands and for the functions under them that do their work. The root package (``ablate/__init__.py``:
 #: the version, the config resolvers) is beside them.
 LAYERS = [
-    ["ablate.hardware", "ablate.config", "ablate.cli"],
+    ["ablate.hardware", "ablate.config", "ablate.options", "ablate.cli"],
     ["ablate.data"],
     ["ablate.nn", "ablate.metrics"],
     ["ablate.fusion"],

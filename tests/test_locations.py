@@ -16,10 +16,10 @@ from omegaconf import OmegaConf, open_dict
 
 from ablate.jobs.job import JobFailed, in_launch_dir
 from ablate.store import SweepContext
-from ablate.store.context import STORE_FILE
+from ablate.store.context import STATE_FILE
 from ablate.store.tracker import EXPERIMENT_KIND, Tracker
 from ablate.store.uris import artifact_location, resolve_uri, tracking_uri
-from ablate.sweep.callback import check_launcher, ray_driver_auth
+from ablate.sweep.parent import check_launcher, ray_driver_auth
 from tests.scaleout import REPO, need
 from tests.stores import sqlite_uri
 
@@ -76,7 +76,8 @@ def test_jobs_of_a_sweep_write_to_the_store_it_recorded_whatever_their_environme
     sdir = Path(cfg.hydra.sweep.dir)
     sdir.mkdir(parents=True)
     recorded = f"sqlite:///{tmp_path / 'sweep.db'}"
-    (sdir / STORE_FILE).write_text(json.dumps({"uri": recorded, "artifact_location": (tmp_path / "a").as_uri()}))
+    store = {"uri": recorded, "artifact_location": (tmp_path / "a").as_uri()}
+    (sdir / STATE_FILE).write_text(json.dumps({"store": store}))
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'other.db'}")
     cfg = OmegaConf.create({"logger": {"tracking_uri": "sqlite:///third.db"}})
     tracker = Tracker.from_config(cfg, SweepContext.current())

@@ -54,6 +54,6 @@ def test_a_jobs_metrics_do_not_change_when_another_job_runs_beside_it(tmp_path):
     keep = {k: v for k, v in solo[0].data.metrics.items() if not k.startswith(("latency", "comp_time"))}
     assert keep and keep == {k: twin.data.metrics[k] for k in keep}
     # the sweep counted both jobs against its plan, and logged its progress
-    progress = next(beside.glob("multirun/*/*/.progress")).read_text().splitlines()
-    assert sorted(json.loads(line)["status"] for line in progress) == ["FINISHED", "FINISHED"]
+    ended = json.loads(next(beside.glob("multirun/*/*/sweep.json")).read_text())["ended"]
+    assert sorted(job["status"] for job in ended) == ["FINISHED", "FINISHED"]
     assert "Sweep progress: 2/2 jobs finished" in both.stdout + both.stderr

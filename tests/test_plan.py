@@ -22,8 +22,7 @@ from ablate.sweep.plan import (
     trains_alone,
     wall_seconds,
 )
-from ablate.sweep.progress import job_overrides
-from tests.test_progress import sweep_config
+from tests.test_progress import planned_jobs, sweep_config
 
 EXPERT = StepTimes(train_s=2.0, cached_s=2.0, eval_s=0.5, train_batches=10, eval_batches=2, test_batches=4)
 FUSED = StepTimes(train_s=1.0, cached_s=0.25, eval_s=0.5, train_batches=10, eval_batches=2, test_batches=4)
@@ -116,7 +115,7 @@ def test_a_later_look_plans_the_experts_of_its_new_seeds_only(tmp_path: Path, mo
         best = best_checkpoint("experts", config_hash(expert.config))
         best.parent.mkdir(parents=True)
         best.write_text("weights")
-    look2 = [[*job[:-1], f"seed={seed}"] for job in job_overrides(config)[::3] for seed in (3, 4)]
+    look2 = [[*job[:-1], f"seed={seed}"] for job in planned_jobs(config)[::3] for seed in (3, 4)]
     plan = items(config, jobs=look2)
     assert [item.name for item in plan if item.kind == "expert"] == [
         f"expert {m} seed {s}" for s in (3, 4) for m in ("rgb", "ddm_jet")
@@ -141,11 +140,9 @@ def test_without_time_to_measure_the_eta_waits_for_the_first_job_and_one_job_is_
 
 
 def test_a_tuned_table_plans_its_trials_before_its_first_look(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from ablate.sweep.progress import planned_jobs
-
     monkeypatch.chdir(tmp_path)
     config = sweep_config("experiment=chinet_table2", "tune=lr_wd", "table.tune.trials=2")
-    assert planned_jobs(config) == 3 * 2 + 3 * 3  # 2 trials of each row, then 3 seeds of each
+    assert len(planned_jobs(config)) == 3 * 2 + 3 * 3  # 2 trials of each row, then 3 seeds of each
     plan = items(config)
     assert [i.name for i in plan[:3]] == ["chinet trial 0", "unet trial 0", "fusenet trial 0"]  # rows in order
     assert [i.config.trial for i in plan[:6]] == [0, 0, 0, 1, 1, 1] and plan[6].config.trial is None
@@ -237,3 +234,22 @@ def test_the_plan_gives_each_rows_jobs_and_their_estimate_for_the_eta():
     ]
     # a done job counts among its row's jobs (its record ends it), not in the row's estimate
     assert row_jobs(plan) == {"smoe_rgb": [2, 20.0], "smoe_fpn": [2, 240.0]}
+
+
+def test_a_job_whose_steps_cannot_be_timed_is_taken_as_its_kind_and_the_plan_goes_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    plan = items(sweep_config("task=semantic", "model=unet,fusenet", "scale=smoke"))
+    clock = Clock()
+
+    def measure(cfg: DictConfig) -> StepTimes:
+        if not clock.now:  # the first job's (U-Net's), before any was timed
+            clock.now += 1.0
+            raise RuntimeError("the dataset is missing")  # the job itself will say it
+        return clock.measure(cfg)
+
+    with caplog.at_level("WARNING", logger="ablate.sweep.plan"):
+        estimate(plan, measure_s=50, measure=measure, clock=clock)
+    assert "Could not time the steps of model=unet seed 0 for the sweep's plan: the dataset is missing" in caplog.text
+    assert [item.how for item in plan] == ["as the measured", "measured"]

@@ -1,21 +1,19 @@
 """A sweep's overall progress (ablate.sweep.progress): jobs finished of planned, and the ETA from finished jobs."""
 
-import json
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
+from ablate.sweep import state
+from ablate.sweep.launches import SweepPlan
 from ablate.sweep.progress import (
-    EXPERTS_FILE,
-    KINDS_FILE,
-    LAUNCHES_FILE,
     estimated,
     experts_planned,
     finished,
     job_kind,
     job_row,
     job_trial,
-    planned_jobs,
+    replan,
     start,
     summary,
 )
@@ -33,12 +31,17 @@ def sweep_config(*overrides: str):
     return config
 
 
+def planned_jobs(config) -> list[list[str]]:
+    """The jobs the sweeper of ``config`` launches before its first look ends (its plan's)."""
+    return SweepPlan.of_config(config).jobs()
+
+
 def test_the_plan_multiplies_the_tables_rows_seeds_and_the_command_lines_sweeps():
-    assert planned_jobs(sweep_config("experiment=chinet_table2")) == 9  # 3 rows x 3 seeds at the cpu scale
-    assert planned_jobs(sweep_config("experiment=chinet_table2", "scale=smoke")) == 3  # 1 seed
-    assert planned_jobs(sweep_config("fusion=sum,max,sharpen,smoe")) == 4
+    assert len(planned_jobs(sweep_config("experiment=chinet_table2"))) == 9  # 3 rows x 3 seeds at the cpu scale
+    assert len(planned_jobs(sweep_config("experiment=chinet_table2", "scale=smoke"))) == 3  # 1 seed
+    assert len(planned_jobs(sweep_config("fusion=sum,max,sharpen,smoe"))) == 4
     # a key on the command line replaces the table's own sweep of it
-    assert planned_jobs(sweep_config("experiment=chinet_table2", "row=chinet,unet", "seed=0")) == 2
+    assert len(planned_jobs(sweep_config("experiment=chinet_table2", "row=chinet,unet", "seed=0"))) == 2
 
 
 def test_the_eta_comes_from_the_trained_jobs_durations_and_the_jobs_at_a_time():
@@ -57,7 +60,7 @@ def test_the_eta_comes_from_the_trained_jobs_durations_and_the_jobs_at_a_time():
 
 
 def test_every_finished_job_is_counted_once_in_the_sweep_directory(tmp_path):
-    assert start(tmp_path, sweep_config("experiment=chinet_table2", "scale=smoke")) == 3
+    assert start(tmp_path, planned_jobs(sweep_config("experiment=chinet_table2", "scale=smoke"))) == 3
     finished(tmp_path, "FINISHED", 30.0)
     line = finished(tmp_path, "FAILED", 10.0, parallel=2)
     assert line == "Sweep progress: 2/3 jobs finished (1 failed), 1 to go, ETA 20 s (20 s per trained job, 2 at a time)"
@@ -121,11 +124,9 @@ def test_each_kind_of_job_to_go_is_timed_at_its_own_kind_or_its_plan_scaled_to_t
 
 
 def test_a_tuned_tables_sweep_counts_its_trials_apart_from_its_raced_jobs(tmp_path):
-    assert (
-        start(tmp_path, sweep_config("experiment=chinet_table3", "tune=lr_wd")) == 18
-    )  # 2 rows x (6 trials + 3 seeds)
-    assert json.loads((tmp_path / KINDS_FILE).read_text()) == {"trial": 12}
-    assert json.loads((tmp_path / LAUNCHES_FILE).read_text()) == {"trial": ["chinet", "simo"]}
+    assert start(tmp_path, planned_jobs(sweep_config("experiment=chinet_table3", "tune=lr_wd"))) == 18
+    planned = state.read(tmp_path)["progress"]  # 2 rows x (6 trials + 3 seeds)
+    assert (planned["kinds"], planned["launches"]) == ({"trial": 12}, {"trial": ["chinet", "simo"]})
     estimated(tmp_path, {"trial": 60.0, "job": 120.0})
     line = finished(tmp_path, "FINISHED", 30.0, parallel=2, kind="trial")
     # 11 trials at 30 s, then 6 raced jobs at 60 s, on 2 workers: 360 s
@@ -156,10 +157,10 @@ def test_raced_jobs_to_go_are_timed_at_their_own_rows_not_at_the_first_rows_to_e
     """SMoE Table 1's follow-up: its single-modal rows only test a trained expert (about 35 s a job), its fused rows
     train for minutes. Its first jobs to end were the single-modal ones, and the ETA once took every job to go, and
     every expert scaled from them, at about 35 s: 22 min where 105 were due."""
-    start(tmp_path, sweep_config("experiment=chinet_table2", "scale=smoke"))
+    start(tmp_path, planned_jobs(sweep_config("experiment=chinet_table2", "scale=smoke")))
     estimated(tmp_path, {"job": 149.0}, {"smoe_rgb": [3, 21.0], "smoe_fpn": [3, 240.0]})
     experts_planned(tmp_path, 2, 960.0)
-    (tmp_path / ".planned").write_text("6")
+    replan(tmp_path, 6)
     for _ in range(3):
         line = finished(tmp_path, "FINISHED", 35.0, 2, "job", "smoe_rgb")
     # scaled by 105 s against the rows' 63: the experts at 1600 s each, then the FPN's 3 jobs at 400 s: 2400 s
@@ -174,12 +175,12 @@ def test_raced_jobs_to_go_are_timed_at_their_own_rows_not_at_the_first_rows_to_e
 
 
 def test_each_look_adds_its_experts_and_each_job_records_its_stage_one(tmp_path):
-    assert start(tmp_path, sweep_config("experiment=chinet_table2", "scale=smoke")) == 3
+    assert start(tmp_path, planned_jobs(sweep_config("experiment=chinet_table2", "scale=smoke"))) == 3
     experts_planned(tmp_path, 2, 480.0)  # the first look's, from the sweep's plan
     experts_planned(tmp_path, 1)  # a later look's new seed
-    assert json.loads((tmp_path / EXPERTS_FILE).read_text()) == {"planned": 3, "seconds": 480.0}
+    assert state.read(tmp_path)["progress"]["experts"] == {"planned": 3, "seconds": 480.0}
     line = finished(tmp_path, "FINISHED", 700.0, 2, "job", "chinet", None, [400.0, 200.0], 620.0)
     # 1 expert to go at the two trained ones' 300 s, beside the 2 jobs to go at 700 - 620 s each: 300 s
     assert line.endswith("ETA 5.0 min (1 expert(s) to train at 5.0 min, 80 s per trained job, 2 at a time)")
-    record = json.loads((tmp_path / ".progress").read_text())
+    (record,) = state.read(tmp_path)["ended"]
     assert (record["experts"], record["stage1"]) == ([400.0, 200.0], 620.0)

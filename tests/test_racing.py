@@ -12,8 +12,10 @@ from hydra import compose, initialize_config_dir
 from hydra.core.utils import JobReturn, JobStatus
 
 import hydra_plugins.ablate_racing_sweeper._impl as impl
-from ablate.sweep import progress
-from ablate.tables.racing import RacePlan, race, race_lines, wilson
+import hydra_plugins.ablate_racing_sweeper._race as racing
+from ablate.sweep import progress, state
+from ablate.tables.raceplan import RacePlan
+from ablate.tables.racing import race, race_lines, wilson
 from hydra_plugins.ablate_racing_sweeper.racing_sweeper import RacingSweeper
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -54,10 +56,18 @@ def sweeper_for(tmp_path, monkeypatch, metric, *overrides, shuffle=False, launch
     sweeper.sweeper.hydra_context = type("Context", (), {"config_loader": None})()
     monkeypatch.setattr(impl, "job_runs", lambda tracker, table: None)
     monkeypatch.setattr(impl, "table_values", lambda runs, table: {r: pd.Series(v) for r, v in launcher.store.items()})
-    monkeypatch.setattr(impl, "row_seconds", lambda tracker, runs: launcher.seconds)
+    monkeypatch.setattr(impl, "row_seconds", lambda tracker, runs: getattr(launcher, "seconds", {}))
     monkeypatch.setattr(impl, "earlier_wall", lambda runs, sweep: getattr(launcher, "earlier_min", 0.0))
     monkeypatch.setattr(impl.RacingSweeperImpl, "_tracker", lambda self: None)
+    # no store: no parent run, no plan's estimate, no table at the end (the sweep's state file is written all the same)
+    monkeypatch.setattr(impl.RacingSweeperImpl, "_open", lambda self, plan, sdir: None)
+    monkeypatch.setattr(impl, "finish", lambda config: None)
     return sweeper, launcher
+
+
+def planned(tmp_path) -> int:
+    """The jobs the sweep in ``tmp_path/sweep`` planned, as its state file says."""
+    return state.read(tmp_path / "sweep")["progress"]["planned"]
 
 
 def noise(row: str, seed: int, sd: float = 0.3) -> float:
@@ -70,7 +80,7 @@ def test_a_row_clearly_better_stops_the_race_at_the_first_look(tmp_path, monkeyp
     sweeper.sweep([])
     assert len(launcher.batches) == 1
     assert sorted(launcher.batches[0]) == sorted((r, s) for r in means for s in range(3))
-    assert (tmp_path / "sweep" / ".planned").read_text() == "9"
+    assert planned(tmp_path) == 9
 
 
 def test_two_identical_rows_race_to_the_last_look_and_nothing_is_declared(tmp_path, monkeypatch):
@@ -89,7 +99,7 @@ def test_only_the_undecided_rows_get_more_seeds(tmp_path, monkeypatch):
     sweeper, launcher = sweeper_for(tmp_path, monkeypatch, lambda r, s: means[r] + noise(r, s, 0.5))
     sweeper.sweep([])
     assert {r for r, _ in launcher.batches[1]} == {"unet", "fusenet"}
-    assert (tmp_path / "sweep" / ".planned").read_text() == str(sum(len(b) for b in launcher.batches))
+    assert planned(tmp_path) == sum(len(b) for b in launcher.batches)
 
 
 def test_the_outcome_does_not_depend_on_the_order_jobs_finish(tmp_path, monkeypatch):
@@ -139,7 +149,8 @@ def test_the_budget_counts_only_the_jobs_that_trained(tmp_path, monkeypatch):
     sweeper, _ = sweeper_for(tmp_path, monkeypatch, None, "scale.race.budget_min=15", launcher=launcher)
     sweeper.sweep([])
     assert len(launcher.batches) == 1
-    assert impl.look_estimate(6 * 60, [1.0] * 3, [1.0] * 6) == 12 * 60 and impl.look_estimate(60, [], [1.0] * 6) == 0
+    assert racing.look_estimate(6 * 60, [1.0] * 3, [1.0] * 6) == 12 * 60
+    assert racing.look_estimate(60, [], [1.0] * 6) == 0
 
 
 def test_a_look_is_estimated_from_each_rows_own_job_time(tmp_path, monkeypatch):
@@ -155,8 +166,8 @@ def test_a_look_is_estimated_from_each_rows_own_job_time(tmp_path, monkeypatch):
     sweeper, _ = sweeper_for(tmp_path, monkeypatch, None, "scale.race.budget_min=15", launcher=launcher)
     sweeper.sweep([])
     assert len(launcher.batches) == 1
-    costs = impl.job_costs({"chinet": 480.0, "unet": 120.0})
-    assert costs("fusenet") == 300.0 and impl.job_costs({})("unet") == 1.0
+    costs = racing.job_costs({"chinet": 480.0, "unet": 120.0})
+    assert costs("fusenet") == 300.0 and racing.job_costs({})("unet") == 1.0
 
 
 def test_a_look_whose_jobs_were_all_held_does_not_stop_the_race(tmp_path, monkeypatch):
@@ -298,7 +309,7 @@ def test_a_bad_plan_stops_the_sweep_with_one_line_before_any_job(tmp_path, monke
     sweeper, launcher = sweeper_for(tmp_path, monkeypatch, lambda r, s: 90.0, "scale.race.looks=[3,2]")
     with pytest.raises(SystemExit):
         sweeper.sweep([])
-    assert capsys.readouterr().err.strip() == "error: table.seeds.looks: [3, 2] must increase strictly"
+    assert capsys.readouterr().err.strip().startswith("error: scale.race.looks: [3, 2] must be a non-empty list of")
     assert launcher.batches == []
 
 
@@ -318,3 +329,22 @@ def test_one_seed_a_row_gives_no_verdict_anywhere(tmp_path, monkeypatch, caplog)
         sweeper.sweep(["row=chinet,unet"])
     assert "no verdict, fewer than 2 paired seeds: chinet vs unet" in caplog.text
     assert "(n = 1: a test needs 2 paired seeds or more)" in caplog.text and "undecided" not in caplog.text
+
+
+def test_a_sweep_whose_plan_cannot_be_estimated_or_counted_races_all_the_same(tmp_path, monkeypatch, caplog):
+    import ablate.sweep.plan as plan
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no step times")
+
+    opened = impl.RacingSweeperImpl._open
+    sweeper, launcher = sweeper_for(tmp_path, monkeypatch, lambda r, s: 95.0 + noise("same", s) + noise(r, s, 0.5))
+    monkeypatch.setattr(impl.RacingSweeperImpl, "_open", opened)
+    monkeypatch.setattr(impl, "open_parent", lambda config: (None, None))
+    monkeypatch.setattr(plan, "log_sweep", broken)  # the plan's estimate fails: the jobs will say what is wrong
+    monkeypatch.setattr(plan, "items", broken)  # and so does counting a later look's experts
+    with caplog.at_level("INFO", logger=impl.__name__):
+        sweeper.sweep(["row=chinet,unet"])
+    assert "Could not plan the sweep: no step times" in caplog.text and "Sweep of 6 job(s), " in caplog.text
+    assert "Could not count the experts of the look: no step times" in caplog.text
+    assert len(launcher.batches) == 3  # every look ran, as without the estimate

@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from ablate.tables.records import reseal_records
 from ablate.tables.significance import prediction_interval
 from tests.test_cli import TINY, ablate, runs
 
@@ -54,6 +55,7 @@ def test_the_reproduction_check_reruns_a_seed_and_names_what_differs(raced):
     published = pd.read_csv(records, dtype=str, keep_default_na=False)
     published["made_threads"] = "2"
     published.to_csv(records, index=False)
+    assert reseal_records(cwd / "results", "chinet_table2") is not None  # an intended edit, sealed again
     out = ablate(cwd, "--reproduce", "experiment=chinet_table2", "row=unet", *TINY, module="ablate.report")
     assert "differs from the recorded runs: threads: 2 -> 1" in out.stdout
     assert "unet, seed 0" in out.stdout  # the first recorded seed by default

@@ -1,6 +1,7 @@
 """Config hashing, param flattening and the SQLite retry of ablate.store.tracker."""
 
 import sqlite3
+import time
 
 import pytest
 import sqlalchemy.exc
@@ -63,6 +64,19 @@ def test_retry_waits_out_a_locked_database():
     assert retry(flaky) == "ok" and len(calls) == 3
 
 
+def test_a_lock_is_waited_out_for_its_budget_not_a_number_of_tries_then_raised():
+    calls = []
+
+    def held():
+        calls.append(time.monotonic())
+        raise sqlite3.OperationalError("database is locked")
+
+    with pytest.raises(sqlite3.OperationalError, match="locked"):
+        retry(held, locked_s=1.5, outage_s=0)
+    assert calls[-1] - calls[0] >= 1.5  # waited for the whole budget, however many tries that took
+    assert max(b - a for a, b in zip(calls, calls[1:])) <= 1.6  # a pause is at most 1 s (jittered ±50 %)
+
+
 def test_retry_reraises_other_errors_at_once():
     calls = []
 
@@ -95,7 +109,7 @@ def test_sweeps_whose_process_died_are_closed_as_killed(tmp_path):
     import sys
 
     from ablate.store.tracker import KIND_SWEEP
-    from ablate.sweep.callback import close_dead_sweeps
+    from ablate.sweep.parent import close_dead_sweeps
 
     tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
     exp = tracker.experiment_id("table")

@@ -229,3 +229,21 @@ def test_a_server_down_past_the_budget_fails_the_job_in_one_line_and_a_rerun_res
     (resumed,) = [r for r in jobs if r.info.run_id != outage.short_run]
     assert resumed.info.status == "FINISHED" and resumed.data.tags["resumed_from"].endswith("last.ckpt")
     assert not outbox.exists() and last.exists()
+
+
+def test_four_writers_outlive_a_server_restart_and_every_metric_is_stored_once(server, tmp_path):  # noqa: F811
+    """The load bench's writers (bench/bench_load.py: a job's tracker, logger and outbox, a metric pair every step)
+    at N = 4, the server killed a third of the way in and started again 5 s later: every run FINISHED, every value
+    acknowledged stored, each (key, step) once."""
+    sys.path.insert(0, str(REPO / "bench"))
+    try:
+        from bench_load import Load, run_load
+    finally:
+        sys.path.remove(str(REPO / "bench"))
+    uri, store = server
+    load = Load(uri, tmp_path, writers=4, steps=60, step_s=0.1, outage_s=120, experiment="load-restart")
+    outcome = run_load(load, "server", outage=(store, 5.0))
+    assert outcome.down_s >= 5 and not outcome.errors, outcome.errors
+    assert outcome.runs == outcome.finished == 4
+    assert outcome.acknowledged == outcome.stored == 4 * 60 * 2 and outcome.duplicated == 0
+    assert not list(tmp_path.glob("outbox-*.jsonl"))  # every outbox delivered and removed

@@ -307,18 +307,20 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     assert per[0] == ["expert trial", "tuning trial", "trained job"], per
     assert per[4] == ["tuning trial", "trained job"] and per[6] == ["trained job"] and per[7] == [], per
     # every trial's row and number recorded, and each tuned kind's launches: the ETA waits for a launch's slowest row
-    (sweep_dir,) = {p.parent for p in tmp_path.glob("multirun/*/*/.progress")}
-    recorded = [json.loads(line) for line in (sweep_dir / ".progress").read_text().splitlines()]
+    (sweep_file,) = tmp_path.glob("multirun/*/*/sweep.json")  # the sweep's one state file
+    sweep = json.loads(sweep_file.read_text())
+    assert [p.name for p in sweep_file.parent.iterdir() if p.name.startswith(".")] == []  # no hidden state beside it
+    recorded = sweep["ended"]
     assert sorted((r["row"], r["trial"]) for r in recorded if r["kind"] != "job") == [
         ("bifnet_dst_sum", 0), ("bifnet_dst_sum", 1),
         ("expert bev", 0), ("expert bev", 1), ("expert rgb", 0), ("expert rgb", 1),
     ]  # fmt: skip
     # the raced jobs trained seed 0's two experts within them, each timed apart for the ETA (ablate.jobs.stage1)
-    assert json.loads((sweep_dir / ".experts").read_text())["planned"] == 2
+    assert sweep["progress"]["experts"]["planned"] == 2
     raced = [r for r in recorded if r["kind"] == "job"]
     assert sorted(len(r.get("experts", [])) for r in raced) in ([0, 2], [1, 1]), raced
     assert all(sum(r["experts"]) <= r["stage1"] < r["seconds"] for r in raced if r.get("experts")), raced
-    launches = json.loads((sweep_dir / ".launches").read_text())
+    launches = sweep["progress"]["launches"]
     assert {kind: sorted(rows) for kind, rows in launches.items()} == {
         "expert trial": ["expert bev", "expert rgb"],
         "trial": ["bifnet_dst_sum"],

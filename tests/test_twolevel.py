@@ -9,7 +9,8 @@ import pandas as pd
 import pytest
 
 from ablate.tables.frames import FROM_COUNTS
-from ablate.tables.racing import RacePlan, race
+from ablate.tables.raceplan import RacePlan
+from ablate.tables.racing import race
 from ablate.tables.twolevel import frames_variance, jackknife_variance
 from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, WORSE, paired_tests
 

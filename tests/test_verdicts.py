@@ -14,7 +14,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from ablate.config import compose
-from ablate.tables.racing import RacePlan, race
+from ablate.tables.raceplan import RacePlan
+from ablate.tables.racing import race
 from ablate.tables.spec import LOWER_IS_BETTER
 from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, WORSE, paired_tests, rejected, rope_rule
 

@@ -54,7 +54,8 @@ from ablate.config import compose, composition_error  # noqa: E402
 from ablate.jobs.experts import EXPERTS_TABLE, expert_config, load_model  # noqa: E402
 from ablate.jobs.spec import CHECKPOINTS, best_checkpoint  # noqa: E402
 from ablate.store import Tracker, config_hash  # noqa: E402
-from ablate.tables.racing import RacePlan  # noqa: E402
+from ablate.tables import published  # noqa: E402
+from ablate.tables.raceplan import RacePlan  # noqa: E402
 from ablate.tasks.yolact.diagnose import ap_per_condition, evaluate  # noqa: E402
 from ablate.tasks.yolact.diagnosis_report import masks_figure, plot, to_markdown  # noqa: E402
 
@@ -100,7 +101,7 @@ def expert_curves(tracker: Tracker, experts: dict[tuple[int, str], DictConfig]) 
 
 def diagnose(overrides: list[str], experts_only: bool = False) -> dict[str, Any]:
     """Evaluate every row of the table (only its single-modal rows with ``experts_only``) for the seeds every row
-    has (the race's first look, :meth:`~ablate.tables.racing.RacePlan.first`); returns the per-object and gate
+    has (the race's first look, :meth:`~ablate.tables.raceplan.RacePlan.first`); returns the per-object and gate
     frames, the experts' curves and their AP per condition."""
     base = compose(overrides)
     table = base.table
@@ -181,19 +182,14 @@ def main(argv: list[str] | None = None) -> int:
     except HydraException as err:  # experiment=<unknown>, or a user's config without its hydra.searchpath
         print(f"error: {composition_error(err)}", file=sys.stderr)
         return 1
-    out = Path("results")
-    out.mkdir(exist_ok=True)
-    stem = out / f"{result['table'].name}_{'experts' if experts_only else 'diagnosis'}"
-    md, png = stem.with_suffix(".md"), stem.with_suffix(".png")
-    md.write_text(to_markdown(result))
-    figures = {png: plot(result)}
+    name = result["table"].name
+    stem = f"{name}_{'experts' if experts_only else 'diagnosis'}"
+    print(published.write_text(f"{stem}.md", to_markdown(result)))
+    figures = {f"{stem}.png": plot(result)}
     if not experts_only:
-        figures[out / f"{result['table'].name}_masks.png"] = masks_figure(result["showcase"])
+        figures[f"{name}_masks.png"] = masks_figure(result["showcase"])
     if result["gate_figure"] is not None:
-        figures[out / f"{result['table'].name}_gates.png"] = result["gate_figure"]
-    print(md)
-    for path, fig in figures.items():
-        fig.savefig(path, dpi=100, metadata={"Software": None})
-        plt.close(fig)
-        print(path)
+        figures[f"{name}_gates.png"] = result["gate_figure"]
+    for file, fig in figures.items():
+        print(published.write_figure(file, fig))
     return 0

@@ -44,7 +44,7 @@ from ablate.jobs import fingerprint
 from ablate.jobs.experts import expert_config, load_model
 from ablate.jobs.spec import best_checkpoint
 from ablate.store import Tracker
-from ablate.tables import collect, table_spec, write_table
+from ablate.tables import collect, published, table_spec
 
 log = logging.getLogger(__name__)
 
@@ -238,6 +238,6 @@ def main(argv: list[str] | None = None) -> int:
             f"{row:24s} {f['latency_ms']:9.2f} ms  [{f['latency_q1_ms']:.2f}, {f['latency_q3_ms']:.2f}]  "
             f"{f['params_m']:.2f} M params  {f['macs_g']:.2f} GMACs"
         )
-    for path in write_table(cfg, tracker, fingerprint=fingerprint.compute, publish=True):  # an explicit rewrite
+    for path in published.publish(cfg, tracker, None, fingerprint.compute):  # an explicit rewrite
         print(path)
     return 0

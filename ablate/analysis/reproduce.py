@@ -34,9 +34,9 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from ablate.store import Tracker, split_tuned_key
-from ablate.tables import collect, table_spec
+from ablate.tables import collect, published, table_spec
 from ablate.tables.collect import under_condition
-from ablate.tables.records import numerics_differ, read_records, records_path
+from ablate.tables.records import numerics_differ, read_records
 from ablate.tables.significance import prediction_interval
 
 
@@ -118,26 +118,26 @@ def rerun(overrides: list[str], launch: Path, scratch: Path) -> None:
         raise RuntimeError(f"the rerun failed (exit {code}); its log is under {scratch / 'outputs'}")
 
 
-def recorded_runs(cfg: DictConfig, table: DictConfig, results: Path) -> tuple[pd.DataFrame, str]:
+def recorded_runs(cfg: DictConfig, table: DictConfig) -> tuple[pd.DataFrame, str]:
     """The runs a row's rerun is compared with, and where they come from: the published records of the table
-    (``results/runs/<table>.csv``, so the check works on a fresh clone), else the runs of the store ``cfg`` names."""
-    path = records_path(results, str(table.name))
+    (``results/runs/<table>.csv``, so the check works on a fresh clone; records that are not what was published
+    raise :class:`~ablate.tables.seal.BrokenRecords`), else the runs of the store ``cfg`` names."""
+    path = published.records(str(table.name))
     if path.exists():
+        published.check(str(table.name))
         return under_condition(read_records(path), table), str(path)
     tracker = Tracker.from_config(cfg)
     return under_condition(collect(tracker, str(table.name)), table), tracker.uri
 
 
-def reproduce(
-    cfg: DictConfig, overrides: list[str], keep: Path | None = None, results: Path = Path("results")
-) -> Reproduction:
+def reproduce(cfg: DictConfig, overrides: list[str], keep: Path | None = None) -> Reproduction:
     """Rerun one seed of ``cfg``'s row (``row=`` among ``overrides``) and compare it with the row's published
     records (:func:`recorded_runs`)."""
     table = table_spec(cfg)
     row = next((o.split("=", 1)[1] for o in overrides if o.startswith("row=")), None)
     if row is None:
         raise ValueError("--reproduce needs row=<row> (one of the table's rows)")
-    runs, source = recorded_runs(cfg, table, results)
+    runs, source = recorded_runs(cfg, table)
     mine = runs[runs["row"] == row] if len(runs) else runs
     if not len(mine) or table.primary not in mine:
         raise ValueError(f"no FINISHED runs of row '{row}' of {table.name} in {source}")

@@ -18,7 +18,7 @@ figures and today's configs (recipes, steps, seeds), saying which CPU gave which
 
 The measurements are kept per measured configuration in ``results/paper_scale.json`` (rows of several tables with
 one model, task and data share one); ``results/paper_scale.md`` lists every row of every table from them, a row
-not measured here saying why.
+not measured here saying why. Both are written through :mod:`ablate.tables.published`.
 """
 
 from __future__ import annotations
@@ -42,8 +42,7 @@ from ablate import cli, hardware
 from ablate.capacity.measure import count_macs, measure, sample_config
 from ablate.capacity.report import failed, line, report
 from ablate.capacity.rows import describe, experiments, measured_config, order, plan, recipe
-
-RESULTS = Path("results")
+from ablate.tables import published
 
 
 def _child(spec: tuple[str, str, str | None], data_dir: str, overrides: list[str]) -> dict[str, Any]:
@@ -118,7 +117,7 @@ def check(
             echo(f"{name:44s} running ...")
             try:
                 figures = run_isolated(tuple(spec), data_dir, overrides)
-            except Exception as err:  # the row's error, reported; the other rows go on
+            except Exception as err:  # anything the row's own process raised (its model, its data) is its result
                 message = f"{type(err).__name__}: {err}".strip()
                 measured[key] = {"error": message, "where": name, "traceback": traceback.format_exc()[-4000:]}
                 echo(f"{name:44s} FAILED: {message}")
@@ -155,7 +154,7 @@ def recount(
             echo(f"{name:44s} counting MACs ...")
             try:
                 counted = count_isolated(tuple(e["spec"]), data_dir, overrides)
-            except Exception as err:  # the row's error, reported; the other rows go on
+            except Exception as err:  # anything the row's own process raised (its model, its data) is its result
                 m["count_error"] = f"{type(err).__name__}: {err}".strip()
                 echo(f"{name:44s} FAILED: {m['count_error']}")
             else:
@@ -193,8 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     args = cli.check_paper(__doc__, argv, tables=experiments())
     chosen, overrides = args.experiment, args.overrides
     # the figures files first: a bad one is one line before every table's configs are composed (seconds)
-    store, gpu_store = RESULTS / "paper_scale.json", RESULTS / "paper_scale_gpu.json"  # gpu: bench_paper_gpu --json
-    sweeps_store = RESULTS / "paper_scale_sweeps.json"  # bench/gpu_sweeps.py
+    store, gpu_store = published.path("paper_scale.json"), published.path("paper_scale_gpu.json")  # bench_paper_gpu
+    sweeps_store = published.path("paper_scale_sweeps.json")  # bench/gpu_sweeps.py
     try:
         record, gpu, sweeps = _read(store, {}), _read(gpu_store, []), _read(sweeps_store, [])
     except ValueError as exc:
@@ -220,17 +219,14 @@ def main(argv: list[str] | None = None) -> int:
     def save(measured: dict) -> None:
         # the measurements of configs no row has today stay stored: nothing measured is lost to a config's change
         kept = {**record.get("measured", {}), **measured}
-        store.parent.mkdir(parents=True, exist_ok=True)
         text = json.dumps({"written_on": cpu_name(), "measured": kept}, indent=1, sort_keys=True)
-        store.write_text(text + "\n")
+        published.write_text(store.name, text + "\n")
 
     budget = args.budget_min * 60 if args.budget_min is not None else None
     (recount if reuse else check)(entries, measured, budget, overrides, save)
     save(measured)
-    path = RESULTS / "paper_scale.md"
-    path.write_text(
-        report({"rows": everything, "measured": measured, "cpu": cpu_name(), "gpu": gpu, "sweeps": sweeps}) + "\n"
-    )
+    figures = {"rows": everything, "measured": measured, "cpu": cpu_name(), "gpu": gpu, "sweeps": sweeps}
+    path = published.write_text("paper_scale.md", report(figures) + "\n")
     print(path)
     if bad := failed(entries, measured):
         print(f"error: {len(bad)} row(s) failed: {', '.join(bad)}")

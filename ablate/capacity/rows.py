@@ -18,15 +18,11 @@ from typing import Any, cast
 
 from omegaconf import DictConfig, OmegaConf
 
-from ablate.config import CONF, compose
+from ablate.config import compose
 from ablate.jobs.experts import expert_config, needed
-from ablate.tables.racing import RacePlan
+from ablate.tables.published import experiments
+from ablate.tables.raceplan import RacePlan
 from ablate.tables.spec import run_rows
-
-
-def experiments() -> list[str]:
-    """The tables: ``conf/experiment/*.yaml``."""
-    return sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 
 
 def table_rows(experiment: str) -> list[str]:

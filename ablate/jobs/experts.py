@@ -6,7 +6,7 @@ scale, data, backbone, head, trainer) and tracked as a run of the MLflow experim
 ``kind=expert``); its best checkpoint lives in ``checkpoints/experts/<hash>/``. Every stage-2 job that needs it
 reuses it; a file lock keeps two parallel jobs from training the same expert twice. An expert that one of its
 table's tuning trials already trained (the trial chosen, at the trials' seed, which stage 2's trials train on) is
-copied from that trial's run and checkpoint instead (:func:`ablate.jobs.job.reuse`).
+copied from that trial's run and checkpoint instead (:func:`ablate.jobs.reuse.reuse`).
 
 Stage 2 copies the experts into the fusion model (``FusionModel.load_expert``: encoders, plus FPNs at stage fpn,
 plus heads at stage late), freezes them (``experts.freeze``) and trains the rest: gates, fusion operators, and the

@@ -1,11 +1,12 @@
 """One job: one resolved config -> train, test, and one MLflow run.
 
-A job whose config hash already has a FINISHED run is skipped unless ``force=true``. A job that crashed or was
-killed is recorded FAILED or KILLED and runs again next time, resuming from its last checkpoint
-(``checkpoints/<table>/<config hash>/last.ckpt``) when one exists and loads, else from ``best.ckpt``, else from
-scratch (:mod:`ablate.jobs.checkpoint`, which also writes every checkpoint atomically). SIGTERM or SIGINT stops a job
-after the batch in progress with its checkpoint saved, its run KILLED with the reason, and exit status 143 (130)
-(:mod:`ablate.jobs.preempt`). A full disk fails the job with one message naming the file.
+A job whose config hash already has a FINISHED run is skipped unless ``force=true``, and one that finished in another
+table is copied from there (:mod:`ablate.jobs.reuse`); a job's run records its params and tags
+(:mod:`ablate.jobs.tags`). A job that crashed or was killed is recorded FAILED or KILLED and runs again next time,
+resuming from its last checkpoint (``checkpoints/<table>/<config hash>/last.ckpt``) when one exists and loads, else from
+``best.ckpt``, else from scratch (:mod:`ablate.jobs.checkpoint`, which also writes every checkpoint atomically). SIGTERM
+or SIGINT stops a job after the batch in progress with its checkpoint saved, its run KILLED with the reason, and exit
+status 143 (130) (:mod:`ablate.jobs.preempt`). A full disk fails the job with one message naming the file.
 
 A tracking server that does not answer never stops training: the run's metrics wait in the job's outbox
 (``outbox.jsonl`` beside its checkpoints, :mod:`ablate.store.outbox`) and are delivered once it answers. Where the
@@ -19,12 +20,10 @@ A job runs in the launch directory, whichever process runs it, so that its relat
 
 from __future__ import annotations
 
-import json
 import logging
 import multiprocessing
 import os
 import re
-import shutil
 import socket
 import sys
 import time
@@ -32,78 +31,26 @@ import traceback
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 
-from mlflow.entities import Run
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException, ValidationError
 
-from ablate import hardware
 from ablate.jobs import stage1
 from ablate.jobs.preempt import SETTLE_S, STOP, Stopped, exit_status, loky_worker
 from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unreachable
-from ablate.jobs.spec import JobSpec, checkpoint_dir, flatten_leaves
-from ablate.store import (
-    KIND_EXPERT,
-    KIND_JOB,
-    KIND_TRIAL,
-    UNHASHED,
-    AccessDenied,
-    ServerUnreachable,
-    SweepContext,
-    Tracker,
-    flatten,
-    provenance_tags,
-    row_name,
-    tuned_key,
-)
+from ablate.jobs.reuse import Outcome, already_done
+from ablate.jobs.spec import JobSpec
+from ablate.jobs.tags import params_of, run_tags
+from ablate.store import AccessDenied, ServerUnreachable, SweepContext, Tracker, row_name
 
 log = logging.getLogger(__name__)
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
 warnings.filterwarnings("ignore", ".*GPU available but not used.*")
 
 
-#: Config keys that are not a job's params (the run's ``config.yaml`` artifact keeps the whole config): the table it
-#: fills (its title, rows and the paper's numbers), the options that change no number (ablate.store.UNHASHED), the
-#: metrics' labels, the scale's knobs and the task's modalities and targets (each already in the model's and the data's
-#: own params, which they resolve into), the side-by-side timing's options, and a tuning trial's number (a tag) and
-#: draws (applied over the config: their values are its params).
-NOT_PARAMS = (
-    *UNHASHED,
-    "metrics",
-    "primary",
-    "modalities",
-    "targets",
-    "comp_time",
-    "recipe",
-    "trial",
-    "draws",
-)
-#: Config keys of Hydra's instantiation or of display alone, in any group: not params either.
-DISPLAY = ("._partial_", "trainer.enable_model_summary", "task.figure_frames")
-
-
-def params_of(cfg: DictConfig) -> dict[str, str]:
-    """A job's MLflow params: its resolved config, flattened, but :data:`NOT_PARAMS` (``scale.name`` kept) and
-    :data:`DISPLAY`."""
-    flat = flatten(OmegaConf.to_container(cfg, resolve=True))
-    dropped = tuple(f"{k}." for k in NOT_PARAMS) + ("scale.",)
-    kept = {k: v for k, v in flat.items() if k == "scale.name" or not (k + ".").startswith(dropped)}
-    return {k: v for k, v in kept.items() if not k.endswith(DISPLAY)}
-
-
 class JobFailed(RuntimeError):
     """A job ended in error; its run is recorded FAILED."""
-
-
-@dataclass
-class Outcome:
-    """What a job ended as: FINISHED or SKIPPED, its run, and its checkpoint directory."""
-
-    status: str
-    run_id: str
-    ckpt_dir: Path
 
 
 def check_stage(cfg: DictConfig) -> None:
@@ -121,7 +68,7 @@ def check_stage(cfg: DictConfig) -> None:
             )
 
 
-def run(spec: JobSpec) -> Outcome:
+def run(spec: JobSpec, spent: stage1.StageOne | None = None) -> Outcome:
     """Run one job tracked as an MLflow run of its table; raise :class:`JobFailed` after recording a FAILED run, and
     re-raise an interrupt after recording KILLED. A config whose stage options no model reads fails first
     (:func:`check_stage`). A job whose config hash has a FINISHED run is skipped (``force=true`` reruns it), and one
@@ -136,7 +83,7 @@ def run(spec: JobSpec) -> Outcome:
     if stale := tracker.close_stale(exp, spec.config_hash):
         log.info("Marked %d stale RUNNING run(s) of config %s as KILLED", stale, spec.config_hash)
     began = str(int(time.time() * 1000))  # the job's own start, before the experts it trains or waits for
-    experts = prepare_experts(spec, tracker, exp)  # before the job's run: no RUNNING run while it waits for one
+    experts = prepare_experts(spec, tracker, exp, spent)  # before the job's run: no RUNNING run while it waits for one
     run_id = tracker.start(exp, f"{spec.row} seed={spec.seed}", run_tags(spec) | {"job_started": began})
     log.info("MLflow run %s: %s, seed %s, config %s", run_id, spec.row, spec.seed, spec.config_hash)
     log.info("Numerics: %s; %s intra-op thread(s)", spec.numerics, spec.cfg.trainer.get("threads") or "all")
@@ -148,131 +95,12 @@ def run(spec: JobSpec) -> Outcome:
     return Outcome("FINISHED", run_id, spec.ckpt_dir)
 
 
-def run_tags(spec: JobSpec) -> dict[str, str]:
-    """The tags a job's run starts with: what it is (kind, table, row, seed, config hash, scale), its code, its
-    numerics and machine, the race it belongs to, and its sweep's parent run."""
-    cfg = spec.cfg
-    tags = {
-        "kind": spec.kind,
-        "table": spec.table,
-        "row": spec.row,
-        "seed": str(spec.seed),
-        "config_hash": spec.config_hash,
-        **provenance_tags(spec.context.launch_dir),
-        "scale": cfg.scale.name,
-        **hardware.tags(cfg),
-    }
-    if cfg.table.get("seeds"):  # the race this run belongs to: its table replays that race (ablate.tables.racing)
-        tags["race_plan"] = json.dumps(OmegaConf.to_container(cfg.table.seeds, resolve=True), sort_keys=True)
-    for key in ("trial", "tuned"):  # a tuning trial, or a raced job tuned to one (ablate.sweep.tuning)
-        if cfg.get(key) is not None:
-            tags |= {key: str(cfg[key]), f"{key}_config": tuned_values(cfg)}
-    if cfg.get("trial") is not None:  # the search it is a draw of, for the table's footer (ablate.tables.tuning)
-        tune = OmegaConf.to_container(cfg.table.get("tune") or {}, resolve=True)
-        assert isinstance(tune, dict)
-        tags["tune_search"] = json.dumps({"space": tune.get("space") or {}, "seed": tune.get("seed", 0)})
-    if spec.expert_hash is not None:  # an expert's trial: the expert it trains, which stage 2 takes from it
-        tags["expert_hash"] = spec.expert_hash
-    if spec.parent_run:
-        tags.update({"mlflow.parentRunId": spec.parent_run, "sweep_id": spec.parent_run})
-        tags["job_num"] = str(spec.context.job_num)
-    return tags
-
-
-def tuned_values(cfg: DictConfig) -> str:
-    """The values in ``cfg`` of the parameters its table tunes (``table.tune.space``), as JSON: what a trial tried,
-    or what a raced job was tuned to, with the values its experts were tuned to (``experts.<modality>.<key>``)."""
-    space = (cfg.table.get("tune") or {}).get("space") or {}
-    values = {str(k): OmegaConf.select(cfg, str(k)) for k in space}
-    for modality, drawn in ((cfg.get("experts") or {}).get("draws") or {}).items():
-        values |= {tuned_key(k, modality): v for k, v in flatten_leaves(OmegaConf.to_container(drawn))}
-    return json.dumps(values, sort_keys=True, default=str)
-
-
-def copy_source(tracker: Tracker, chash: str, kind: str) -> Run | None:
-    """The FINISHED run of another table that a job of this config hash and kind copies (:func:`reuse`), or None:
-    for a raced or swept job the same row of another table, for an expert the tuning trial that trained it (stage 2
-    of a tuning phase); a tuning trial copies nothing."""
-    if kind == KIND_JOB:
-        return tracker.finished_elsewhere(chash)
-    if kind == KIND_EXPERT:
-        return tracker.finished_elsewhere(chash, KIND_TRIAL, "expert_hash")
-    return None
-
-
-def done_in_store(tracker: Tracker, exp: str, chash: str, kind: str) -> bool:
-    """Whether :func:`already_done` will skip a job of this config hash and kind: a FINISHED run of it in this
-    table, or one it copies from another (:func:`copy_source`). The sweep's plan counts it so."""
-    return tracker.finished_run(exp, chash) is not None or copy_source(tracker, chash, kind) is not None
-
-
-def already_done(spec: JobSpec, tracker: Tracker, exp: str) -> Outcome | None:
-    """SKIPPED where the store holds a FINISHED run of this config (in this table, or copied from another), else
-    None (``force=true``: always None)."""
-    if spec.cfg.force:
-        return None
-    done = tracker.finished_run(exp, spec.config_hash)
-    if done is not None:
-        log.info(
-            "Skipping %s (seed %s): run %s with config hash %s is FINISHED (force=true reruns it)",
-            spec.row,
-            spec.seed,
-            done.info.run_id,
-            spec.config_hash,
-        )
-        return Outcome("SKIPPED", done.info.run_id, spec.ckpt_dir)
-    source = copy_source(tracker, spec.config_hash, spec.kind)
-    return reuse(spec, tracker, exp, source) if source is not None else None
-
-
-#: A trial's tags that an expert copied from it does not keep: it is no trial, of no table's race or sweep.
-TRIAL_TAGS = ("trial", "trial_config", "tune_search", "expert_hash", "race_plan", "job_num")
-
-
-def reuse(spec: JobSpec, tracker: Tracker, exp: str, source: Run) -> Outcome | None:
-    """Copy a FINISHED run of the same config from another table into this one (tables share rows). An expert is
-    copied from the tuning trial that trained it, with the trial's best checkpoint into the expert's own folder,
-    where every later job finds it; None (train it) where that checkpoint is gone."""
-    code = ("git_commit", "ablate_version", "launch_commit")
-    tags = {k: v for k, v in run_tags(spec).items() if k not in code}
-    where = checkpoint_dir(source.data.tags.get("table", ""), source.data.tags.get("config_hash", ""))
-    if spec.kind == KIND_EXPERT:
-        if not copy_checkpoint(where / "best.ckpt", spec.ckpt_dir / "best.ckpt"):
-            return None
-        where = spec.ckpt_dir
-    run_id = tracker.copy_run(source, exp, tags, drop=TRIAL_TAGS if spec.kind == KIND_EXPERT else ())
-    log.info(
-        "Reusing %s (seed %s): the same config finished as %s run %s of %s; copied as %s",
-        spec.row,
-        spec.seed,
-        source.data.tags.get("kind", "a"),
-        source.info.run_id,
-        source.data.tags.get("table", "another table"),
-        run_id,
-    )
-    return Outcome("SKIPPED", run_id, where)
-
-
-def copy_checkpoint(source: Path, target: Path) -> bool:
-    """Copy a checkpoint file (a hard link where the file system allows), whole or not at all; False where
-    ``source`` is gone."""
-    if not source.is_file():
-        return False
-    target.parent.mkdir(parents=True, exist_ok=True)
-    partial = target.with_suffix(".part")
-    partial.unlink(missing_ok=True)
-    try:
-        os.link(source, partial)
-    except OSError:
-        shutil.copyfile(source, partial)
-    partial.replace(target)
-    return True
-
-
-def prepare_experts(spec: JobSpec, tracker: Tracker, exp: str) -> dict[str, tuple[Path, str]]:
+def prepare_experts(
+    spec: JobSpec, tracker: Tracker, exp: str, spent: stage1.StageOne | None = None
+) -> dict[str, tuple[Path, str]]:
     """Stage 1 (SMoE §4.3): the experts the job starts from, trained first where missing, each as a job of its own
     (:func:`ablate.jobs.experts.prepare`), before the job's own run starts. An expert that fails fails the job: its
-    run is recorded FAILED, naming the expert."""
+    run is recorded FAILED, naming the expert. What it takes is added to ``spent`` (:mod:`ablate.jobs.stage1`)."""
     if not spec.cfg.get("experts"):
         return {}
     from ablate.jobs.experts import prepare  # torch: imported once a job trains
@@ -282,8 +110,8 @@ def prepare_experts(spec: JobSpec, tracker: Tracker, exp: str) -> dict[str, tupl
     def timed(ecfg: DictConfig, kind: str, row: str) -> Outcome:  # each expert trained now timed for the ETA
         start = time.monotonic()
         outcome = run(JobSpec.of(ecfg, spec.context, kind, row))
-        if outcome.status == "FINISHED":
-            stage1.CURRENT.trained.append(time.monotonic() - start)
+        if outcome.status == "FINISHED" and spent is not None:
+            spent.trained.append(time.monotonic() - start)
         return outcome
 
     try:
@@ -295,7 +123,8 @@ def prepare_experts(spec: JobSpec, tracker: Tracker, exp: str) -> dict[str, tupl
         log.error("%s (seed %s) FAILED: %s", named(spec), spec.seed, message)
         raise JobFailed(message) from err
     finally:
-        stage1.CURRENT.seconds += time.monotonic() - began
+        if spent is not None:
+            spent.seconds += time.monotonic() - began
 
 
 def train(spec: JobSpec, tracker: Tracker, run_id: str, experts: dict[str, tuple[Path, str]]) -> dict[str, float]:
@@ -437,7 +266,8 @@ def main(cfg: DictConfig) -> str:
             cfg, row = job_config(cfg)  # an expert's tuning trial (table.tune) is the expert's config
             if row is None and context.row_choice is None:
                 no_row(cfg)
-            return run(JobSpec.of(cfg, context, row=row)).status
+            spent = stage1.StageOne()
+            return stage1.Ended(run(JobSpec.of(cfg, context, row=row), spent).status, spent)
     except Stopped as stop:
         reason = stop.reason
         if loky_worker():  # a sweep's worker goes with its parent, which is stopping too

@@ -109,7 +109,7 @@ class JobSpec:
         """For a tuning trial of a single-modal config (an expert's trial, :func:`ablate.jobs.experts.trial_config`):
         the config hash of the expert it trains, its config without the trial's number. Stage 2's trials (at the
         trials' seed) ask for that expert once the trial is chosen, and take it from the trial
-        (:func:`ablate.jobs.job.reuse`) instead of training it again. None for any other job."""
+        (:func:`ablate.jobs.reuse.reuse`) instead of training it again. None for any other job."""
         if self.kind != KIND_TRIAL or self.cfg.stage.name != "single":
             return None
         expert = copy.deepcopy(self.cfg)

@@ -2,12 +2,12 @@
 their parent run, the keys it sweeps over), read once where the job or command starts (:meth:`SweepContext.current`)
 and passed down. Below that point nothing reads Hydra's globals or the sweep directory's files.
 
-A multirun records its store and parent run in its sweep directory (``.tracking.json``, ``.parent_run``) and the
-keys it sweeps (``.swept_keys``), which every launcher's jobs see: the basic one, joblib, submitit (local or SLURM,
-on a shared filesystem) and Ray (the sweep directory is absolute, under the launch directory). A job so writes to
-its parent's store even where its own environment names no store (a Ray worker does not inherit the driver's
-``MLFLOW_TRACKING_URI``). The sweep callback (:mod:`ablate.sweep.callback`) and the racing sweeper write these files
-(:meth:`SweepContext.record`); this module names and reads them, so the store never imports the orchestration.
+A multirun records its store, its parent run and the keys it sweeps in its sweep directory's state file
+(:data:`STATE_FILE`: ``store``, ``parent_run``, ``swept``), which every launcher's jobs see: the basic one, joblib,
+submitit (local or SLURM, on a shared filesystem) and Ray (the sweep directory is absolute, under the launch
+directory). A job so writes to its parent's store even where its own environment names no store (a Ray worker does
+not inherit the driver's ``MLFLOW_TRACKING_URI``). The racing sweeper writes the file (:mod:`ablate.sweep.state`);
+this module names it and reads it, so the store never imports the orchestration.
 """
 
 from __future__ import annotations
@@ -17,9 +17,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-PARENT_FILE = ".parent_run"
-SWEPT_FILE = ".swept_keys"
-STORE_FILE = ".tracking.json"
+#: A sweep's state file in its sweep directory (:mod:`ablate.sweep.state`, which writes it).
+STATE_FILE = "sweep.json"
 FAILURES = "failures"
 
 
@@ -73,19 +72,16 @@ class SweepContext:
 
     @classmethod
     def of_sweep(cls, sweep_dir: Path | None, launch_dir: Path) -> SweepContext:
-        """The context a sweep directory's files hold (the sweep's driver reads it after its callback wrote them)."""
-
-        def read(name: str) -> str | None:
-            path = sweep_dir / name if sweep_dir is not None else None
-            return path.read_text() if path is not None and path.exists() else None
-
-        store, parent, swept = read(STORE_FILE), read(PARENT_FILE), read(SWEPT_FILE)
+        """The context a sweep directory's state file holds (:data:`STATE_FILE`; none before the sweeper wrote it)."""
+        path = sweep_dir / STATE_FILE if sweep_dir is not None else None
+        state = json.loads(path.read_text()) if path is not None and path.exists() else {}
+        swept = state.get("swept")
         return cls(
             launch_dir=launch_dir,
             sweep_dir=sweep_dir,
-            store=json.loads(store) if store else None,
-            parent_run=parent.strip() if parent else None,
-            swept=tuple(swept.split()) if swept is not None else None,
+            store=state.get("store"),
+            parent_run=state.get("parent_run"),
+            swept=tuple(swept) if swept is not None else None,
         )
 
     def with_job(self, num: int | None, overrides: tuple[str, ...], row_choice: str | None) -> SweepContext:
@@ -93,13 +89,6 @@ class SweepContext:
         return SweepContext(
             self.launch_dir, self.sweep_dir, num, overrides, row_choice, self.store, self.parent_run, self.swept
         )
-
-    def record(self, name: str, text: str) -> None:
-        """Write one of the sweep directory's files (:data:`STORE_FILE`, :data:`PARENT_FILE`, :data:`SWEPT_FILE`)."""
-        if self.sweep_dir is None:
-            raise ValueError(f"not a multirun: no sweep directory to record {name} in")
-        self.sweep_dir.mkdir(parents=True, exist_ok=True)
-        (self.sweep_dir / name).write_text(text)
 
     def record_failure(self, job: str, message: str) -> None:
         """Leave a note that ``job`` failed, for the end-of-sweep summary (nothing outside a multirun)."""

@@ -45,6 +45,7 @@ UNHASHED = (
     "comp_time.device",
     "comp_time.after_sweep",
     "recipe.bf16",
+    "real_data",
 )
 
 

@@ -18,17 +18,22 @@ from ablate.store.outage import DEFAULT_OUTAGE_S, ServerUnreachable, backoff, se
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
+#: How long a call waits out a SQLite store that other jobs keep locked ("database is locked"), whatever the outage
+#: budget: a lock means the store answers and is busy, and a job never fails for its neighbours' writes
+#: (:mod:`ablate.store.sqlite`).
+LOCKED_S = 600.0
 
 
 def retry(
     fn: Callable[..., T],
     *args: Any,
-    attempts: int = 12,
+    locked_s: float | None = None,
     outage_s: float | None = None,
     server: str | None = None,
     **kwargs: Any,
 ) -> T:
-    """Call ``fn``, retrying with jittered backoff while SQLite says the database is locked or busy, and while the
+    """Call ``fn``, retrying with jittered backoff while SQLite says the database is locked or busy (for up to
+    ``locked_s`` seconds, default :data:`LOCKED_S`, then its error is raised), and while the
     tracking store does not answer (:func:`~ablate.store.outage.symptom`: a refused connection, a timeout, HTTP
     5xx) for up to ``outage_s`` seconds (default :data:`~ablate.store.outage.DEFAULT_OUTAGE_S`; 0: not at all),
     after which it raises :class:`~ablate.store.outage.ServerUnreachable` naming ``server`` (else the address in
@@ -36,6 +41,7 @@ def retry(
     budget = DEFAULT_OUTAGE_S if outage_s is None else float(outage_s)
     locked = down = 0
     down_since: float | None = None
+    locked_since: float | None = None
     where = server
     while True:
         try:
@@ -59,9 +65,13 @@ def retry(
                 down += 1
                 continue
             text = str(err).lower()
-            if locked >= attempts - 1 or not ("locked" in text or "busy" in text):
+            if not ("locked" in text or "busy" in text):
                 raise
-            time.sleep(min(0.1 * 2**locked, 5.0) * (0.5 + random.random()))
+            now = time.monotonic()
+            locked_since = now if locked_since is None else locked_since
+            if now - locked_since >= (LOCKED_S if locked_s is None else locked_s):
+                raise
+            time.sleep(min(0.05 * 2**locked, 1.0) * (0.5 + random.random()))
             locked += 1
             continue
         if down_since is not None:

@@ -38,6 +38,7 @@ from ablate.store.locks import file_lock
 from ablate.store.outage import DEFAULT_OUTAGE_S, short_http_retries
 from ablate.store.outbox import Batch, Row
 from ablate.store.retry import retry
+from ablate.store.sqlite import db_path, needs_schema, write_ahead
 from ablate.store.uris import SHARED_VIEW_KEY, SHARED_VIEW_TAG, artifact_location, is_server, runs_link, tracking_uri
 
 if TYPE_CHECKING:
@@ -83,11 +84,14 @@ class Tracker:
         self.uri = uri
         self.outage_s = float(outage_s)
         self.artifact_location = artifact_location(uri, artifact_root, base)
-        if uri.startswith("sqlite:///"):  # MLflow creates the schema on first use: one process at a time
-            db = Path(uri[len("sqlite:///") :].split("?", 1)[0])
-            with file_lock(db.with_name(db.name + "-lock")):
+        if (db := db_path(uri)) is not None:  # many jobs of one machine on one file (ablate.store.sqlite)
+            if needs_schema(db):  # MLflow creates the schema on first use: one process at a time
+                with file_lock(db.with_name(db.name + "-lock")):
+                    self._client = MlflowClient(tracking_uri=uri)
+                    self.call(self._client.search_experiments, max_results=1)
+            else:
                 self._client = MlflowClient(tracking_uri=uri)
-                self.call(self._client.search_experiments, max_results=1)
+            write_ahead(db)
         else:
             self._client = MlflowClient(tracking_uri=uri)
             if is_server(uri):  # credentials the server refuses stop here, with the server's name

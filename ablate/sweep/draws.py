@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import ChoiceSweep, IntervalSweep
+from hydra.errors import HydraException
 
 
 def _uniform(seed: int, table: str, name: str, trial: int) -> float:
@@ -59,7 +60,7 @@ def parse_space(space: Mapping[str, str]) -> dict[str, Any]:
     for name, text in space.items():
         try:
             override = parser.parse_override(f"{name}={text}")
-        except Exception as err:
+        except HydraException as err:  # the grammar's own error (OverrideParseException among them)
             raise ValueError(f"table.tune.space.{name}: {text!r} does not parse: {err}") from None
         if not override.is_sweep_override():
             raise ValueError(f"table.tune.space.{name}: {text!r} is a value, not an interval(...) or a choice(...)")

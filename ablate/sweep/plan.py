@@ -4,9 +4,9 @@ estimated wall time.
 Each job's config is composed from its overrides, as the sweep will launch it (the first look of a race: its rows x
 the look's seeds). An expert is planned once per config hash, as :func:`ablate.jobs.experts.ensure_expert` trains
 it; one whose best checkpoint exists is not trained again, nor is one of a tuning phase's stage 2 (its trials copy
-their experts from the experts' chosen trials, :func:`ablate.jobs.job.reuse`), and a job whose config has a FINISHED
+their experts from the experts' chosen trials, :func:`ablate.jobs.reuse.reuse`), and a job whose config has a FINISHED
 run in the store, in its table or (a raced or swept job) in another that it copies, is skipped (``done``,
-:func:`ablate.jobs.job.done_in_store`, by the hash its job will have: a trial's draws applied,
+:func:`ablate.jobs.reuse.done_in_store`, by the hash its job will have: a trial's draws applied,
 :func:`ablate.jobs.spec.resolved_config`). A resumed tuning phase's stage-2 trials and raced jobs are composed on what
 it chose from the trials in the store (:func:`ablate.sweep.tuning.choices`), so that they are found done too. Every
 other job and expert is estimated from the recipe's steps (epochs x training batches, or ``trainer.max_steps``) at a
@@ -31,15 +31,20 @@ import logging
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
 from ablate.config import composer
 from ablate.jobs.experts import expert_config, job_config, needed
+from ablate.jobs.reuse import done_in_store
 from ablate.jobs.spec import best_checkpoint, resolved_config
+from ablate.jobs.spec import job_kind as run_kind
 from ablate.jobs.steptime import StepTimes, step_times
-from ablate.store import config_hash, row_name
-from ablate.sweep.progress import job_kind, job_overrides
+from ablate.store import Tracker, config_hash, row_name
+from ablate.sweep.launches import SweepPlan
+from ablate.sweep.progress import estimated, experts_planned, job_kind, workers
+from ablate.tables.tuning import trial_objectives
 
 log = logging.getLogger(__name__)
 
@@ -80,9 +85,10 @@ def items(
     jobs: list[list[str]] | None = None,
 ) -> list[Item]:
     """The experts, then the jobs, of the sweep of ``config`` (``done``: whether a job's config, as it runs and is
-    hashed, has a FINISHED run; ``objectives``: the tuning trials' in the store, where a resumed sweep has them,
-    :func:`ablate.sweep.progress.job_overrides`), or of its ``jobs`` (a race's later look)."""
-    jobs = job_overrides(config, objectives) if jobs is None else jobs
+    hashed, has a FINISHED run), or of its ``jobs``: those its sweeper launches before the first look ends
+    (:meth:`ablate.sweep.launches.SweepPlan.jobs`, with ``objectives``: the tuning trials' in the store, where a
+    resumed sweep has them), or a race's later look."""
+    jobs = SweepPlan.of_config(config).jobs(objectives) if jobs is None else jobs
     compose = composer(config)  # with the sweep's own config folders (hydra.searchpath), as its jobs compose
     swept = swept_keys(jobs)
     experts: dict[str, Item] = {}
@@ -242,16 +248,12 @@ def _minutes(seconds: float | None) -> str:
 
 
 def log_plan(
-    config: DictConfig,
-    parallel: int,
-    done: Callable[[DictConfig], bool],
-    objectives: Mapping[str, Mapping[int, float]] | None = None,
+    config: DictConfig, jobs: list[list[str]], parallel: int, done: Callable[[DictConfig], bool], race: bool
 ) -> list[Item]:
-    """Compose, estimate and log the sweep's plan (``plan.measure_s`` seconds of step timing at most; 0: none;
-    ``objectives``: the tuning trials' in the store, :func:`items`); return it."""
+    """Compose, estimate and log the plan of a sweep's ``jobs`` (``plan.measure_s`` seconds of step timing at most; 0:
+    none; ``race``: they are the first look of a race); return it."""
     measure_s = float(OmegaConf.select(config, "plan.measure_s", default=MEASURE_S))
-    plan = items(config, done, objectives)
-    race = bool(OmegaConf.select(config, "table.seeds.looks", default=None))
+    plan = items(config, done, jobs=jobs)
     said = lines(plan, parallel, race)
     if measure_s > 0:  # the plan at once; its estimates once the steps are timed (the dataset made first if missing)
         log.info("%s; timing their steps for an ETA (plan.measure_s = %g s)", said[0], measure_s)
@@ -259,3 +261,19 @@ def log_plan(
     for line in lines(plan, parallel, race)[1 if measure_s > 0 else 0 :]:
         log.info(line)
     return plan
+
+
+def log_sweep(config: DictConfig, sweep: SweepPlan, tracker: Tracker, sweep_dir: Path) -> None:
+    """Log the plan of the jobs ``sweep`` launches before its first look ends (a resumed tuning phase's on what it
+    chose from the trials in the store), each found done by the hash its job will have, and record the plan's
+    estimates for the progress lines (:mod:`ablate.sweep.progress`)."""
+    exp = tracker.experiment_id(sweep.table)
+    objectives = trial_objectives(tracker, sweep.table) if sweep.tune is not None else None
+    jobs = sweep.jobs(objectives)
+
+    def done(cfg: DictConfig) -> bool:
+        return done_in_store(tracker, exp, config_hash(cfg), run_kind(cfg))
+
+    plan = log_plan(config, jobs, workers(config), done, race=sweep.race is not None)
+    estimated(sweep_dir, kind_seconds(plan), row_jobs(plan))
+    experts_planned(sweep_dir, *expert_seconds(plan))

@@ -1,51 +1,40 @@
 """A sweep's overall progress: jobs finished of planned, and an ETA from the finished jobs' durations.
 
-The sweep writes how many jobs it plans (``<sweep dir>/.planned``, from the same splitting of the overrides that
-Hydra's basic sweeper does); every job, in whichever process runs it, appends its outcome and duration to
-``<sweep dir>/.progress`` under a file lock and logs one line such as
+The racing sweeper records how many jobs its plan launches (``progress.planned`` in the sweep's state file,
+:mod:`ablate.sweep.state`: the jobs of :meth:`ablate.sweep.launches.SweepPlan.jobs`, a race's first look; each later
+look adds its own); every job, in whichever process runs it, adds its outcome and duration to the state's ``ended``
+and logs one line such as
 ``Sweep progress: 4/9 jobs finished (1 skipped), 5 to go, ETA 11 min (2.2 min per trained job, 2 at a time)``.
 
 A table's tuning phase runs jobs of other kinds than its raced ones (:func:`job_kind`): an expert's tuning trial trains
 a single-modal network, a row's trial trains without testing, a raced job trains and tests under every condition. The
-sweep records how many of each kind it plans (``<sweep dir>/.planned_kinds``) and, once its plan is estimated, each
-kind's estimated seconds per job (``.estimates``, :mod:`ablate.sweep.plan`); the ETA times every kind's jobs to go at
-its own finished jobs' mean, a kind none of whose jobs has finished yet at its plan's estimate scaled by how the
-finished jobs compared with theirs, and schedules them on the sweep's workers in launch order.
+sweep records how many of each kind it plans (``kinds``) and, once its plan is estimated, each kind's estimated
+seconds per job (``estimates``, :mod:`ablate.sweep.plan`); the ETA times every kind's jobs to go at its own finished
+jobs' mean, a kind none of whose jobs has finished yet at its plan's estimate scaled by how the finished jobs compared
+with theirs, and schedules them on the sweep's workers in launch order.
 
 A tuning phase launches trial k of every row at once and waits for them all before trial k + 1
 (:mod:`ablate.sweep.tuning`), so a trial index takes as long as its slowest row. The sweep records each tuned kind's
-rows (``.launches``) and every job its row and trial number; the ETA then schedules the trials to go launch by launch,
+rows (``launches``) and every job its row and trial number; the ETA then schedules the trials to go launch by launch,
 each trial at its own row's mean where that row has finished one, and the raced jobs after the last launch.
 
 A raced job on experts (SMoE §4.3) trains whichever of them is missing first, within the job
 (:mod:`ablate.jobs.stage1`), so the first jobs of a look take an expert's training more than the rest. The sweep
-records how many experts its looks will train and the plan's estimate of one (``.experts``); every job records the
+records how many experts its looks will train and the plan's estimate of one (``experts``); every job records the
 experts it trained and its seconds in stage 1. The ETA times each job to go at the jobs' mean less their stage 1, and
 each expert to go, before them, at the trained experts' mean (else its estimate, scaled as a kind's).
 """
 
 from __future__ import annotations
 
-import json
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
-from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, OmegaConf
 
-from ablate.config import composer
-from ablate.store import file_lock, row_name
-from ablate.sweep.tuning import Experts, TuneSpec, choices
-from ablate.tables.spec import LOWER_IS_BETTER, sweep_params
-
-PLANNED_FILE = ".planned"
-PROGRESS_FILE = ".progress"
-KINDS_FILE = ".planned_kinds"
-ESTIMATES_FILE = ".estimates"
-LAUNCHES_FILE = ".launches"
-EXPERTS_FILE = ".experts"
+from ablate.sweep import state
 
 #: The kinds of a sweep's jobs in launch order (:func:`job_kind`), and how a progress line names one of each.
 KINDS = {"expert trial": "expert trial", "trial": "tuning trial", "job": "trained job"}
@@ -75,89 +64,53 @@ def job_trial(overrides: list[str]) -> int | None:
     return int(values["trial"]) if values.get("trial", "").isdigit() else None
 
 
-def job_overrides(config: DictConfig, objectives: Mapping[str, Mapping[int, float]] | None = None) -> list[list[str]]:
-    """Every job's overrides, as the multirun of ``config`` launches them: the product of its swept values (the
-    sweeper's ``params``, a table's rows and the command line together, a key on the command line winning), as
-    Hydra's basic sweeper splits them; for a table that races its seeds (``table.seeds``), each with the seeds of its
-    first look, after its tuning trials where it tunes (``table.tune``, :mod:`ablate.sweep.tuning`). Given the
-    tuning trials' ``objectives`` in the store (row -> trial -> value: a resumed sweep's), stage 2's trials sit on
-    the experts' chosen draws and the raced jobs on their rows' chosen trials, as the sweeper launches them once it
-    has chosen (:func:`ablate.sweep.tuning.choices`)."""
-    params = OmegaConf.select(config, "hydra.sweeper.params", default=None) or {}
-    arguments = list(config.hydra.overrides.task)
-    params = sweep_params(params, arguments, config.table)  # a table's rows (ablate.tables.spec.run_rows)
-    lines = [f"{key}={value}" for key, value in params.items()] + arguments
-    overrides = OverridesParser.create().parse_overrides(lines)
-    jobs = [list(job) for batch in BasicSweeper.split_arguments(overrides, None) for job in batch]
-    looks = OmegaConf.select(config, "table.seeds.looks", default=None)
-    seeded = any(o.get_key_element().lstrip("+~") == "seed" for o in overrides)
-    if not looks or seeded:
-        return jobs
-    tune = OmegaConf.select(config, "table.tune", default=None)
-    spec = TuneSpec.from_config(OmegaConf.to_container(tune, resolve=True) if tune else None)  # type: ignore[arg-type]
-    name = str(OmegaConf.select(config, "table.name", default=""))
-    swept = {o.get_key_element().lstrip("+~") for o in overrides if o.is_sweep_override()}
-    rows = {row_name(job, swept): job for job in jobs}  # as the racing sweeper names them
-    trials: list[list[str]] = []
-    raced: dict[str, list[str]] = {row: [] for row in rows}
-    if spec is not None:  # the experts' trials first, where rows sit on experts; a single-modal row is its expert
-        experts = Experts.of(rows, composer(config)) if spec.experts else Experts()
-        fixed: list[str] = []
-        if objectives:  # a resumed phase: what it chose so far
-            higher = str(OmegaConf.select(config, "table.primary", default="")) not in LOWER_IS_BETTER
-            tuned = choices(spec, name, rows, experts, objectives, (spec.trials, spec.trials), higher)
-            fixed, raced = tuned.fixed, tuned.overrides
-        stage2 = [[*job, *fixed] for row, job in rows.items() if row not in experts.single]
-        for part in (list(experts.trials().values()), stage2):  # every expert trial before stage 2, as the phase runs
-            trials += [[*job, *spec.overrides(name, k)] for k in range(spec.trials) for job in part]
-    return trials + [[*job, *raced[row], f"seed={seed}"] for row, job in rows.items() for seed in range(int(looks[0]))]
-
-
-def planned_jobs(config: DictConfig) -> int:
-    """How many jobs the multirun of ``config`` launches (:func:`job_overrides`; a race's first look: each later
-    look replans, :func:`replan`)."""
-    return len(job_overrides(config))
-
-
-def replan(sweep_dir: Path, planned: int) -> None:
-    """Record a new planned job count (a race's next look adds jobs)."""
-    (sweep_dir / PLANNED_FILE).write_text(str(planned))
-
-
-def start(sweep_dir: Path, config: DictConfig) -> int:
-    """Record the planned job count of the sweep in ``sweep_dir``, and of each kind but ``job`` (whose count a race's
-    later looks change, :func:`replan`) with the rows each of its launches holds; return the count."""
-    jobs = job_overrides(config)
+def start(sweep_dir: Path, jobs: list[list[str]]) -> int:
+    """Record the planned jobs of the sweep in ``sweep_dir`` (``jobs``, :meth:`ablate.sweep.launches.SweepPlan.jobs`):
+    their count, each kind's but ``job`` (whose count a race's later looks change, :func:`replan`) and the rows each
+    of its launches holds; return the count."""
     kinds = Counter(job_kind(job) for job in jobs)
     launches: dict[str, list[str]] = {}
     for kind, row in ((job_kind(job), job_row(job)) for job in jobs):
         if row not in (rows := launches.setdefault(kind, [])):
             rows.append(row)
-    (sweep_dir / PLANNED_FILE).write_text(str(len(jobs)))
-    (sweep_dir / KINDS_FILE).write_text(json.dumps({k: n for k, n in kinds.items() if k != "job"}))
-    (sweep_dir / LAUNCHES_FILE).write_text(json.dumps({k: rows for k, rows in launches.items() if k != "job"}))
-    (sweep_dir / PROGRESS_FILE).write_text("")
+    planned = {
+        "planned": len(jobs),
+        "kinds": {k: n for k, n in kinds.items() if k != "job"},
+        "launches": {k: rows for k, rows in launches.items() if k != "job"},
+    }
+    state.record(sweep_dir, progress=planned, ended=[])
     return len(jobs)
+
+
+def _progress(sweep_dir: Path, values: Mapping[str, Any]) -> None:
+    """Set ``values`` in the state's ``progress``."""
+    state.change(sweep_dir, lambda now: now.setdefault("progress", {}).update(values))
+
+
+def replan(sweep_dir: Path, planned: int) -> None:
+    """Record a new planned job count (a race's next look adds jobs)."""
+    _progress(sweep_dir, {"planned": planned})
 
 
 def experts_planned(sweep_dir: Path, count: int, seconds: float | None = None) -> None:
     """Add ``count`` experts to those the sweep's jobs will train within them (a race's first look, then each later
     look's), with the plan's estimated ``seconds`` of one where it has them."""
-    path = sweep_dir / EXPERTS_FILE
-    known = _read(path)
-    known["planned"] = int(known.get("planned", 0)) + count
-    if seconds:
-        known["seconds"] = round(seconds, 3)
-    path.write_text(json.dumps(known))
+
+    def add(now: dict[str, Any]) -> None:
+        known = now.setdefault("progress", {}).setdefault("experts", {})
+        known["planned"] = int(known.get("planned", 0)) + count
+        if seconds:
+            known["seconds"] = round(seconds, 3)
+
+    state.change(sweep_dir, add)
 
 
 def estimated(sweep_dir: Path, seconds: Mapping[str, float], rows: Mapping[str, Sequence[float]] | None = None) -> None:
     """Record the plan's estimated seconds per job of each kind, and its raced jobs of each row with their estimated
     seconds (``{row: [jobs, seconds]}``, :func:`ablate.sweep.plan.row_jobs`)."""
-    known: dict = {k: round(s, 3) for k, s in seconds.items()}
-    if rows:
-        known["rows"] = {row: [int(n), round(float(sec), 3)] for row, (n, sec) in rows.items()}
-    (sweep_dir / ESTIMATES_FILE).write_text(json.dumps(known))
+    known = {k: round(s, 3) for k, s in seconds.items()}
+    each = {row: [int(n), round(float(sec), 3)] for row, (n, sec) in (rows or {}).items()}
+    _progress(sweep_dir, {"estimates": known, "rows": each})
 
 
 def finished(
@@ -175,34 +128,27 @@ def finished(
     :func:`job_kind`; its ``row`` and ``trial``, :func:`job_row`, :func:`job_trial`; the seconds of each of the
     ``experts`` it trained and its seconds in ``stage1`` in all, :mod:`ablate.jobs.stage1`) and return the sweep's
     progress line."""
-    path = sweep_dir / PROGRESS_FILE
-    record = {"status": status, "seconds": round(seconds, 3), "kind": kind, "row": row, "trial": trial}
+    record: dict[str, Any] = {"status": status, "seconds": round(seconds, 3), "kind": kind, "row": row, "trial": trial}
     if stage1:
         record.update(experts=[round(e, 3) for e in experts], stage1=round(stage1, 3))
-    with file_lock(sweep_dir / ".progress.lock"):
-        with open(path, "a") as handle:
-            handle.write(json.dumps(record) + "\n")
-        records = _records(path)
-    planned_file = sweep_dir / PLANNED_FILE
-    planned = int(planned_file.read_text()) if planned_file.exists() else len(records)
-    kinds, (estimates, rows) = _read(sweep_dir / KINDS_FILE), _estimates(sweep_dir)
-    launches, experts_file = _read(sweep_dir / LAUNCHES_FILE), _read(sweep_dir / EXPERTS_FILE)
-    return summary(records, planned, parallel, kinds, estimates, launches, experts_file, rows)
 
+    def add(now: dict[str, Any]) -> dict[str, Any]:
+        now.setdefault("ended", []).append(record)
+        return now
 
-def _records(path: Path) -> list[dict]:
-    """The finished jobs' records of a progress file (none where it is missing)."""
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
-
-
-def _estimates(sweep_dir: Path) -> tuple[dict, dict]:
-    """The plan's estimates of each kind, and of each row's raced jobs (:func:`estimated`)."""
-    estimates = _read(sweep_dir / ESTIMATES_FILE)
-    return estimates, estimates.pop("rows", {})
-
-
-def _read(path: Path) -> dict:
-    return json.loads(path.read_text()) if path.exists() else {}
+    now = state.change(sweep_dir, add)
+    planned = now.get("progress", {})
+    records = now["ended"]
+    return summary(
+        records,
+        int(planned.get("planned", len(records))),
+        parallel,
+        planned.get("kinds"),
+        planned.get("estimates"),
+        planned.get("launches"),
+        planned.get("experts"),
+        planned.get("rows"),
+    )
 
 
 def summary(
@@ -265,7 +211,7 @@ def _wall(
     """The wall time of the jobs to go, kind after kind in launch order. A tuned kind whose launches are known
     (``launches``: its rows; ``kinds``: its planned count, the rows times the trials) runs trial k of its rows to go
     as one launch after another, each trial at its row's trained trials' mean (else its kind's); where the records
-    do not account for its jobs to go (a progress file without rows), its jobs are packed as the raced jobs are; the
+    do not account for its jobs to go (records without their rows), its jobs are packed as the raced jobs are; the
     ``expert`` s to go (their count and seconds each) go before the raced jobs, each of those at its ``raced``
     seconds where given."""
     total = 0.0
@@ -390,12 +336,14 @@ def look_seconds(sweep_dir: Path, jobs: int, experts: int, parallel: int) -> flo
     the jobs, each at the trained jobs' mean less their stage 1. None where no job of the sweep has trained yet. The
     racing sweeper weighs a look's cost with it, beside its rows' costs (``hydra_plugins/ablate_racing_sweeper``):
     a look that races fewer rows than the first trains as many experts per seed."""
-    records, (estimates, rows) = _records(sweep_dir / PROGRESS_FILE), _estimates(sweep_dir)
+    now = state.read(sweep_dir)
+    records, planned = now.get("ended", []), now.get("progress", {})
+    estimates, rows = planned.get("estimates", {}), planned.get("rows", {})
     per = _per_job([r for r in records if r.get("kind", "job") == "job"], {})
     if "job" not in per:
         return None
     trained = sum(len(r.get("experts", ())) for r in records)
-    known = _read(sweep_dir / EXPERTS_FILE)
+    known = planned.get("experts", {})
     expert = _expert(records, {"planned": trained + experts, "seconds": known.get("seconds", 0.0)}, estimates, rows)
     first = [expert[1]] * expert[0] if expert is not None else []
     return schedule([*first, *[per["job"][0]] * jobs], parallel)

@@ -27,7 +27,7 @@ chose:
   is tuned first, once, as a row of its own (``expert <modality>``: ``experts.tune=<modality>`` makes a trial of it,
   :func:`ablate.jobs.experts.trial_config`), with the same N and draws; its chosen values go under
   ``experts.draws.<modality>`` of every later job, so the experts stay fixed while stage 2 is tuned (its trials sit
-  on the chosen experts, trained at the trials' seed: the chosen expert trials, copied, :func:`ablate.jobs.job.reuse`),
+  on the chosen experts, trained at the trials' seed: the chosen expert trials, copied, :func:`ablate.jobs.reuse.reuse`),
   and a single-modal row, which *is* its expert, races on its
   expert's choice. A budget that stops the experts' trials leaves the rest of it to stage 2.
 * **Choice**: each row races on its trial with the best objective (the first such trial where several tie: the
@@ -104,6 +104,11 @@ class TuneSpec:
         """Trial ``trial``'s overrides: its draws, its seed, its number."""
         return [*self.drawn(table, trial), f"seed={self.job_seed}", f"trial={trial}"]
 
+    def batch(self, table: str, jobs: Mapping[str, list[str]], trial: int) -> list[list[str]]:
+        """Trial ``trial`` of every row of ``jobs`` (row -> overrides), one launch: the phase launches it, and the
+        sweep's plan counts it (:class:`ablate.sweep.launches.SweepPlan`)."""
+        return [[*overrides, *self.overrides(table, trial)] for overrides in jobs.values()]
+
     def describe(self, metric: str) -> str:
         """One sentence for a table's footer."""
         space = ", ".join(f"{k} ~ {v}" for k, v in self.space.items())
@@ -148,7 +153,7 @@ def run_phase(
             )
             break
         log.info("Tuning trial %d of %d for %d row(s)%s", k, spec.trials, len(jobs), _eta(k, spec.trials, elapsed))
-        launch([[*overrides, *spec.overrides(table, k)] for overrides in jobs.values()])
+        launch(spec.batch(table, jobs, k))
         phase.done = k + 1
     if phase.stopped:
         log.info("Tuning stopped: %s", phase.stopped)
@@ -275,6 +280,13 @@ def choices(
     return Tuned(overrides, chosen, stage2_done, experts_done, objectives=objectives, fixed=fixed)
 
 
+def stage2_rows(jobs: Mapping[str, list[str]], experts: Experts, fixed: list[str]) -> dict[str, list[str]]:
+    """The rows stage 2 tunes and their jobs' overrides on the experts' chosen draws (``fixed``): every row but the
+    single-modal rows on experts, which are tuned as their experts. The phase launches them, and the sweep's plan
+    counts them (:class:`ablate.sweep.launches.SweepPlan`)."""
+    return {row: [*overrides, *fixed] for row, overrides in jobs.items() if row not in experts.single}
+
+
 def tune(
     spec: TuneSpec,
     table: str,
@@ -300,7 +312,7 @@ def tune(
         experts_done, stopped = phase.done, [phase.stopped] if phase.stopped else []
         values = objectives()
     fixed = choices(spec, table, jobs, experts, values, (experts_done, 0), higher_is_better).fixed
-    stage2 = {row: [*o, *fixed] for row, o in jobs.items() if row not in experts.single}
+    stage2 = stage2_rows(jobs, experts, fixed)
     if stage2:
         phase = run_phase(spec, table, stage2, launch, clock, spent=clock() - started)
         done = phase.done

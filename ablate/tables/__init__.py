@@ -36,8 +36,9 @@ from ablate.tables.frames import (
 )
 from ablate.tables.frames import from_store as frames_from_store
 from ablate.tables.provenance import Recompute, config_of, provenance
-from ablate.tables.records import read_records, records_path, write_records
+from ablate.tables.records import RUNS_DIR, check_records, read_records, records_path, write_records
 from ablate.tables.rows import write_rows
+from ablate.tables.seal import seal_path
 from ablate.tables.spec import COSTS, row_names, table_spec
 from ablate.tables.tuning import check_tuned, read_trials, section, write_trials
 from ablate.tables.tuning import from_store as trials_from_store
@@ -52,16 +53,19 @@ def write_table(
     cfg: DictConfig,
     tracker: Tracker,
     parent_run: str | None = None,
-    results_dir: str | Path = "results",
+    results_dir: str | Path | None = None,
     fingerprint: Recompute | None = None,
     publish: bool = False,
 ) -> list[Path]:
     """Write ``cfg``'s table and its figures under ``results_dir`` from the store's runs; log them to
-    ``parent_run`` if given. Returns the paths written. ``fingerprint`` recomputes a run's fingerprint from its
+    ``parent_run`` if given. Returns the paths written. ``results_dir`` is required: this package names no folder
+    (a sweep's own, or the published one through :func:`ablate.tables.published.publish`). ``fingerprint`` recomputes a run's fingerprint from its
     config (:func:`ablate.jobs.fingerprint.compute`, passed in by the caller) for the provenance footer; without it
     the footer names changed files. ``publish``: write the table's run records first
-    (:func:`~ablate.tables.records.write_records`) and render from them, the one path from runs to a published
-    table."""
+    (:func:`~ablate.tables.records.write_records`, the curves, counts, detections and trials beside them, and their
+    seal, :mod:`~ablate.tables.seal`) and render from them, the one path from runs to a published table."""
+    if results_dir is None:
+        raise TypeError("write_table() needs results_dir: the folder the table is written into")
     table = table_spec(cfg)
     runs = collect(tracker, table.name)
     written: list[Path] = []
@@ -83,6 +87,9 @@ def write_table(
     if publish and (kept := write_trials(trials, results_dir, str(table.name))) is not None:
         written.append(kept)
     runs.attrs["trials"] = trials  # what the tuning phase spent (ablate.tables.cost)
+    runs_dir = Path(results_dir) / RUNS_DIR
+    if publish and any(p.parent == runs_dir for p in written):  # each records file sealed by its writer
+        written.append(seal_path(runs_dir, str(table.name)))
     config = lambda run_id: config_of(tracker, run_id)  # noqa: E731
     footer = footer_lines(runs, fingerprint, config, running(tracker, table.name))
     written += render(cfg, table, runs, results_dir, footer, tracker, parent_run, tuning_section(trials, table))
@@ -92,14 +99,18 @@ def write_table(
 
 def render_records(
     cfg: DictConfig,
-    results_dir: str | Path = "results",
+    results_dir: str | Path,
     fingerprint: Recompute | None = None,
     config: Callable[[pd.DataFrame], Callable[[str], DictConfig]] | None = None,
 ) -> list[Path] | None:
     """Write ``cfg``'s table and its figures under ``results_dir`` from its run records
     (:func:`~ablate.tables.records.records_path`) alone, with no store; None where the table has no records.
-    ``config(runs)`` gives the function that composes a recorded run's config today, for the provenance footer."""
+    ``config(runs)`` gives the function that composes a recorded run's config today, for the provenance footer.
+    Records that are not what was written (:func:`~ablate.tables.records.check_records`: cut short, reordered, a
+    line repeated or edited, a column lost) raise :class:`~ablate.tables.seal.BrokenRecords` before anything is
+    written."""
     table = table_spec(cfg)
+    check_records(results_dir, str(table.name))  # a records file lost beside its curves is broken, not absent
     path = records_path(results_dir, str(table.name))
     if not path.exists():
         return None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pandas as pd
+from mlflow.exceptions import MlflowException
 from omegaconf import DictConfig
 
 from ablate.store import KIND_JOB, SKIPPED_FRAMES, Tracker
@@ -86,7 +87,7 @@ def row_seconds(tracker: Tracker, runs: pd.DataFrame) -> dict[str, float]:
             try:
                 run = tracker.get_run(source)
                 seconds[i] = ((run.info.end_time or run.info.start_time) - run.info.start_time) / 1000.0
-            except Exception:  # the source is gone from this store: its time is unknown
+            except MlflowException:  # the source is gone from this store (not found): its time is unknown
                 seconds[i] = float("nan")
     medians = seconds.groupby(runs["row"]).median().dropna()
     return {str(row): float(value) for row, value in medians.items()}

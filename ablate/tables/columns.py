@@ -9,10 +9,12 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
+from ablate.tables.comparison import Comparison
 from ablate.tables.cost import table_cost
 from ablate.tables.decide import machine, undecided
 from ablate.tables.frames import FROM_DETECTIONS
-from ablate.tables.racing import Comparison, RacePlan, RaceState, race, race_lines, recorded_plan, seed_values
+from ablate.tables.raceplan import RacePlan
+from ablate.tables.racing import RaceState, race, race_lines, recorded_plan, seed_values
 from ablate.tables.significance import (
     BOOTSTRAP_FROM,
     COLLAPSE_RATIO,

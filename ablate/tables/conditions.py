@@ -29,6 +29,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
+from mlflow.exceptions import MlflowException  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from ablate.store import Tracker  # noqa: E402
@@ -261,7 +262,7 @@ def copy_artifacts(tracker: Tracker, runs: pd.DataFrame, table: DictConfig, out:
         with tempfile.TemporaryDirectory() as tmp:
             try:
                 path = tracker.download_artifact(source, spec["artifact"], tmp)
-            except Exception:  # noqa: BLE001 - a run without the artifact (a failed figure) leaves no copy
+            except MlflowException:  # a run without the artifact (a failed figure; not found) leaves no copy
                 continue
             shutil.copyfile(path, out / spec["as"])
         written.append(out / spec["as"])

@@ -23,6 +23,7 @@ from omegaconf import DictConfig  # noqa: E402
 
 from ablate.store import Tracker  # noqa: E402
 from ablate.tables.records import RUNS_DIR  # noqa: E402
+from ablate.tables.seal import write_csv  # noqa: E402
 from ablate.tables.spec import row_names  # noqa: E402
 
 COLUMNS = ["run_id", "row", "seed", "metric", "epoch", "value"]
@@ -55,10 +56,8 @@ def from_store(tracker: Tracker, runs: pd.DataFrame, table: DictConfig) -> pd.Da
 
 
 def write_curves(curves: pd.DataFrame, results_dir: str | Path, table: str) -> Path:
-    path = curves_path(results_dir, table)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    curves.to_csv(path, index=False, lineterminator="\n")
-    return path
+    """``runs/<table>.curves.csv``, sealed (:func:`ablate.tables.seal.write_csv`)."""
+    return write_csv(curves, curves_path(results_dir, table))
 
 
 def read_curves(path: Path) -> pd.DataFrame:

@@ -31,7 +31,9 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from ablate.tables.racing import Comparison, RacePlan, RaceState
+from ablate.tables.comparison import Comparison
+from ablate.tables.raceplan import RacePlan
+from ablate.tables.racing import RaceState
 
 #: The share of tables the estimate's n decides, at the spread observed.
 POWER = 0.8

@@ -21,7 +21,8 @@ from matplotlib.figure import Figure  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
 from ablate.tables.columns import replay  # noqa: E402
-from ablate.tables.racing import Comparison, RaceState, table_values  # noqa: E402
+from ablate.tables.comparison import Comparison  # noqa: E402
+from ablate.tables.racing import RaceState, table_values  # noqa: E402
 from ablate.tables.spec import row_names  # noqa: E402
 from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, UNDECIDED, WORSE  # noqa: E402
 

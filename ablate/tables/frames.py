@@ -33,6 +33,7 @@ import pandas as pd
 from ablate.metrics.accumulate import COLUMNS, as_arrays, coco_ap, kitti_ap
 from ablate.store import FRAME_COUNTS, FRAME_DETECTIONS, Tracker
 from ablate.tables.records import RUNS_DIR
+from ablate.tables.seal import write_csv
 
 
 def _rate(c: np.ndarray) -> np.ndarray:
@@ -116,12 +117,9 @@ def _from_store(
 
 
 def _write(kept: pd.DataFrame, path: Path) -> Path | None:
-    """``kept`` as gzipped CSV at ``path`` (the same bytes for the same rows); None where it is empty."""
-    if kept.empty:
-        return None
-    path.parent.mkdir(parents=True, exist_ok=True)
-    kept.to_csv(path, index=False, lineterminator="\n", compression={"method": "gzip", "mtime": 0})
-    return path
+    """``kept`` as gzipped CSV at ``path`` (the same bytes for the same rows), sealed
+    (:func:`ablate.tables.seal.write_csv`); None where it is empty."""
+    return write_csv(kept, path) if not kept.empty else None
 
 
 def write_frames(frames: pd.DataFrame, results_dir: str | Path, table: str) -> Path | None:

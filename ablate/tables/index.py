@@ -206,9 +206,7 @@ def splice(path: Path, block: str) -> bool:
     return True
 
 
-def write_index(
-    tables: list[DictConfig], results_dir: str | Path = "results", readme: str | Path | None = None
-) -> list[Path]:
+def write_index(tables: list[DictConfig], results_dir: str | Path, readme: str | Path | None = None) -> list[Path]:
     """Write the summary of every table of ``tables`` (their specs) that has a markdown file under ``results_dir``
     into ``results_dir/README.md`` and into ``readme`` (links there point into ``results_dir``); return the files
     written."""

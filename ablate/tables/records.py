@@ -13,7 +13,8 @@ resumed from a checkpoint at (``resumed_step``, empty for a run trained uninterr
 phase chose for its row (``tuned_config``, empty where the row was not tuned), and one column per
 final metric: the test metrics the table shows (per condition and difficulty where it has them), latency and
 costs. No per-step history, no checkpoints. Numbers are written as Python's shortest round-trip form, so a table
-rendered from the records is the table rendered from the store, byte for byte.
+rendered from the records is the table rendered from the store, byte for byte. Each records file is sealed where it
+is written (:mod:`ablate.tables.seal`), and checked against its seal before a table is rendered from it.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from pathlib import Path
 import pandas as pd
 
 from ablate.store import Tracker
+from ablate.tables.seal import Kind, check, reseal, write_csv
 
 #: Where records live under a results folder.
 RUNS_DIR = "runs"
@@ -113,11 +115,45 @@ def to_records(runs: pd.DataFrame, table: str) -> pd.DataFrame:
 
 
 def write_records(runs: pd.DataFrame, table: str, results_dir: str | Path) -> Path:
-    """Write a table's records (:func:`to_records`) to :func:`records_path`; the path."""
-    path = records_path(results_dir, table)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    to_records(runs, table).to_csv(path, index=False, lineterminator="\n")
-    return path
+    """Write a table's records (:func:`to_records`) to :func:`records_path`, sealed
+    (:func:`ablate.tables.seal.write_csv`); the path."""
+    return write_csv(to_records(runs, table), records_path(results_dir, table))
+
+
+#: The records files beside a table, each of its kind (:class:`ablate.tables.seal.Kind`): the runs (this module),
+#: their learning curves (:mod:`~ablate.tables.curves`), tuning trials (:mod:`~ablate.tables.tuning`), counts and
+#: detections per test frame (:mod:`~ablate.tables.frames`).
+KINDS = (
+    Kind(".csv", ("table", "row", "seed", "run_id"), ("run_id",), TEXT, WHOLE),
+    Kind(
+        ".curves.csv",
+        ("run_id", "row", "seed", "metric", "epoch", "value"),
+        ("run_id", "metric", "epoch"),
+        ("run_id", "row", "seed", "metric"),
+        ("epoch",),
+    ),
+    Kind(
+        ".trials.csv",
+        ("run_id", "row", "trial"),
+        ("run_id",),
+        ("run_id", "row", "seed", "status", "trial_config", "cpu", "search", "sweep_id"),
+        ("trial", "started"),
+    ),
+    Kind(".frames.csv.gz", ("run_id", "row", "seed", "frame"), ("run_id", "frame", "condition")),
+    Kind(".detections.csv.gz", ("run_id", "row", "seed", "frame", "metric")),
+)
+
+
+def check_records(results_dir: str | Path, table: str) -> None:
+    """Raise :class:`~ablate.tables.seal.BrokenRecords` where a records file of ``table`` under ``results_dir`` is
+    not what was written (:func:`ablate.tables.seal.check`)."""
+    check(Path(results_dir) / RUNS_DIR, table, [k.suffix for k in KINDS])
+
+
+def reseal_records(results_dir: str | Path, table: str) -> Path | None:
+    """Seal ``table``'s records under ``results_dir`` again after an intended edit, once each file parses
+    (:func:`ablate.tables.seal.reseal`); the seal, None where the table has no records."""
+    return reseal(Path(results_dir) / RUNS_DIR, table, KINDS)
 
 
 def read_records(path: str | Path) -> pd.DataFrame:

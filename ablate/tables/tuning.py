@@ -28,6 +28,7 @@ from ablate.store import KIND_TRIAL, Tracker, split_tuned_key  # noqa: E402
 from ablate.tables.collect import sweep_wall  # noqa: E402
 from ablate.tables.evp import crossing, expected_max  # noqa: E402
 from ablate.tables.records import RUNS_DIR  # noqa: E402
+from ablate.tables.seal import write_csv  # noqa: E402
 
 #: How an expert's tuning row is named (ablate.sweep.tuning.expert_row): ``expert <modality>``.
 EXPERT_ROW = "expert "
@@ -62,10 +63,7 @@ def from_store(tracker: Tracker, table: str) -> pd.DataFrame:
 def write_trials(trials: pd.DataFrame, results_dir: str | Path, table: str) -> Path | None:
     if trials.empty:
         return None
-    path = trials_path(results_dir, table)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    trials.sort_values(["row", "trial"]).to_csv(path, index=False, lineterminator="\n")
-    return path
+    return write_csv(trials.sort_values(["row", "trial"]), trials_path(results_dir, table))
 
 
 def read_trials(results_dir: str | Path, table: str) -> pd.DataFrame:
