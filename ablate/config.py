@@ -10,6 +10,9 @@ from omegaconf import DictConfig, OmegaConf
 
 #: The configs: inside the package (a wheel ships them; in a checkout ablate/conf is the project's conf/ folder).
 CONF = Path(__file__).resolve().parent / "conf"
+#: The results folder, relative to the directory a command runs in (a checkout's ``results/``); what is written
+#: there goes through :mod:`ablate.tables.published`, but for the data tools' own ``--out`` defaults.
+RESULTS = Path("results")
 
 
 def compose(overrides: Sequence[str]) -> DictConfig:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import os
 
+from ablate.config import RESULTS
 from ablate.data import DEFAULT_SYNTH
 
 
@@ -29,10 +30,10 @@ def main(argv: list[str] | None = None) -> None:
     fig = sub.add_parser("masks", help="figure of one frame's instance masks from LiDAR + 3D boxes")
     fig.add_argument("--root", required=True)
     fig.add_argument("--frame", required=True)
-    fig.add_argument("--out", default="results/kitti_masks_from_lidar.png")
+    fig.add_argument("--out", default=str(RESULTS / "kitti_masks_from_lidar.png"))
     stats = sub.add_parser("stats", help="camera/LiDAR complementarity report of a dataset (no model)")
     stats.add_argument("--root", required=True)
-    stats.add_argument("--out", default="results/complementarity", help="writes OUT.md and OUT.png")
+    stats.add_argument("--out", default=str(RESULTS / "complementarity"), help="writes OUT.md and OUT.png")
     stats.add_argument("--frames", type=int, default=None, help="the first N frames only")
     args = parser.parse_args(argv)
     if args.command == "synth":

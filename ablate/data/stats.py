@@ -42,6 +42,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from ablate.config import RESULTS  # noqa: E402
 from ablate.data import DataError, kitti  # noqa: E402
 from ablate.data.conditions import CONDITIONS, apply_condition  # noqa: E402
 
@@ -336,7 +337,7 @@ def plot(df: pd.DataFrame, min_returns: int = MIN_RETURNS) -> Figure:
 
 
 def report(
-    root: str | Path, out: str | Path = "results/complementarity", frames: int | None = None, progress: bool = True
+    root: str | Path, out: str | Path = RESULTS / "complementarity", frames: int | None = None, progress: bool = True
 ) -> tuple[Path, Path]:
     """Write ``out``.md and ``out``.png for the dataset under ``root``; return their paths."""
     df = compute(root, frames, progress=progress)

@@ -1,4 +1,4 @@
-"""What is published, and the one route that writes it: the results folder (:data:`RESULTS`, named here alone),
+"""What is published, and the one route that writes it: the results folder (:data:`ablate.config.RESULTS`),
 the list of experiments (:func:`experiments`, the tables of ``conf/experiment/``), and every file written under the
 folder: a table and its records from the store (:func:`publish`), a table from its committed records
 (:func:`render`), the results summary (:func:`summary`), the records' seal (:func:`seal`), a parity section
@@ -21,7 +21,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from ablate.config import CONF  # noqa: E402
+from ablate.config import CONF, RESULTS  # noqa: E402  (RESULTS: the results folder, named there alone)
 from ablate.tables import render_records, write_table  # noqa: E402
 from ablate.tables.index import write_index  # noqa: E402
 from ablate.tables.parity import Parity, write_parity  # noqa: E402
@@ -35,9 +35,6 @@ if TYPE_CHECKING:
     from ablate.store import Tracker
     from ablate.tables.provenance import Recompute
 
-#: The results folder: published tables, their records (``runs/``) and the summary, relative to the directory a
-#: command runs in (a checkout's ``results/``).
-RESULTS = Path("results")
 #: The project's README beside the folder, whose results summary is rewritten with the folder's.
 README = Path("README.md")
 
