@@ -27,7 +27,6 @@ import argparse
 import json
 import multiprocessing as mp
 import os
-import platform
 import shutil
 import signal
 import socket
@@ -218,20 +217,6 @@ def stop_server(folder: Path) -> None:
     subprocess.run([sys.executable, str(SERVER), "stop", str(folder)], capture_output=True, text=True)
 
 
-def cpu() -> str:
-    """The CPU's model name, family and model, and the cores this process may use."""
-    info = {}
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        key, _, value = line.partition(":")
-        info.setdefault(key.strip(), value.strip())
-        if not line.strip():
-            break
-    return (
-        f"{info.get('model name', platform.processor())} (family {info.get('cpu family')}, model "
-        f"{info.get('model')}), {len(os.sched_getaffinity(0))} cores"
-    )
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--writers", type=int, nargs="+", default=[2, 8, 16, 32], help="N: jobs at once")
@@ -241,8 +226,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--outage", type=float, default=0.0, help="server only: seconds it is down mid-run")
     args = parser.parse_args(argv)
     import ablate.store  # noqa: F401  (imported once here: the writers fork with it)
+    from ablate.hardware import cores, cpu
 
-    print(f"CPU: {cpu()}\n\n{HEADER}", flush=True)
+    machine = cpu()
+    print(f"CPU: {machine.model}; {cores()} cores; bf16 in hardware: {machine.has_bf16}\n\n{HEADER}", flush=True)
     for store in args.stores:
         root = Path(tempfile.mkdtemp(prefix=f"ablate-load-{store}-", dir="/tmp"))
         root.chmod(0o755)  # PostgreSQL runs as the user postgres when we are root: it must reach its folder
