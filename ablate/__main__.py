@@ -44,11 +44,9 @@ def refused(err: OptionError) -> str:
     if HydraConfig.get().mode != RunMode.MULTIRUN:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(1)
-    from ablate.store import SweepContext, row_name  # MLflow: a sweep's job has it loaded already
+    from ablate.store import SweepContext  # MLflow: a sweep's job has it loaded already
 
-    context = SweepContext.current()
-    row = row_name(context.overrides, context.swept, context.row_choice)
-    context.record_failure(f"{context.job_num}_{row.replace(' ', '_').replace('/', '-')}", str(err))
+    SweepContext.current().record_failure(str(err))
     return "FAILED"
 
 

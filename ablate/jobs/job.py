@@ -42,7 +42,7 @@ from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unre
 from ablate.jobs.reuse import Outcome, already_done
 from ablate.jobs.spec import JobSpec
 from ablate.jobs.tags import params_of, run_tags
-from ablate.store import AccessDenied, ServerUnreachable, SweepContext, Tracker, row_name
+from ablate.store import AccessDenied, ServerUnreachable, SweepContext, Tracker
 
 log = logging.getLogger(__name__)
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
@@ -283,6 +283,5 @@ def main(cfg: DictConfig) -> str:
         if context.sweep_dir is None:
             print(f"error: {err}", file=sys.stderr)
             raise SystemExit(1) from None
-        row = row_name(context.overrides, context.swept, context.row_choice)
-        context.record_failure(f"{context.job_num}_{row.replace(' ', '_').replace('/', '-')}", str(err))
+        context.record_failure(str(err))
         return "FAILED"

@@ -17,6 +17,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from ablate.store.identity import row_name
+
 #: A sweep's state file in its sweep directory (:mod:`ablate.sweep.state`, which writes it).
 STATE_FILE = "sweep.json"
 FAILURES = "failures"
@@ -90,9 +92,12 @@ class SweepContext:
             self.launch_dir, self.sweep_dir, num, overrides, row_choice, self.store, self.parent_run, self.swept
         )
 
-    def record_failure(self, job: str, message: str) -> None:
-        """Leave a note that ``job`` failed, for the end-of-sweep summary (nothing outside a multirun)."""
+    def record_failure(self, message: str) -> None:
+        """Leave a note that this job failed (``<job number>_<row>``), for the end-of-sweep summary (nothing outside
+        a multirun)."""
         if self.sweep_dir is not None:
+            row = row_name(self.overrides, self.swept, self.row_choice)
+            job = f"{self.job_num}_{row.replace(' ', '_').replace('/', '-')}"
             (self.sweep_dir / FAILURES).mkdir(parents=True, exist_ok=True)
             (self.sweep_dir / FAILURES / f"{job}.txt").write_text(message)
 
