@@ -92,7 +92,7 @@ PRECISIONS: tuple[str | int, ...] = (*"auto 32-true bf16-mixed 16-mixed 64-true 
 PRECISIONS += (16, "32", "64", "16", "transformer-engine", "transformer-engine-float16")
 SEEDS_KEYS = ("looks", "alpha", "correction", "budget_min", "multiplicity")
 SPLITS = ("train", "val", "test")
-TUNE_KEYS = ("trials", "space", "seed", "budget_min", "job_seed", "experts")
+TUNE_KEYS = ("trials", "space", "seed", "budget_min", "job_seed", "experts", "halving")
 #: The marker of a data config that reads real data from ``data.root`` (conf/data/kitti.yaml sets it, no other
 #: config): ``data.root`` cannot stay synth.yaml's null there, which a missing value (``???``) would not replace.
 REAL_DATA = "real_data"
@@ -154,6 +154,10 @@ RULES: dict[str, Rule] = {
     "table.tune.budget_min": Rule((POSITIVE,), null="no budget"),
     "table.tune.job_seed": Rule((WHOLE,)),
     "table.tune.experts": Rule((BOOL,)),
+    "table.tune.halving": Rule((MAPPING,), null="every trial to the full budget", keys=("eta", "rungs")),
+    "table.tune.halving.eta": Rule((Kind("int", low=2),), note="the top 1/eta of a rung go on"),
+    "table.tune.halving.rungs": Rule((Kind("numbers", low=0, high=1, filled=True, order="<"),), note="the last 1"),
+    "rung": Rule((Kind("number", low=0, high=1, strict=True),), null="the full budget", note="set by the sweeper"),
     "table.kernels_sd": Rule((NON_NEGATIVE,), null="not measured"),
     "table.untuned": Rule((TEXT,), null="the table tunes, or says nothing"),
     "data.root": Rule(

@@ -30,7 +30,7 @@ REPO = Path(__file__).resolve().parents[1]
 #: Configs in which every option of the table has its parent: a road table at the paper's scale, tuned (BEV,
 #: augmentation, a race, a rope), and a detection table of DGFN's model on DDP (the SSD trunks, GFU, a strategy).
 BASES = (
-    ["experiment=bifnet_table4", "row=bifnet_dst_cbf", "scale=paper", "tune=lr_wd"],
+    ["experiment=bifnet_table4", "row=bifnet_dst_cbf", "scale=paper", "tune=lr_wd_halving"],
     ["experiment=dgfn_table1", "row=dgfn", "trainer=ddp_cpu", "+task.metric.devkit=2d_2012"],
 )
 #: The Python types of each kind's values, as a test tells them apart: a boolean is no number, whatever Python says.

@@ -118,11 +118,16 @@ class TuningLauncher:
     ``test(row, lr, seed)`` as its primary metric, where ``lr`` is the job's learning rate (the recipe's without a
     draw); a trial ``fail`` names fails (no objective)."""
 
-    def __init__(self, val, test, fail=()):
+    def __init__(self, val, test, fail=(), at_rung=None):
         self.val, self.test, self.fail = val, test, set(fail)
+        self.at_rung = at_rung or (lambda row, lr, rung: val(row, lr))  # a trial's objective at a rung of halving
         self.store: dict[str, dict[int, float]] = {}  # raced jobs: row -> seed -> metric
-        self.trials: dict[str, dict[int, float]] = {}  # trials: row -> trial -> objective
+        self.trials: dict[str, dict[int, float]] = {}  # trials: row -> trial -> objective (its furthest rung's)
+        self.at: dict[float, dict[str, dict[int, float]]] = {}  # rung -> row -> trial -> objective (full: 1.0)
         self.batches: list[list[dict[str, str]]] = []
+
+    def objectives(self, rung=None):
+        return self.at.get(1.0 if rung is None else float(f"{rung:.6g}"), {})
 
     def launch(self, job_overrides, initial_job_idx):
         from hydra.core.utils import JobReturn, JobStatus
@@ -134,8 +139,10 @@ class TuningLauncher:
             row, lr = job["row"], float(job.get("draws.task.optimizer.lr", RECIPE_LR))
             row = f"expert {job['experts.tune']}" if "experts.tune" in job else row  # an expert's own trial
             if "trial" in job:
-                failed = (row, int(job["trial"])) in self.fail
-                self.trials.setdefault(row, {})[int(job["trial"])] = math.nan if failed else self.val(row, lr)
+                failed, rung = (row, int(job["trial"])) in self.fail, float(job.get("rung", 1.0))
+                value = math.nan if failed else self.at_rung(row, lr, rung)
+                self.trials.setdefault(row, {})[int(job["trial"])] = value
+                self.at.setdefault(rung, {}).setdefault(row, {})[int(job["trial"])] = value
             else:
                 self.store.setdefault(row, {})[int(job["seed"])] = self.test(row, lr, int(job["seed"]))
             ret = JobReturn(overrides=overrides, status=JobStatus.COMPLETED)
@@ -161,7 +168,7 @@ def tuned_sweep(tmp_path, monkeypatch, launcher, *overrides):
     sweeper, _ = sweeper_for(
         tmp_path, monkeypatch, None, "tune=lr_wd", "table.tune.trials=16", *overrides, launcher=launcher
     )
-    monkeypatch.setattr(impl, "trial_objectives", lambda tracker, table: launcher.trials)
+    monkeypatch.setattr(impl, "trial_objectives", lambda tracker, table, rung=None: launcher.objectives(rung))
     monkeypatch.setattr(impl, "table_values", lambda runs, table: {r: pd.Series(v) for r, v in launcher.store.items()})
     monkeypatch.setattr(impl.RacingSweeperImpl, "_tag_parent", lambda self, tags: None)
     return sweeper

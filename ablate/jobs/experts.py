@@ -54,6 +54,9 @@ def expert_config(cfg: DictConfig, modality: str) -> DictConfig:
         ecfg.experts = None
         ecfg.force = False
         ecfg.trial = ecfg.tuned = None  # a tuning trial's row shares its experts with every trial
+        cast(DictConfig, ecfg).pop(
+            "rung", None
+        )  # at every rung of successive halving (ablate.sweep.halving): trained in full
         ecfg.draws = OmegaConf.to_container(tuned, resolve=True) if tuned else None  # the expert's own, if tuned
         ecfg.table = {
             "name": EXPERTS_TABLE,
@@ -82,6 +85,8 @@ def trial_config(cfg: DictConfig) -> tuple[DictConfig, str]:
     with open_dict(ecfg):
         ecfg.trial, ecfg.table = cfg.trial, OmegaConf.to_container(cfg.table, resolve=False)
         ecfg.draws = OmegaConf.to_container(cfg.draws, resolve=True) if cfg.get("draws") else None
+        if cfg.get("rung") is not None:  # the trial's rung of successive halving (ablate.sweep.halving)
+            ecfg.rung = cfg.rung
     return ecfg, f"expert {modality}"
 
 

@@ -17,6 +17,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from ablate import hardware
+from ablate.jobs.rungs import checkpoint_config
 from ablate.store import KIND_JOB, KIND_TRIAL, Outbox, SweepContext, config_hash, row_name
 from ablate.store.outbox import FILE as OUTBOX_FILE
 
@@ -95,7 +96,9 @@ class JobSpec:
         resolved, numerics, base = resolved_config(cfg)
         name = row or row_name(context.overrides, context.swept, context.row_choice)
         chash = config_hash(resolved)
-        outbox = Outbox(checkpoint_dir(str(resolved.table.name), chash) / OUTBOX_FILE)
+        outbox = Outbox(
+            checkpoint_dir(str(resolved.table.name), config_hash(checkpoint_config(resolved))) / OUTBOX_FILE
+        )
         return cls(resolved, numerics, kind, name, chash, context, outbox, base)
 
     @property
@@ -127,7 +130,9 @@ class JobSpec:
 
     @property
     def ckpt_dir(self) -> Path:
-        return checkpoint_dir(self.table, self.config_hash)
+        """``checkpoints/<table>/<config hash>``; a tuning trial's at every rung of successive halving (the hash of
+        its config without the rung, :func:`ablate.jobs.rungs.checkpoint_config`), so that a promoted trial resumes."""
+        return self.outbox.path.parent
 
     @property
     def parent_run(self) -> str | None:

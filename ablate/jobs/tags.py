@@ -17,8 +17,8 @@ from ablate.store import UNHASHED, flatten, provenance_tags, tuned_key
 #: Config keys that are not a job's params (the run's ``config.yaml`` artifact keeps the whole config): the table it
 #: fills (its title, rows and the paper's numbers), the options that change no number (ablate.store.UNHASHED), the
 #: metrics' labels, the scale's knobs and the task's modalities and targets (each already in the model's and the data's
-#: own params, which they resolve into), the side-by-side timing's options, and a tuning trial's number (a tag) and
-#: draws (applied over the config: their values are its params).
+#: own params, which they resolve into), the side-by-side timing's options, and a tuning trial's number and rung (tags)
+#: and draws (applied over the config: their values are its params).
 NOT_PARAMS = (
     *UNHASHED,
     "metrics",
@@ -28,6 +28,7 @@ NOT_PARAMS = (
     "comp_time",
     "recipe",
     "trial",
+    "rung",
     "draws",
 )
 #: Config keys of Hydra's instantiation or of display alone, in any group: not params either.
@@ -66,6 +67,8 @@ def run_tags(spec: JobSpec) -> dict[str, str]:
         tune = OmegaConf.to_container(cfg.table.get("tune") or {}, resolve=True)
         assert isinstance(tune, dict)
         tags["tune_search"] = json.dumps({"space": tune.get("space") or {}, "seed": tune.get("seed", 0)})
+        if cfg.get("rung") is not None:  # a rung of successive halving short of the full budget (ablate.sweep.halving)
+            tags["rung"] = f"{float(cfg.rung):.6g}"
     if spec.expert_hash is not None:  # an expert's trial: the expert it trains, which stage 2 takes from it
         tags["expert_hash"] = spec.expert_hash
     if spec.parent_run:

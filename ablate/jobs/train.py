@@ -33,6 +33,7 @@ from ablate.jobs.experts import feature_cache
 from ablate.jobs.generators import GlobalGenerators
 from ablate.jobs.preempt import STOP, SaveOnStop, Stopped
 from ablate.jobs.progress_lines import ProgressLines, progress_bar
+from ablate.jobs.rungs import StopAtRung, ValCurve, stop_epoch
 from ablate.jobs.spec import JobSpec
 from ablate.store import FRAME_COUNTS, FRAME_DETECTIONS, KIND_TRIAL, SKIPPED_FRAMES, RunLogger, Tracker
 
@@ -68,7 +69,12 @@ def fit_and_test(
     on_stop = SaveOnStop(spec.ckpt_dir / "last.ckpt")
     logger = RunLogger(tracker, run_id, spec.outbox)
     rate = LearningRateMonitor(logging_interval="step")  # the learning rate per step, as a metric of the run
-    callbacks = [checkpoint, on_stop, DataCount(logger), rate, GlobalGenerators()]  # generators: exact resumes
+    callbacks: list[Callback] = [checkpoint, on_stop, DataCount(logger), rate, GlobalGenerators()]  # exact resumes
+    curve = ValCurve(task.monitor)  # a tuning trial's validation value per epoch (ablate.sweep.halving replays it)
+    if spec.kind == KIND_TRIAL:
+        callbacks.append(curve)
+    if (epoch := stop_epoch(cfg)) is not None:  # a trial at a rung of successive halving stops there
+        callbacks.append(StopAtRung(epoch))
     trainer = build_trainer(cfg, logger, callbacks, spec.ckpt_dir)
     best = attach_experts(cfg, model, experts, tracker, run_id) if cfg.get("experts") else None
     prepare_model(cfg, model)
@@ -76,6 +82,7 @@ def fit_and_test(
         fit(spec, tracker, run_id, trainer, task, datamodule, on_stop)
         best = checkpoint.best_model_path or None
     if spec.kind == KIND_TRIAL:  # a tuning trial: validation only, never the test split
+        tracker.set_tags(run_id, curve.tag())
         return validated(tracker, run_id, checkpoint, task, trainer, logger)
     return test(spec, tracker, run_id, trainer, task, datamodule, best, logger)
 

@@ -38,6 +38,7 @@ from ablate.store.tracker import (
     KIND_SWEEP,
     KIND_TRIAL,
     SKIPPED_FRAMES,
+    VAL_CURVE,
     Tracker,
 )
 from ablate.store.uris import is_server, runs_link, tracking_uri
@@ -61,6 +62,7 @@ __all__ = [
     "KIND_EXPERT",
     "KIND_JOB",
     "KIND_TRIAL",
+    "VAL_CURVE",
     "KIND_SWEEP",
     "SKIPPED_FRAMES",
     "FRAME_COUNTS",

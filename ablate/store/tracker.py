@@ -51,6 +51,8 @@ T = TypeVar("T")
 KIND_JOB, KIND_SWEEP = "job", "sweep"
 #: A tuning trial's run (ablate.sweep.tuning): it trains and validates, never tests, and is no table's row.
 KIND_TRIAL = "trial"
+#: A tuning trial's tag of its validation value per epoch of its run ({epoch: value}, ablate.jobs.rungs).
+VAL_CURVE = "val_curve"
 #: A single-modal expert's run (ablate.jobs.experts, SMoE §4.3 stage 1), in the experiment ``experts``.
 KIND_EXPERT = "expert"
 #: The metric a job logs once its data module is set up: the bad frames it left out (``data.on_bad_frame=skip``).

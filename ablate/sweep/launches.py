@@ -91,6 +91,21 @@ class SweepPlan:
         params = OmegaConf.select(config, "hydra.sweeper.params", default=None) or {}
         return cls.of(config, list(config.hydra.overrides.task), dict(params))
 
+    def trials(self, part: Mapping[str, list[str]]) -> list[list[str]]:
+        """The trials' jobs of one part of the tuning phase (``part``: row -> overrides), as it launches them: trial k
+        of every row, k = 0 .. N-1; where it halves (:mod:`ablate.sweep.halving`), each rung's as many trials per row
+        as the rung keeps, those before the promotions are known standing for them (trials 0, 1, ...)."""
+        assert self.tune is not None
+        spec, halving = self.tune, self.tune.halving
+        if halving is None:
+            return [job for k in range(spec.trials) for job in spec.batch(self.table, part, k)]
+        return [
+            [*overrides, *spec.overrides(self.table, k, r)]
+            for r, keep in enumerate(halving.counts(spec.trials))
+            for k in range(keep)
+            for overrides in part.values()
+        ]
+
     @property
     def rows(self) -> dict[str, list[str]]:
         """Each row's jobs' overrides (but the seed, where the sweep races), in the sweep's order."""
@@ -115,6 +130,6 @@ class SweepPlan:
                 tuned = choices(self.tune, self.table, rows, self.experts, objectives, done, self.higher)
                 fixed, raced = tuned.fixed, tuned.overrides
             for part in (self.experts.trials(), stage2_rows(rows, self.experts, fixed)):  # as the phase runs
-                trials += [job for k in range(self.tune.trials) for job in self.tune.batch(self.table, part, k)]
+                trials += self.trials(part)
         on = {row: [*jobs, *raced[row]] for row, jobs in rows.items()}
         return trials + look_jobs(on, list(rows), {}, self.race.first)

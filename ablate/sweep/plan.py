@@ -38,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from ablate.config import composer
 from ablate.jobs.experts import expert_config, job_config, needed
 from ablate.jobs.reuse import done_in_store
+from ablate.jobs.rungs import stop_epoch
 from ablate.jobs.spec import best_checkpoint, resolved_config
 from ablate.jobs.spec import job_kind as run_kind
 from ablate.jobs.steptime import StepTimes, step_times
@@ -158,16 +159,16 @@ def seconds(cfg: DictConfig, times: StepTimes) -> float:
     test = times.test_seconds(conditions or 1) if cfg.get("trial") is None else 0.0  # a tuning trial never tests
     if cfg.get("experts") and cfg.stage.name == "single":
         return test
-    epochs = int(cfg.trainer.get("max_epochs") or -1)
+    epochs = stop_epoch(cfg) or int(cfg.trainer.get("max_epochs") or -1)  # a trial at a rung stops there
     steps = cfg.trainer.get("max_steps")
     return times.fit_seconds(epochs, int(steps) if steps is not None else None, cached=True) + test
 
 
-def batch(item: Item) -> tuple[str, object] | None:
+def batch(item: Item) -> tuple[str, object, object] | None:
     """The launch a job belongs to: a tuning phase launches trial k of every row at once, and waits for them all
     before trial k + 1 (the experts' trials, then stage 2's); the first look is one more launch. An expert trains
     within a job: None."""
-    return None if item.kind == "expert" else (item.kind, item.config.get("trial"))
+    return None if item.kind == "expert" else (item.kind, item.config.get("trial"), item.config.get("rung"))
 
 
 def wall_seconds(plan: list[Item], parallel: int) -> float | None:

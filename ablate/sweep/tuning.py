@@ -30,6 +30,9 @@ chose:
   on the chosen experts, trained at the trials' seed: the chosen expert trials, copied, :func:`ablate.jobs.reuse.reuse`),
   and a single-modal row, which *is* its expert, races on its
   expert's choice. A budget that stops the experts' trials leaves the rest of it to stage 2.
+* **Successive halving** (``table.tune.halving``, :mod:`ablate.sweep.halving`): every trial trains to the first
+  rung, the top 1/η of each row's go on, resumed, to the next, and so on to the full budget; the rows' trials at a
+  rung launch as the trials of a full-budget phase do (the i-th trial alive of every row one batch).
 * **Choice**: each row races on its trial with the best objective (the first such trial where several tie: the
   recipe before any draw). The raced jobs carry ``tuned=k`` and record the tuned parameters' values
   (``tuned_config``); a table refuses to mix runs of one row tuned to different configs.
@@ -45,6 +48,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ablate.sweep.draws import draw, parse_space
+from ablate.sweep.halving import Halving, promote, rung_batches
 
 log = logging.getLogger(__name__)
 
@@ -64,13 +68,14 @@ class TuneSpec:
     budget_min: float | None = None
     job_seed: int = JOB_SEED
     experts: bool = True  # tune the experts' own recipe first, where rows sit on experts
+    halving: Halving | None = None  # successive halving (ablate.sweep.halving); None: every trial to the full budget
 
     @classmethod
     def from_config(cls, tune: Mapping[str, Any] | None) -> TuneSpec | None:
         """The spec of ``table.tune``; None where the table does not tune. One clear error per bad option."""
         if not tune:
             return None
-        unknown = set(tune) - {"trials", "space", "seed", "budget_min", "job_seed", "experts"}
+        unknown = set(tune) - {"trials", "space", "seed", "budget_min", "job_seed", "experts", "halving"}
         if unknown:
             raise ValueError(f"table.tune: unknown option(s) {', '.join(sorted(unknown))}")
         trials = tune.get("trials")
@@ -93,6 +98,7 @@ class TuneSpec:
             None if budget is None else float(budget),
             int(tune.get("job_seed", JOB_SEED)),
             experts,
+            Halving.from_config(tune.get("halving")),
         )
 
     def drawn(self, table: str, trial: int, under: str = "draws") -> list[str]:
@@ -100,9 +106,11 @@ class TuneSpec:
         trial 0, the recipe."""
         return [f"++{under}.{name}={value}" for name, value in draw(self.space, table, self.seed, trial).items()]
 
-    def overrides(self, table: str, trial: int) -> list[str]:
-        """Trial ``trial``'s overrides: its draws, its seed, its number."""
-        return [*self.drawn(table, trial), f"seed={self.job_seed}", f"trial={trial}"]
+    def overrides(self, table: str, trial: int, rung: int | None = None) -> list[str]:
+        """Trial ``trial``'s overrides: its draws, its seed, its number, and where the phase halves, its ``rung``
+        (none at the last, the full budget)."""
+        at = self.halving.override(rung) if self.halving is not None and rung is not None else []
+        return [*self.drawn(table, trial), f"seed={self.job_seed}", f"trial={trial}", *at]
 
     def batch(self, table: str, jobs: Mapping[str, list[str]], trial: int) -> list[list[str]]:
         """Trial ``trial`` of every row of ``jobs`` (row -> overrides), one launch: the phase launches it, and the
@@ -112,23 +120,50 @@ class TuneSpec:
     def describe(self, metric: str) -> str:
         """One sentence for a table's footer."""
         space = ", ".join(f"{k} ~ {v}" for k, v in self.space.items())
+        halving = f"; {self.halving.describe()}" if self.halving is not None else ""
         return (
             f"Tuning: {self.trials} trials per row (trial 0 the recipe; the same draws for every row, tuning seed "
             f"{self.seed}), each trained at seed {self.job_seed} and judged on its best {metric} over the epochs, "
-            f"on validation only; space: {space}"
+            f"on validation only{halving}; space: {space}"
         )
+
+    def rung_count(self) -> int:
+        """The phase's rungs: 1 where every trial trains to the full budget."""
+        return len(self.halving.rungs) if self.halving is not None else 1
+
+
+#: A reader of the trials' objectives in the store (row -> trial -> value): at the full budget, or at the rung of
+#: successive halving given as its fraction of the recipe's epochs.
+Objectives = Callable[..., Mapping[str, Mapping[int, float]]]
 
 
 @dataclass
 class Phase:
     """A tuning phase in progress: the trials launched per row (all rows alike), why it stopped early, the seconds
-    it took."""
+    it took; where it halves, the trials that reached each rung (per row, all rows alike) and the last rung every
+    row's trials completed (None: the full budget)."""
 
     spec: TuneSpec
     rows: list[str]
     done: int = 0
     stopped: str = ""
     started: float = field(default_factory=time.monotonic)
+    reached: list[int] = field(default_factory=list)
+    rung: float | None = None
+
+
+def _over_budget(
+    spec: TuneSpec, phase: Phase, spent: float, elapsed: float, per_batch: float, what: str, unit: str = "batch"
+) -> bool:
+    """Whether the next batch (about ``per_batch`` seconds) would end past the phase's budget; if so, why, in
+    ``phase.stopped`` (``what`` it stopped after, and what a ``unit`` costs)."""
+    if not spec.budget_min or spent + elapsed + per_batch <= spec.budget_min * 60:
+        return False
+    phase.stopped = (
+        f"the tuning budget of {spec.budget_min:g} min stopped the phase after {what} "
+        f"({(spent + elapsed) / 60:.1f} min spent, about {per_batch / 60:.1f} more a {unit})"
+    )
+    return True
 
 
 def run_phase(
@@ -146,17 +181,59 @@ def run_phase(
     for k in range(spec.trials):
         elapsed = clock() - phase.started
         per_batch = elapsed / k if k else 0.0
-        if spec.budget_min and k and spent + elapsed + per_batch > spec.budget_min * 60:
-            phase.stopped = (
-                f"the tuning budget of {spec.budget_min:g} min stopped the phase after trial {k - 1} of every row "
-                f"({(spent + elapsed) / 60:.1f} min spent, about {per_batch / 60:.1f} more a trial)"
-            )
+        if k and _over_budget(spec, phase, spent, elapsed, per_batch, f"trial {k - 1} of every row", "trial"):
             break
         log.info("Tuning trial %d of %d for %d row(s)%s", k, spec.trials, len(jobs), _eta(k, spec.trials, elapsed))
         launch(spec.batch(table, jobs, k))
         phase.done = k + 1
     if phase.stopped:
         log.info("Tuning stopped: %s", phase.stopped)
+    return phase
+
+
+def run_halving(
+    spec: TuneSpec,
+    table: str,
+    jobs: Mapping[str, list[str]],
+    launch: Callable[[list[list[str]]], None],
+    objectives: Objectives,
+    higher_is_better: bool = True,
+    clock: Callable[[], float] = time.monotonic,
+    spent: float = 0.0,
+) -> Phase:
+    """Successive halving (:mod:`ablate.sweep.halving`): every row's N trials to the first rung, then per row the top
+    ``ceil(n / η)`` of the rung before, by their objectives there (``objectives(rung)``), resumed to the next, to the
+    full budget. A rung's i-th trial alive of every row is one batch; the budget stops the phase only between two
+    batches, each at the mean of its rung's batches so far (the rung before's, scaled by the rungs' spans, at a
+    rung's first)."""
+    assert spec.halving is not None
+    halving, rows = spec.halving, list(jobs)
+    phase = Phase(spec, rows, started=clock(), rung=halving.rungs[0])
+    alive = {row: list(range(spec.trials)) for row in rows}
+    spans = [b - a for a, b in zip((0.0, *halving.rungs), halving.rungs)]
+    per_batch = 0.0
+    for r, keep in enumerate(halving.counts(spec.trials)):
+        if r:
+            at = objectives(halving.rungs[r - 1])
+            alive = {
+                row: promote({k: at.get(row, {}).get(k, math.nan) for k in alive[row]}, keep, higher_is_better)
+                for row in rows
+            }
+            per_batch *= spans[r] / spans[r - 1]
+        started, batches = clock(), rung_batches(rows, alive)
+        for i, batch in enumerate(batches):
+            elapsed = clock() - phase.started
+            what = f"rung {r - 1}" if not i else f"{i} trial(s) of every row at rung {r}"
+            if (r or i) and _over_budget(spec, phase, spent, elapsed, per_batch, what):
+                log.info("Tuning stopped: %s", phase.stopped)
+                return phase
+            log.info("Tuning rung %d of %d (%.3g of the epochs): trial(s) %s", r, len(halving.rungs),
+                     halving.rungs[r], ", ".join(f"{row} {k}" for row, k in batch))  # fmt: skip
+            launch([[*jobs[row], *spec.overrides(table, k, r)] for row, k in batch])
+            per_batch = (clock() - started) / (i + 1)
+            phase.done = max(phase.done, i + 1)  # the trials per row started: all of them after rung 0
+        phase.reached.append(keep)
+        phase.rung = None if r == len(halving.rungs) - 1 else halving.rungs[r]
     return phase
 
 
@@ -243,6 +320,7 @@ class Tuned:
     stopped: list[str] = field(default_factory=list)
     objectives: Mapping[str, Mapping[int, float]] = field(default_factory=dict)
     fixed: list[str] = field(default_factory=list)
+    reached: list[list[int]] = field(default_factory=list)  # halving: per part, the trials per row at each rung
 
 
 def choices(
@@ -293,7 +371,7 @@ def tune(
     jobs: Mapping[str, list[str]],
     experts: Experts,
     launch: Callable[[list[list[str]]], None],
-    objectives: Callable[[], Mapping[str, Mapping[int, float]]],
+    objectives: Objectives,
     higher_is_better: bool = True,
     clock: Callable[[], float] = time.monotonic,
     earlier: float = 0.0,
@@ -305,19 +383,29 @@ def tune(
     against ``spec.budget_min`` as this sweep's own."""
     started = clock() - earlier
     experts = experts if spec.experts else Experts()
-    experts_done, done, stopped = 0, 0, []
-    values: Mapping[str, Mapping[int, float]] = {}
+    experts_done, done, stopped, reached = 0, 0, [], []
+    values: dict[str, Mapping[int, float]] = {}
+
+    def part(rows: Mapping[str, list[str]]) -> Phase:
+        """One part of the phase (the experts' trials, or stage 2's), its objectives read into ``values``: at the full
+        budget, or where halving stopped early at the last rung its rows completed."""
+        if spec.halving is None:
+            phase = run_phase(spec, table, rows, launch, clock, spent=clock() - started)
+            values.update({r: v for r, v in objectives().items() if r in rows})
+        else:
+            phase = run_halving(spec, table, rows, launch, objectives, higher_is_better, clock, clock() - started)
+            at = objectives() if phase.rung is None else objectives(phase.rung)
+            values.update({r: v for r, v in at.items() if r in rows})
+            reached.append(phase.reached)
+        stopped.extend([phase.stopped] if phase.stopped else [])
+        return phase
+
     if experts.base:
-        phase = run_phase(spec, table, experts.trials(), launch, clock, spent=clock() - started)
-        experts_done, stopped = phase.done, [phase.stopped] if phase.stopped else []
-        values = objectives()
+        experts_done = part(experts.trials()).done
     fixed = choices(spec, table, jobs, experts, values, (experts_done, 0), higher_is_better).fixed
     stage2 = stage2_rows(jobs, experts, fixed)
     if stage2:
-        phase = run_phase(spec, table, stage2, launch, clock, spent=clock() - started)
-        done = phase.done
-        stopped += [phase.stopped] if phase.stopped else []
-        values = objectives()
+        done = part(stage2).done
     out = choices(spec, table, jobs, experts, values, (experts_done, done), higher_is_better)
-    out.stopped = stopped
+    out.stopped, out.reached = stopped, reached
     return out

@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from ablate.store import KIND_TRIAL, Tracker, split_tuned_key  # noqa: E402
+from ablate.store import KIND_TRIAL, VAL_CURVE, Tracker, split_tuned_key  # noqa: E402
 from ablate.tables.collect import sweep_wall  # noqa: E402
 from ablate.tables.evp import crossing, expected_max  # noqa: E402
 from ablate.tables.records import RUNS_DIR  # noqa: E402
@@ -34,8 +34,10 @@ from ablate.tables.seal import write_csv  # noqa: E402
 EXPERT_ROW = "expert "
 COLUMNS = [
     "run_id", "row", "trial", "seed", "status", "val_best", "trial_config", "seconds", "cpu", "started", "search",
-    "sweep_id",
+    "sweep_id", "rung", "val_curve",
 ]  # fmt: skip
+#: A trial's rung in the records: its fraction of the recipe's epochs; the full budget (no rung) is 1.
+FULL = 1.0
 
 
 def trials_path(results_dir: str | Path, table: str) -> Path:
@@ -56,7 +58,8 @@ def from_store(tracker: Tracker, table: str) -> pd.DataFrame:
         value = r.data.metrics.get("val_best", np.nan) if r.info.status == "FINISHED" else np.nan
         out.append([r.info.run_id, tags.get("row", "?"), int(tags.get("trial", -1)), tags.get("seed", "?"),
                     r.info.status, value, tags.get("trial_config", "{}"), seconds, tags.get("cpu", "?"),
-                    r.info.start_time, tags.get("tune_search", ""), tags.get("sweep_id", "")])  # fmt: skip
+                    r.info.start_time, tags.get("tune_search", ""), tags.get("sweep_id", ""),
+                    float(tags.get("rung", FULL)), tags.get(VAL_CURVE, "")])  # fmt: skip
     return pd.DataFrame(out, columns=COLUMNS).sort_values("started", kind="stable").reset_index(drop=True)
 
 
@@ -70,8 +73,11 @@ def read_trials(results_dir: str | Path, table: str) -> pd.DataFrame:
     path = trials_path(results_dir, table)
     if not path.exists():
         return pd.DataFrame(columns=COLUMNS)
-    trials = pd.read_csv(path, dtype={"trial_config": str, "search": str}, keep_default_na=False, na_values=[""])
-    return trials.reindex(columns=[*COLUMNS, *(c for c in trials if c not in COLUMNS)])  # older: no search, sweep
+    trials = pd.read_csv(
+        path, dtype={"trial_config": str, "search": str, "val_curve": str}, keep_default_na=False, na_values=[""]
+    )
+    trials = trials.reindex(columns=[*COLUMNS, *(c for c in trials if c not in COLUMNS)])  # older: no search, sweep
+    return trials.fillna({"rung": FULL})  # older: every trial to the full budget, no curve
 
 
 def check_tuned(runs: pd.DataFrame) -> None:
@@ -97,17 +103,25 @@ def phase_wall(trials: pd.DataFrame) -> tuple[float, int]:
     return sweep_wall(started, started + 1000 * trials["seconds"].astype(float), trials.get("sweep_id"))
 
 
-def last_trials(trials: pd.DataFrame) -> pd.DataFrame:
-    """The latest run of each (row, trial), a trial run again (a resumed phase) counted once, by row and trial: the
-    same from the store as from the records."""
+def last_trials(trials: pd.DataFrame, rung: float | None = None) -> pd.DataFrame:
+    """The latest run of each (row, trial) at its furthest rung of successive halving (or at ``rung``, where given:
+    the trials that reached it), a trial run again (a resumed phase) counted once, by row and trial: the same from
+    the store as from the records."""
     if not len(trials):
         return trials
-    return trials.drop_duplicates(["row", "trial"], keep="last").sort_values(["row", "trial"], kind="stable")
+    rungs = trials["rung"].astype(float) if "rung" in trials else pd.Series(FULL, index=trials.index)
+    if rung is not None:  # as the tag holds it (ablate.jobs.tags): six significant digits
+        at = rungs == float(f"{float(rung):.6g}")
+        trials, rungs = trials[at], rungs[at]
+    order = trials.assign(_rung=rungs).sort_values("_rung", kind="stable")  # the furthest rung last, then the latest
+    kept = order.drop_duplicates(["row", "trial"], keep="last").drop(columns="_rung")
+    return kept.sort_values(["row", "trial"], kind="stable")
 
 
-def trial_objectives(tracker: Tracker, table: str) -> dict[str, dict[int, float]]:
-    """Per row, each tuning trial's objective in the store (its latest run's ``val_best``; NaN where it failed)."""
-    trials = last_trials(from_store(tracker, table))
+def trial_objectives(tracker: Tracker, table: str, rung: float | None = None) -> dict[str, dict[int, float]]:
+    """Per row, each tuning trial's objective in the store (its latest run's ``val_best``; NaN where it failed): at
+    the full budget, or at ``rung`` of successive halving (its fraction of the recipe's epochs)."""
+    trials = last_trials(from_store(tracker, table), FULL if rung is None else rung)
     out: dict[str, dict[int, float]] = {}
     for row, trial, value in zip(trials.get("row", []), trials.get("trial", []), trials.get("val_best", [])):
         out.setdefault(str(row), {})[int(trial)] = float(value)
@@ -118,6 +132,9 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
     """The markdown lines on the tuning phase: a table of the rows' chosen trials, the footer's sentence, and whether
     the rows' curves cross; without trials, why the table races on the recipe where it says (``table.untuned``),
     else none."""
+    trials = trials if "rung" in trials else trials.assign(rung=FULL)  # older: every trial to the full budget
+    # the last run of each trial at each rung: a promoted trial's rungs each cost, a trial run again counts once
+    every = trials.drop_duplicates(["row", "trial", "rung"], keep="last") if len(trials) else trials
     trials = last_trials(trials)
     if trials.empty:
         untuned = table.get("untuned")  # a table that races on the recipe says why (docs/tuning.md)
@@ -132,15 +149,15 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
     def place(row: str) -> tuple[int, int, str]:
         return (0 if row.startswith(EXPERT_ROW) else 1, order.get(row, len(order)), row)
 
+    cpu = every.groupby("row")["seconds"].sum() / 60  # every rung's run of a trial: a promoted trial resumes
     for row, sel in sorted(trials.groupby("row"), key=lambda kv: place(str(kv[0]))):
-        scored = sel.dropna(subset=["val_best"])
+        scored = sel[sel["rung"].astype(float) == FULL].dropna(subset=["val_best"])  # the full budget's alone
         best = scored.sort_values(["val_best", "trial"], ascending=[False, True]).iloc[0] if len(scored) else None
         config = config_text(best["trial_config"]) if best is not None else "—"
         objective = f"{best['val_best']:.4g}" if best is not None else "—"
         chosen = str(int(best["trial"])) if best is not None else "0 (no trial scored)"
         lines.append(
-            f"| {names.get(str(row), row)} | {len(sel)} | {chosen} | {config} | {objective} | "
-            f"{sel['seconds'].sum() / 60:.1f} |"
+            f"| {names.get(str(row), row)} | {len(sel)} | {chosen} | {config} | {objective} | {cpu[row]:.1f} |"
         )
     searches = [str(s) for s in trials.get("search", pd.Series(dtype=str)).dropna() if str(s)]
     search = json.loads(searches[0]) if searches else {}  # the records' own: older records have none
@@ -153,14 +170,15 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
         else ", ".join(tuned)
     )
     lines += ["", f"Tuned: {said}; N = {n} trials per row (trial 0 the recipe; the same draws for every row)."]
-    wall, sweeps = phase_wall(trials)
+    wall, sweeps = phase_wall(every)
     span = (
         "each sweep's first trial's start to its last one's end, added up"
         if sweeps > 1
         else "the first trial's start to the last one's end"
     )
+    lines += halving_lines(every)
     lines.append(
-        f"The tuning phase: {len(trials)} trials, {trials['seconds'].sum() / 60:.0f} CPU min, {wall:.0f} min of wall "
+        f"The tuning phase: {len(trials)} trials, {every['seconds'].sum() / 60:.0f} CPU min, {wall:.0f} min of wall "
         f"time{f' over {sweeps} sweeps' if sweeps > 1 else ''} from {span} (before the race)."
     )
     experts = sorted({str(r) for r in trials["row"] if str(r).startswith(EXPERT_ROW)})
@@ -174,10 +192,31 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
             "A row with no scored trial raced on its recipe: its trials failed, or (tuned with the experts' recipe "
             "untuned) it is an expert's own row, which trains nothing in a trial."
         )
-    curves = curves_of(trials)
+    curves = curves_of(every)
     if crossing(curves):
         lines.append("**The rows' expected-validation curves cross: the ranking depends on the tuning budget.**")
     return lines
+
+
+def halving_lines(trials: pd.DataFrame) -> list[str]:
+    """Where the phase halved (:mod:`ablate.sweep.halving`): its rungs and how many trials per row reached each;
+    none where every trial trained to the full budget."""
+    rungs = sorted({float(r) for r in trials.get("rung", [FULL])})
+    if rungs == [FULL]:
+        return []
+    reached = [int(trials[trials["rung"].astype(float) == r].groupby("row")["trial"].nunique().max()) for r in rungs]
+    shown = ", ".join(f"{n} at {r:.3g}" for r, n in zip(rungs, reached))
+    return [
+        f"Successive halving: trials per row at each rung (its fraction of the recipe's epochs): {shown}; a promoted "
+        "trial resumed from its checkpoint, and the choice is the best of those that reached the full budget."
+    ]
+
+
+def evp_trials(trials: pd.DataFrame) -> pd.DataFrame:
+    """The trials the expected-validation curves are drawn from: each trial's value at the full budget, or where
+    the phase halved, at its first rung, the one every trial reached (the same budget for every value)."""
+    first = min((float(r) for r in trials["rung"]), default=FULL) if "rung" in trials else FULL
+    return last_trials(trials, first)
 
 
 def config_text(text: str) -> str:
@@ -193,7 +232,7 @@ def config_text(text: str) -> str:
 def curves_of(trials: pd.DataFrame) -> dict[str, np.ndarray]:
     """Each row's expected validation performance against the number of trials (:func:`expected_max`)."""
     out = {}
-    for row, sel in trials.groupby("row", sort=False):
+    for row, sel in evp_trials(trials).groupby("row", sort=False):
         values = [float(v) for v in sel.sort_values("trial")["val_best"]]
         if any(not np.isnan(v) for v in values):
             out[str(row)] = expected_max(values)[0]
@@ -203,7 +242,7 @@ def curves_of(trials: pd.DataFrame) -> dict[str, np.ndarray]:
 def write_figure(trials: pd.DataFrame, table: DictConfig, names: dict[str, str], out: Path) -> Path | None:
     """``<table>_tuning.png``: each row's expected best validation value against the number of trials, with one
     standard deviation as a band; None without trials."""
-    trials = last_trials(trials)
+    trials = evp_trials(trials)
     if trials.empty:
         return None
     fig, ax = plt.subplots(figsize=(6.0, 3.6))

@@ -211,9 +211,9 @@ class RacingSweeperImpl:
             race_.returns.append(self._launch(batch, race_.launched))
             race_.launched += len(batch)
 
-        def objectives() -> dict[str, dict[int, float]]:
+        def objectives(rung: float | None = None) -> dict[str, dict[int, float]]:  # at a rung where it halves
             try:
-                return trial_objectives(self._tracker(), name)
+                return trial_objectives(self._tracker(), name, rung)
             except (ServerUnreachable, AccessDenied) as err:
                 print(f"error: {err}; the tuning phase stopped: the same command resumes it", file=sys.stderr)
                 raise SystemExit(1) from None
@@ -230,7 +230,10 @@ class RacingSweeperImpl:
         for row in race_.jobs:
             race_.jobs[row] = [*race_.jobs[row], *tuned.overrides[row]]
         chosen = " ".join(f"{r}={k}" for r, k in tuned.chosen.items()).replace("expert ", "expert_")
-        self._tag_parent({"tune_trials": str(tuned.done), "tune_chosen": chosen})
+        reached = ";".join(",".join(map(str, part)) for part in tuned.reached)  # halving: trials per row per rung
+        self._tag_parent(
+            {"tune_trials": str(tuned.done), "tune_chosen": chosen, **({"tune_rungs": reached} if reached else {})}
+        )
         race_.started = time.monotonic()
 
     def _earlier_trials(self, name: str) -> float:
