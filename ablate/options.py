@@ -158,6 +158,7 @@ RULES: dict[str, Rule] = {
     "table.tune.halving.eta": Rule((Kind("int", low=2),), note="the top 1/eta of a rung go on"),
     "table.tune.halving.rungs": Rule((Kind("numbers", low=0, high=1, filled=True, order="<"),), note="the last 1"),
     "rung": Rule((Kind("number", low=0, high=1, strict=True),), null="the full budget", note="set by the sweeper"),
+    "table.tuned_from": Rule((Kind("str", values=("published",)),), null="the recipe, or the table's tuning phase"),
     "table.kernels_sd": Rule((NON_NEGATIVE,), null="not measured"),
     "table.untuned": Rule((TEXT,), null="the table tunes, or says nothing"),
     "data.root": Rule(

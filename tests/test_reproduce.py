@@ -103,3 +103,36 @@ def test_a_tuned_row_is_rerun_on_the_config_it_was_tuned_to() -> None:
     mixed = pd.DataFrame({"tuned_config": [json.dumps(tuned), json.dumps(recipe_only)]})
     with pytest.raises(ValueError, match="tuned to different configs"):
         tuned_config(mixed, cfg)
+
+
+@pytest.mark.parametrize("table", ["chinet_table2", "bifnet_table4"])
+def test_one_command_races_every_row_on_its_published_config_hash_for_hash(table):
+    """``table.tuned_from=published`` puts each row's jobs on the config its published records were tuned to: with
+    the records' own numerics, every row's job of seed 0 has the published run's config hash, tuned rows included."""
+    from ablate.config import compose
+    from ablate.jobs.spec import resolved_config
+    from ablate.store import config_hash
+    from ablate.sweep.launches import SweepPlan
+    from ablate.tables import published
+
+    args = [f"experiment={table}", "table.tuned_from=published"]
+    plan = SweepPlan.of(compose(args), args, {})
+    records = pd.read_csv(published.records(table))
+    assert records["tuned_config"].notna().any()  # some row raced on a tuned config: the case that matters
+    for row, overrides in plan.rows.items():
+        mine = records[(records["row"] == row) & (records["seed"] == 0)]
+        numerics = f"trainer.precision={mine['made_precision'].iloc[0]}"  # channels_last follows it (auto)
+        job, _, _ = resolved_config(compose([*overrides, "seed=0", numerics]))
+        assert config_hash(job) == mine["config_hash"].iloc[0], (row, overrides)
+
+
+def test_racing_on_published_configs_is_refused_where_there_are_none_or_a_tuning_phase_is_asked_too():
+    from ablate.config import compose
+    from ablate.sweep.launches import SweepPlan
+
+    for args, message in (
+        (["fusion=sum", "table.tuned_from=published", "table.seeds={looks:[2]}"], r"ablate has no published records"),
+        (["experiment=chinet_table2", "table.tuned_from=published", "tune=lr_wd"], r"leave tune= out"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            SweepPlan.of(compose(args), args, {})

@@ -26,6 +26,7 @@ import os
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -102,6 +103,30 @@ def tuned_config(runs: pd.DataFrame, cfg: DictConfig) -> list[str]:
         if value is None or (modality is None and value == OmegaConf.select(cfg, name)):
             continue  # an expert's value is recorded only where the sweep set it: always set again
         out.append(f"++experts.draws.{modality}.{name}={value}" if modality else f"++draws.{name}={value}")
+    return out
+
+
+def published_configs(
+    table: str, rows: Mapping[str, list[str]], compose: Callable[[list[str]], DictConfig]
+) -> dict[str, list[str]]:
+    """``table.tuned_from=published``: per row of ``rows`` (row -> its jobs' overrides), what puts its jobs on the
+    config its published records were tuned to (:func:`tuned_config`, and ``tuned=published``, so that the runs
+    record their tuned values), so that one command races the published table's rows on their published configs.
+    A table without published records, or a row it lacks, is one ValueError naming them."""
+    path = published.records(table)
+    if not path.exists():
+        raise ValueError(f"table.tuned_from=published: {table} has no published records ({path})")
+    published.check(table)
+    runs = read_records(path)
+    out = {}
+    for row, overrides in rows.items():
+        mine = runs[runs["row"] == row]
+        if not len(mine):
+            raise ValueError(f"table.tuned_from=published: row {row} is not in {path}")
+        try:
+            out[row] = [*tuned_config(mine, compose(list(overrides))), "tuned=published"]
+        except ValueError as err:
+            raise ValueError(f"table.tuned_from=published: row {row}: {err}") from None
     return out
 
 

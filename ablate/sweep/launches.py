@@ -80,6 +80,14 @@ class SweepPlan:
         candidates = [named] if isinstance(named, str) else list(named or [])
         reference: str | list[str] = [r for r in candidates if r in rows] or rows[0]
         jobs = dict(zip(rows, combos, strict=True))
+        if table.get("tuned_from") == "published":  # every row on its published config, no tuning phase
+            if tune is not None:
+                raise ValueError("table.tuned_from=published races on the published configs: leave tune= out")
+            from ablate.analysis.reproduce import published_configs  # the records: pandas
+
+            on = published_configs(str(table.name), jobs, composer(config))
+            combos = [[*c, *on[row]] for row, c in zip(rows, combos, strict=True)]
+            jobs = dict(zip(rows, combos, strict=True))
         experts = Experts.of(jobs, composer(config)) if tune is not None and tune.experts else Experts()
         higher = table.primary not in LOWER_IS_BETTER
         return cls(str(table.name), combos, swept, race, tune, experts, reference, higher)
