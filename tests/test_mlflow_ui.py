@@ -35,6 +35,9 @@ CHROMIUM_ARGS = [
     "--disable-sync",
 ]
 ROWS = ("chinet seed=0", "unet seed=0", "fusenet seed=0")
+#: The published table the UI's store also holds, loaded as ``python -m ablate.report --load`` loads it.
+LOADED = "bifnet_table4"
+LOADED_LINK = ""
 
 
 @pytest.fixture(scope="module")
@@ -49,6 +52,11 @@ def ui(tmp_path_factory) -> tuple[Path, str, str]:
     assert out.returncode == 0, output(out)
     found = re.search(r"Runs in the MLflow UI.*?: (http://127\.0\.0\.1:5000/\S+)", out.stdout + out.stderr)
     assert found, output(out)
+    from ablate.analysis.load import load_table  # a published table loaded beside the sweep (report --load)
+    from ablate.store import Tracker
+
+    global LOADED_LINK
+    LOADED_LINK = load_table(Tracker(f"sqlite:///{cwd}/mlflow.db"), LOADED)[1]
     port = free_port()
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     # MLflow's server-side job runner (huey consumers for its GenAI features) off, as scripts/tracking_server.py
@@ -116,3 +124,29 @@ def test_a_user_clicks_from_the_home_page_to_the_runs(ui, browser):
     page.get_by_text("chinet_table2", exact=True).first.click()
     page.get_by_text("chinet_table2 scale=smoke").first.wait_for(timeout=60_000)  # the sweep, named after its table
     assert "workflowType=machine_learning" in page.url, page.url
+
+
+def test_a_loaded_table_shows_its_parent_with_every_rows_primary_metric_in_model_training_mode(ui, browser):
+    """``--load``'s parent run, named like the table, carries each row's mean primary metric as a column of the
+    saved view, and the link opens the model-training view of the runs."""
+    cwd, base, _ = ui
+    page = browser.new_page(viewport={"width": 2400, "height": 1000})
+    page.goto(LOADED_LINK.replace("http://127.0.0.1:5000", base))
+    page.get_by_text(f"{LOADED} (published)").first.wait_for(timeout=60_000)
+    assert "workflowType=machine_learning" in page.url, page.url
+    client, loaded = runs(f"sqlite:///{cwd}/mlflow.db", LOADED, kind="imported")
+    (parent,) = [r for r in loaded if r.info.run_name == f"{LOADED} (published)"]
+    assert {r.data.tags.get("mlflow.parentRunId") for r in loaded if r is not parent} == {parent.info.run_id}
+    assert all(r.data.params and r.inputs.dataset_inputs for r in loaded if r is not parent)
+    assert sorted(a.path for a in client.list_artifacts(parent.info.run_id, "table"))[:2] == [
+        f"table/{LOADED}.csv", f"table/{LOADED}.md"
+    ]  # fmt: skip
+    headers = " ".join(page.locator(".ag-header-cell").all_inner_texts())
+    index = page.locator(".ag-row", has_text=f"{LOADED} (published)").first.get_attribute("row-index")
+    cells = " ".join(page.locator(f'.ag-row[row-index="{index}"]').all_inner_texts())
+    page.locator(".ag-row", has_text=f"{LOADED} (published)").first.locator("button").first.click()  # its runs
+    row = page.locator(".ag-row", has_text="bifnet_dst_sum seed=0 (imported)").first.get_attribute("row-index")
+    shown = " ".join(page.locator(f'.ag-row[row-index="{row}"]').all_inner_texts())
+    assert "row" in headers.split() and "bifnet_dst_sum" in shown.replace("bifnet_dst_sum seed=0", ""), shown
+    for key, value in parent.data.metrics.items():  # one per row: <row>/max_f, its mean over the seeds
+        assert key in headers and repr(value) in cells, (key, value, headers, cells)

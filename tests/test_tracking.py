@@ -130,7 +130,7 @@ def test_the_table_view_is_an_mlflow_shared_view_with_the_metric_columns(tmp_pat
     exp = tracker.experiment_id("chinet_table2")
     link = tracker.share_table_view(exp, ["det_rate", "normal/ap11"])
     state = json.loads(tracker.experiment_tags(exp)[SHARED_VIEW_TAG + SHARED_VIEW_KEY])
-    assert state["selectedColumns"] == ["metrics.`det_rate`", "metrics.`normal/ap11`"]  # the UI's column keys
+    assert state["selectedColumns"] == ["tags.`row`", "metrics.`det_rate`", "metrics.`normal/ap11`"]  # the UI's keys
     assert link == (
         f"http://127.0.0.1:5000/#/experiments/{exp}/runs?viewStateShareKey={SHARED_VIEW_KEY}"
         "&workflowType=machine_learning"

@@ -21,13 +21,13 @@ import pandas as pd
 from hydra.errors import HydraException
 from omegaconf import DictConfig
 
+from ablate.analysis.load import PARENT, load_table
 from ablate.analysis.reproduce import reproduce, tuned_config
 from ablate.config import compose, composition_error
 from ablate.jobs.spec import apply_draws
 from ablate.store import AccessDenied, ServerUnreachable, Tracker
 from ablate.tables import collect, published, table_spec
 from ablate.tables.parity import parity
-from ablate.tables.records import load_records
 from ablate.tables.seal import BrokenRecords
 
 
@@ -136,8 +136,9 @@ def _load(names: list[str], rest: list[str]) -> int:
             print(f"error: {err}", file=sys.stderr)
             broken += 1
             continue
-        print(f"{name}: {load_records(tracker, path)} run(s) loaded from {path} into {tracker.uri}")
-    print("`mlflow ui` here shows them (kind: imported)")
+        loaded, link = load_table(tracker, name)
+        print(f"{name}: {loaded} run(s) loaded from {path} into {tracker.uri}, under the run '{name}{PARENT}': {link}")
+    print("`mlflow ui` here shows them (kind: imported; each table's rows side by side on its parent run)")
     return 1 if broken else 0
 
 

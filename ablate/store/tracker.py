@@ -319,12 +319,12 @@ class Tracker:
             monitor.finish()
 
     def share_table_view(self, experiment_id: str, metrics: list[str]) -> str:
-        """Store the runs table view of a table's experiment, with the table's ``metrics`` as columns and the
+        """Store the runs table view of a table's experiment, with each run's row and the table's ``metrics`` as columns and the
         newest runs first, under :data:`SHARED_VIEW_KEY`, and return its address in the MLflow UI
         (:func:`runs_link`). A sweep's jobs stay folded under its parent run until its [+] is clicked: the UI does
         not take which runs are expanded from a shared view."""
         state = {
-            "selectedColumns": [f"metrics.`{m}`" for m in metrics],
+            "selectedColumns": ["tags.`row`", *(f"metrics.`{m}`" for m in metrics)],  # each run's row, its metrics
             "orderByKey": "attributes.start_time",
             "orderByAsc": False,
         }
