@@ -112,3 +112,15 @@ def test_a_job_returns_its_stage_one_with_its_status_and_both_survive_a_launcher
     ended = pickle.loads(pickle.dumps(Ended("FINISHED", StageOne([12.5], 14.0))))
     assert ended == "FINISHED" and ended != "SKIPPED" and isinstance(ended, Ended)
     assert ended.stage1 == StageOne([12.5], 14.0) and Ended("SKIPPED").stage1 == StageOne()
+
+
+def test_the_closing_summary_names_the_class_a_job_could_not_instantiate_and_where() -> None:
+    from ablate.sweep.finish import note_line
+
+    note = (
+        "InstantiationException: Error locating target 'my_ops.Product', set env var HYDRA_FULL_ERROR=1 to see "
+        "chained stack trace.\nfull_key: model.fusion\n"
+    )
+    line = note_line(note)
+    assert "Error locating target 'my_ops.Product'" in line and line.endswith("full_key: model.fusion"), line
+    assert "\n" not in line and len(note_line("x" * 1000)) == 400 and note_line("") == "the table could not be written"

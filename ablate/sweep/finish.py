@@ -135,6 +135,14 @@ def finish(config: DictConfig) -> None:
     if failures:
         log.error("%d job(s) failed:", len(failures))
         for path in failures:
-            note = path.read_text().strip().splitlines() if path.exists() else ["the table could not be written"]
-            log.error("  %s: %s", path.stem, note[-1] if note else "")
+            log.error("  %s: %s", path.stem, note_line(path.read_text() if path.exists() else ""))
         raise SystemExit(1)
+
+
+def note_line(note: str, width: int = 400) -> str:
+    """A failed job's note as one line of the closing summary: its lines joined (an error that names what failed
+    on one line and where on the next, as Hydra's instantiation errors do: ``Error locating target 'my_ops.Product'``,
+    then ``full_key: model.fusion``), cut at ``width`` characters; an empty note is the table's."""
+    lines = [line.strip() for line in note.strip().splitlines() if line.strip()]
+    text = "; ".join(lines) or "the table could not be written"
+    return text if len(text) <= width else text[: width - 1] + "…"

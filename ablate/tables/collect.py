@@ -74,7 +74,7 @@ def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
 
 def row_seconds(tracker: Tracker, runs: pd.DataFrame) -> dict[str, float]:
     """Per row of a table's :func:`job_runs`, the median seconds one of its jobs took, start to end, over its
-    FINISHED runs at the latest scale. A run copied from another table (tag ``reused_from``, ``ablate.jobs.job``)
+    FINISHED runs at the latest scale. A run copied from another table (tag ``reused_from``, :func:`ablate.jobs.reuse.reuse`)
     took seconds to copy: the time of the run it was copied from counts (read from ``tracker``). The racing sweeper
     weighs its estimate of a look's wall time with these (``hydra_plugins/ablate_racing_sweeper``): rows of one
     table can differ twofold in their cost."""

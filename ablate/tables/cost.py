@@ -7,7 +7,7 @@ so that tables (and ways of racing or tuning them) compare by how much evidence 
 - The tuning phase: each trial run's seconds, failed and repeated ones too (``runs/<table>.trials.csv``), times the
   threads of the table's jobs (the
   trials' records do not carry their own; a phase and its race run with the same ``trainer.threads``).
-- Decided: the comparisons the race gave no more seeds (:attr:`ablate.tables.racing.Comparison.decided`: better,
+- Decided: the comparisons the race gave no more seeds (:attr:`ablate.tables.comparison.Comparison.decided`: better,
   worse or equivalent at δ; different, in a table without δ).
 
 The figures are CPU time on the machine that made the runs (the footer names it): another CPU kind takes another

@@ -67,13 +67,9 @@ class RaceState:
         return 0 if self.over else self.plan.looks[self.looks_done]
 
 
-def paired_test(a: pd.Series, b: pd.Series) -> tuple[int, float, float, float, float, float]:
-    """(n, mean of a - b, two-sided paired t-test p, P(A > B), its Wilson interval) over the seeds both have."""
-    return _paired(_differences(a, b), paired_tests(_differences(a, b), None))
-
-
 def _paired(d: np.ndarray, tests: PairedTests) -> tuple[int, float, float, float, float, float]:
-    """:func:`paired_test`'s figures from the differences ``d`` and their tests."""
+    """(n, mean of the differences ``d``, two-sided paired t-test p, P(A > B), its Wilson interval) from ``d`` and
+    their tests."""
     n = len(d)
     if n == 0:
         return 0, math.nan, math.nan, math.nan, math.nan, math.nan
@@ -187,11 +183,6 @@ def _look(
             tests[i].frames_se,
             tests[i].kernels_sd,
         )
-
-
-def _differences(a: pd.Series, b: pd.Series) -> np.ndarray:
-    """``a - b`` over the seeds both have."""
-    return _shared(a, b)[1]
 
 
 def _shared(a: pd.Series, b: pd.Series) -> tuple[list[int], np.ndarray]:

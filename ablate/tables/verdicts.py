@@ -10,7 +10,7 @@ of the table it follows (``table.rope.follows``). The floor keeps δ above the t
 decimals) and the run-to-run noise of a single evaluation.
 
 **Three verdicts** for a comparison of rows A and B over n paired seeds, ``d = A - B`` (:func:`paired_tests`), each
-a test at the look's level α_k (the race's split of α over its looks, :class:`~ablate.tables.racing.RacePlan`):
+a test at the look's level α_k (the race's split of α over its looks, :class:`~ablate.tables.raceplan.RacePlan`):
 
 * *better / worse by more than δ*: the one-sided test of ``H0: d <= δ`` (or ``d >= -δ``, in the direction of the
   observed mean) rejects; equivalently the (1 - 2α_k) interval of the mean difference lies beyond ±δ;

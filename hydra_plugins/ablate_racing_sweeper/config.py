@@ -1,6 +1,6 @@
 """The racing sweeper's config (``hydra/sweeper=racing``, the default of ``python -m ablate -m``).
 
-The race's plan is the table's (``table.seeds``, :class:`ablate.tables.racing.RacePlan`), not the sweeper's: the
+The race's plan is the table's (``table.seeds``, :class:`ablate.tables.raceplan.RacePlan`), not the sweeper's: the
 table and the sweeper then read one plan. ``params`` are swept as Hydra's basic sweeper sweeps them.
 """
 
