@@ -118,6 +118,15 @@ def last_trials(trials: pd.DataFrame, rung: float | None = None) -> pd.DataFrame
     return kept.sort_values(["row", "trial"], kind="stable")
 
 
+def rung_runs(trials: pd.DataFrame) -> pd.DataFrame:
+    """The last run of each trial at each rung of successive halving: a promoted trial's rungs each took their time,
+    a trial run again (a resumed phase) counts once; without rungs, :func:`last_trials`'s runs."""
+    if not len(trials):
+        return trials
+    trials = trials if "rung" in trials else trials.assign(rung=FULL)
+    return trials.drop_duplicates(["row", "trial", "rung"], keep="last")
+
+
 def trial_objectives(tracker: Tracker, table: str, rung: float | None = None) -> dict[str, dict[int, float]]:
     """Per row, each tuning trial's objective in the store (its latest run's ``val_best``; NaN where it failed): at
     the full budget, or at ``rung`` of successive halving (its fraction of the recipe's epochs)."""
@@ -133,9 +142,7 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
     the rows' curves cross; without trials, why the table races on the recipe where it says (``table.untuned``),
     else none."""
     trials = trials if "rung" in trials else trials.assign(rung=FULL)  # older: every trial to the full budget
-    # the last run of each trial at each rung: a promoted trial's rungs each cost, a trial run again counts once
-    every = trials.drop_duplicates(["row", "trial", "rung"], keep="last") if len(trials) else trials
-    trials = last_trials(trials)
+    every, trials = rung_runs(trials), last_trials(trials)
     if trials.empty:
         untuned = table.get("untuned")  # a table that races on the recipe says why (docs/tuning.md)
         return ["", f"No tuning phase: every row raced on the recipe, because {untuned}."] if untuned else []

@@ -47,7 +47,7 @@ from ablate.tables.collect import earlier_wall, job_runs, row_seconds
 from ablate.tables.columns import kernels_sd
 from ablate.tables.racing import race, table_values
 from ablate.tables.tuning import from_store as tuning_trials
-from ablate.tables.tuning import last_trials, phase_wall, trial_objectives
+from ablate.tables.tuning import phase_wall, rung_runs, trial_objectives
 from ablate.tables.twolevel import store_frames
 
 from ._race import SKIPPED, Race, job_costs
@@ -241,7 +241,7 @@ class RacingSweeperImpl:
         launches, every trial in the store is theirs): each sweep's span (:func:`ablate.tables.tuning.phase_wall`),
         counted against the phase's budget as :attr:`Race.earlier` is against the race's."""
         try:
-            trials = last_trials(tuning_trials(self._tracker(), name))
+            trials = rung_runs(tuning_trials(self._tracker(), name))  # every rung's run: each took its time
         except (ServerUnreachable, AccessDenied) as err:
             print(f"error: {err}; the tuning phase did not start: the same command resumes it", file=sys.stderr)
             raise SystemExit(1) from None
