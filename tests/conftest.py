@@ -38,6 +38,7 @@ SLOW_FIRST = [
     "test_reproduce.py",
     "test_ddp.py",
     "test_tuning.py",
+    "test_halving.py",
     "test_tutorial.py",
     "test_plan.py",
     "test_numerics_jobs.py",
