@@ -109,7 +109,7 @@ def test_a_run_from_a_wheel_says_its_commit_is_unknown():
 def test_a_tuned_rows_recorded_fingerprint_recomputes_equal_from_its_records():
     # the report recomputes a recorded run's fingerprint on the config its row was tuned to (ChiNet Table II's U-Net:
     # lr 0.00087 and a weight decay), not on the recipe's, which would flag every tuned row once its code changed
-    from ablate.analysis.report import recorded_config
+    from ablate.analysis.reproduce import recorded_config
 
     runs = pd.read_csv(ROOT / "results" / "runs" / "chinet_table2.csv")
     unet = runs[(runs["row"] == "unet") & (runs["seed"] == 0)].iloc[0]

@@ -5,7 +5,7 @@ Each table's records become FINISHED runs of kind ``imported`` (:func:`ablate.ta
 under one parent run per table, named ``<table> (published)``: it carries the table's markdown, its records (CSV)
 and its figures as artifacts, and one metric per row, ``<row>/<primary>``, the row's mean over its seeds, so that
 the rows sit side by side on one line. Each loaded run gets the params of its config composed today from its
-table, row, seed, scale and recorded tuned values (:func:`ablate.analysis.report.recorded_config`; records keep no
+table, row, seed, scale and recorded tuned values (:func:`ablate.analysis.reproduce.recorded_config`; records keep no
 config: where today's config hash differs from the recorded one, the tag ``params_from`` says so), the generated
 dataset it names as its dataset input, and its source (the records file, the recorded commit). The experiment gets
 the project's saved view (:meth:`ablate.store.Tracker.share_table_view`) with the primary metric and the parent's
@@ -21,6 +21,7 @@ from pathlib import Path
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
+from ablate.analysis.reproduce import recorded_config
 from ablate.config import compose
 from ablate.store import Tracker, config_hash
 from ablate.tables import published, table_spec
@@ -34,8 +35,6 @@ PARENT = " (published)"
 def load_table(tracker: Tracker, name: str) -> tuple[int, str]:
     """Load table ``name``'s published records into ``tracker``'s store under its parent run; (runs loaded now,
     the address of its runs in the MLflow UI)."""
-    from ablate.analysis.report import recorded_config  # the report's: a recorded run's config, composed today
-
     path = published.records(name)
     base = [f"experiment={name}"]
     table = table_spec(compose(base))

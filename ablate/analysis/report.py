@@ -15,16 +15,14 @@ from __future__ import annotations
 import sys
 import time
 from argparse import Namespace
-from collections.abc import Callable
 
 import pandas as pd
 from hydra.errors import HydraException
 from omegaconf import DictConfig
 
 from ablate.analysis.load import PARENT, load_table
-from ablate.analysis.reproduce import reproduce, tuned_config
+from ablate.analysis.reproduce import recorded_config, reproduce
 from ablate.config import compose, composition_error
-from ablate.jobs.spec import apply_draws
 from ablate.store import AccessDenied, ServerUnreachable, Tracker
 from ablate.tables import collect, published, table_spec
 from ablate.tables.parity import parity
@@ -140,25 +138,6 @@ def _load(names: list[str], rest: list[str]) -> int:
         print(f"{name}: {loaded} run(s) loaded from {path} into {tracker.uri}, under the run '{name}{PARENT}': {link}")
     print("`mlflow ui` here shows them (kind: imported; each table's rows side by side on its parent run)")
     return 1 if broken else 0
-
-
-def recorded_config(runs: pd.DataFrame, base: list[str]) -> Callable[[str], DictConfig]:
-    """The config of a recorded run, composed today from its table, row, seed and scale, on the config a tuning
-    phase chose for its row (the records' ``tuned_config``, applied as its job applied it): records keep no
-    config; a row whose config changed since has another config hash, which the footer's fingerprint check sees."""
-    by_id = runs.set_index("run_id")
-
-    def config(run_id: str) -> DictConfig:
-        run = by_id.loc[run_id]
-        overrides = base + [f"row={run['row']}", f"seed={run['seed']}", f"scale={run['scale']}"]
-        cfg = compose(overrides)
-        tuned = tuned_config(runs[runs["row"] == run["row"]], cfg)
-        if tuned:
-            cfg = compose(overrides + tuned)
-            apply_draws(cfg)
-        return cfg
-
-    return config
 
 
 def source_sweep(tracker: Tracker, cfg: DictConfig) -> str | None:

@@ -34,6 +34,8 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
+from ablate.config import compose
+from ablate.jobs.spec import apply_draws
 from ablate.store import Tracker, split_tuned_key
 from ablate.tables import collect, published, table_spec
 from ablate.tables.collect import under_condition
@@ -104,6 +106,25 @@ def tuned_config(runs: pd.DataFrame, cfg: DictConfig) -> list[str]:
             continue  # an expert's value is recorded only where the sweep set it: always set again
         out.append(f"++experts.draws.{modality}.{name}={value}" if modality else f"++draws.{name}={value}")
     return out
+
+
+def recorded_config(runs: pd.DataFrame, base: list[str]) -> Callable[[str], DictConfig]:
+    """The config of a recorded run, composed today from its table, row, seed and scale, on the config a tuning
+    phase chose for its row (the records' ``tuned_config``, applied as its job applied it): records keep no
+    config; a row whose config changed since has another config hash, which the footer's fingerprint check sees."""
+    by_id = runs.set_index("run_id")
+
+    def config(run_id: str) -> DictConfig:
+        run = by_id.loc[run_id]
+        overrides = base + [f"row={run['row']}", f"seed={run['seed']}", f"scale={run['scale']}"]
+        cfg = compose(overrides)
+        tuned = tuned_config(runs[runs["row"] == run["row"]], cfg)
+        if tuned:
+            cfg = compose(overrides + tuned)
+            apply_draws(cfg)
+        return cfg
+
+    return config
 
 
 def published_configs(
