@@ -117,20 +117,6 @@ class TuneSpec:
         sweep's plan counts it (:class:`ablate.sweep.launches.SweepPlan`)."""
         return [[*overrides, *self.overrides(table, trial)] for overrides in jobs.values()]
 
-    def describe(self, metric: str) -> str:
-        """One sentence for a table's footer."""
-        space = ", ".join(f"{k} ~ {v}" for k, v in self.space.items())
-        halving = f"; {self.halving.describe()}" if self.halving is not None else ""
-        return (
-            f"Tuning: {self.trials} trials per row (trial 0 the recipe; the same draws for every row, tuning seed "
-            f"{self.seed}), each trained at seed {self.job_seed} and judged on its best {metric} over the epochs, "
-            f"on validation only{halving}; space: {space}"
-        )
-
-    def rung_count(self) -> int:
-        """The phase's rungs: 1 where every trial trains to the full budget."""
-        return len(self.halving.rungs) if self.halving is not None else 1
-
 
 #: A reader of the trials' objectives in the store (row -> trial -> value): at the full budget, or at the rung of
 #: successive halving given as its fraction of the recipe's epochs.
