@@ -237,12 +237,8 @@ def choose(objectives: Mapping[str, Mapping[int, float]], trials: int, higher_is
     trial (no objective, or NaN) is never chosen; a row none of whose trials has one races on the recipe (0)."""
     out = {}
     for row, values in objectives.items():
-        scored = [(k, v) for k, v in values.items() if k < trials and not math.isnan(v)]
-        if not scored:
-            out[row] = 0
-            continue
-        best = max(v for _, v in scored) if higher_is_better else min(v for _, v in scored)
-        out[row] = min(k for k, v in scored if v == best)
+        scored = {k: v for k, v in values.items() if k < trials and not math.isnan(v)}
+        out[row] = promote(scored, 1, higher_is_better)[0] if scored else 0  # halving's rule: of equals, the first
     return out
 
 
@@ -377,12 +373,11 @@ def tune(
         budget, or where halving stopped early at the last rung its rows completed."""
         if spec.halving is None:
             phase = run_phase(spec, table, rows, launch, clock, spent=clock() - started)
-            values.update({r: v for r, v in objectives().items() if r in rows})
         else:
             phase = run_halving(spec, table, rows, launch, objectives, higher_is_better, clock, clock() - started)
-            at = objectives() if phase.rung is None else objectives(phase.rung)
-            values.update({r: v for r, v in at.items() if r in rows})
             reached.append(phase.reached)
+        at = objectives() if phase.rung is None else objectives(phase.rung)  # halving stopped early: the last rung's
+        values.update({r: v for r, v in at.items() if r in rows})
         stopped.extend([phase.stopped] if phase.stopped else [])
         return phase
 

@@ -103,13 +103,18 @@ def phase_wall(trials: pd.DataFrame) -> tuple[float, int]:
     return sweep_wall(started, started + 1000 * trials["seconds"].astype(float), trials.get("sweep_id"))
 
 
+def with_rung(trials: pd.DataFrame) -> pd.DataFrame:
+    """``trials`` with their ``rung`` column; trials made before successive halving trained to the full budget."""
+    return trials if "rung" in trials else trials.assign(rung=FULL)
+
+
 def last_trials(trials: pd.DataFrame, rung: float | None = None) -> pd.DataFrame:
     """The latest run of each (row, trial) at its furthest rung of successive halving (or at ``rung``, where given:
     the trials that reached it), a trial run again (a resumed phase) counted once, by row and trial: the same from
     the store as from the records."""
     if not len(trials):
         return trials
-    rungs = trials["rung"].astype(float) if "rung" in trials else pd.Series(FULL, index=trials.index)
+    rungs = with_rung(trials)["rung"].astype(float)
     if rung is not None:  # as the tag holds it (ablate.jobs.tags): six significant digits
         at = rungs == float(f"{float(rung):.6g}")
         trials, rungs = trials[at], rungs[at]
@@ -123,8 +128,7 @@ def rung_runs(trials: pd.DataFrame) -> pd.DataFrame:
     a trial run again (a resumed phase) counts once; without rungs, :func:`last_trials`'s runs."""
     if not len(trials):
         return trials
-    trials = trials if "rung" in trials else trials.assign(rung=FULL)
-    return trials.drop_duplicates(["row", "trial", "rung"], keep="last")
+    return with_rung(trials).drop_duplicates(["row", "trial", "rung"], keep="last")
 
 
 def trial_objectives(tracker: Tracker, table: str, rung: float | None = None) -> dict[str, dict[int, float]]:
@@ -141,7 +145,7 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
     """The markdown lines on the tuning phase: a table of the rows' chosen trials, the footer's sentence, and whether
     the rows' curves cross; without trials, why the table races on the recipe where it says (``table.untuned``),
     else none."""
-    trials = trials if "rung" in trials else trials.assign(rung=FULL)  # older: every trial to the full budget
+    trials = with_rung(trials)
     every, trials = rung_runs(trials), last_trials(trials)
     if trials.empty:
         untuned = table.get("untuned")  # a table that races on the recipe says why (docs/tuning.md)
@@ -208,7 +212,8 @@ def section(trials: pd.DataFrame, table: DictConfig, names: dict[str, str]) -> l
 def halving_lines(trials: pd.DataFrame) -> list[str]:
     """Where the phase halved (:mod:`ablate.sweep.halving`): its rungs and how many trials per row reached each;
     none where every trial trained to the full budget."""
-    rungs = sorted({float(r) for r in trials.get("rung", [FULL])})
+    trials = with_rung(trials)
+    rungs = sorted({float(r) for r in trials["rung"]})
     if rungs == [FULL]:
         return []
     reached = [int(trials[trials["rung"].astype(float) == r].groupby("row")["trial"].nunique().max()) for r in rungs]
@@ -222,7 +227,7 @@ def halving_lines(trials: pd.DataFrame) -> list[str]:
 def evp_trials(trials: pd.DataFrame) -> pd.DataFrame:
     """The trials the expected-validation curves are drawn from: each trial's value at the full budget, or where
     the phase halved, at its first rung, the one every trial reached (the same budget for every value)."""
-    first = min((float(r) for r in trials["rung"]), default=FULL) if "rung" in trials else FULL
+    first = min((float(r) for r in with_rung(trials)["rung"]), default=FULL)
     return last_trials(trials, first)
 
 
