@@ -394,3 +394,13 @@ def test_python_m_ablate_with_a_file_for_data_root_is_one_line_and_no_run(tmp_pa
     ]
     client = MlflowClient(store)
     assert client.search_runs([e.experiment_id for e in client.search_experiments()]) == []
+
+
+def test_a_config_composed_again_is_the_same_and_a_callers_change_stays_its_own() -> None:
+    first = compose(["experiment=chinet_table2", "seed=3"])
+    first.seed = 99
+    again = compose(["experiment=chinet_table2", "seed=3"])
+    assert again.seed == 3 and OmegaConf.to_yaml(again) == OmegaConf.to_yaml(
+        compose(["experiment=chinet_table2", "seed=3"])
+    )
+    assert compose(["experiment=chinet_table3"]).table.name == "chinet_table3"

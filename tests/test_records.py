@@ -221,3 +221,21 @@ def test_a_committed_table_of_many_metrics_renders_its_numbers_again_without_a_p
         written = render_records(compose(["experiment=dgfn_table1"]), tmp_path)
     assert written is not None and (tmp_path / "dgfn_table1.csv") in written
     assert filecmp.cmp(tmp_path / "dgfn_table1.csv", REPO / "results" / "dgfn_table1.csv", shallow=False)
+
+
+def test_each_paper_table_is_named_as_its_experiment_and_the_summary_composes_only_the_published_ones(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A sweep that publishes one table rewrites the summary of the tables under its results folder: it composes
+    those (:func:`ablate.tables.published.with_tables`), found by their experiment's file name."""
+    from ablate.config import compose
+    from ablate.tables import published, table_spec
+
+    for name in published.experiments():
+        assert table_spec(compose([f"experiment={name}"])).name == name
+    monkeypatch.chdir(tmp_path)
+    assert published.with_tables() == []
+    (tmp_path / "results").mkdir()
+    for name in ("chinet_table3", "mine"):  # a table that is no paper's is in no summary
+        (tmp_path / "results" / f"{name}.md").write_text("| a |\n")
+    assert published.with_tables() == ["chinet_table3"]

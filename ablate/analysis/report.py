@@ -69,7 +69,7 @@ def _run(parsed: Namespace) -> int:
         broken: list[str] = []
     else:
         broken = _from_records(named or published.experiments(), rest)
-    for path in published.summary([table_spec(compose(rest + [f"experiment={n}"])) for n in published.experiments()]):
+    for path in published.summary([table_spec(compose(rest + [f"experiment={n}"])) for n in published.with_tables()]):
         print(path)
     if broken:
         print(f"error: {len(broken)} table(s) not rendered, their records broken (above): {', '.join(broken)}",

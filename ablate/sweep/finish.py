@@ -33,7 +33,7 @@ def publish(paths: list[Path], source: Path, results: Path, config: DictConfig) 
     copies."""
     copies = published.copy_in(paths, source, results)
     fixed = [o for o in fixed_overrides(config) if not o.startswith("experiment=")]
-    specs = [table_spec(composer(config)([*fixed, f"experiment={name}"])) for name in published.experiments()]
+    specs = [table_spec(composer(config)([*fixed, f"experiment={name}"])) for name in published.with_tables(results)]
     return copies + published.summary(specs)  # the driver runs in the launch directory
 
 

@@ -44,6 +44,13 @@ def experiments() -> list[str]:
     return sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 
 
+def with_tables(results: Path = RESULTS) -> list[str]:
+    """The tables of :func:`experiments` with a markdown file under ``results``: the ones its summary lists
+    (:func:`ablate.tables.index.write_index`). A paper table's name is its experiment's file name
+    (tests/test_records.py), so the others need not be composed."""
+    return [name for name in experiments() if (results / f"{name}.md").is_file()]
+
+
 def path(name: str) -> Path:
     """``name`` under the results folder (read from where a command reads what was published)."""
     return RESULTS / name
