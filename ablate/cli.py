@@ -244,18 +244,19 @@ def latency(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Name
 
 
 def diagnose(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Namespace:
-    """``python -m ablate.diagnose [experiment=<table>] [experts_only=true] [key=value ...]``: ``experts_only``
-    (bool) and ``overrides`` (``experiment=smoe_table1`` added where none is given)."""
+    """``python -m ablate.diagnose [experiment=<table>] [row=x,y] [experts_only=true] [key=value ...]``: ``row``
+    (a list, empty: every row of the table), ``experts_only`` (bool) and ``overrides`` (``experiment=smoe_table1``
+    added where none is given)."""
     parser = command(
         "python -m ablate.diagnose",
         doc,
-        usage="%(prog)s [-h] [experiment=<table>] [experts_only=true|false] [key=value ...]",
+        usage="%(prog)s [-h] [experiment=<table>] [row=x,y] [experts_only=true|false] [key=value ...]",
         epilog="exit status:\n- 0: written\n- 1: the table cannot be diagnosed here (a missing checkpoint is "
         "named with the command that makes it)\n- 2: a bad option, one error: line on stderr",
     )
     args = parser.parse(argv)
-    own(parser, args, {"experts_only": boolean})
-    args.experts_only = bool(args.experts_only)
+    own(parser, args, {"row": names, "experts_only": boolean})
+    args.row, args.experts_only = args.row or [], bool(args.experts_only)
     if "experiment" not in {key(o) for o in args.overrides}:
         args.overrides.append("experiment=smoe_table1")
     return args

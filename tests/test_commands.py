@@ -102,6 +102,7 @@ def test_a_commands_own_keys_are_read_and_taken_out_of_the_overrides() -> None:
     args = cli.diagnose(None, ["experts_only=YES", "scale=smoke"])
     assert args.experts_only is True and args.overrides == ["scale=smoke", "experiment=smoe_table1"]
     assert cli.diagnose(None, ["experiment=smoe_table2"]).overrides == ["experiment=smoe_table2"]
+    assert cli.diagnose(None, ["row=smoe_rgb,smoe_fpn"]).row == ["smoe_rgb", "smoe_fpn"] and args.row == []
     args = cli.check_paper(None, ["experiment=a,b", "budget_min=-1", "reuse=true", "trainer.threads=2"])
     assert args.experiment == ["a", "b"] and args.row == [] and args.budget_min == -1.0
     assert args.reuse and not args.force and args.overrides == ["trainer.threads=2"]

@@ -24,7 +24,8 @@ trained checkpoints on the test split:
   and glare lower the RGB expert's AP clearly (by >= 20 %) while the DDM expert's stays within 10 % of its
   clear-weather AP.
 
-``experts_only=true`` evaluates the single-modal rows only: the data check, before any fused row is trained
+``row=x,y`` diagnoses those rows of the table only (a table swept on some of its rows, ``python -m ablate -m
+experiment=smoe_table1 row=x,y``). ``experts_only=true`` evaluates the single-modal rows only: the data check, before any fused row is trained
 (written to ``results/<table>_experts.md`` / ``.png``).
 
 Writes ``results/<table>_diagnosis.md`` and ``.png``, and two figures of seed 0: ``<table>_masks.png`` (SMoE Fig.
@@ -99,12 +100,15 @@ def expert_curves(tracker: Tracker, experts: dict[tuple[int, str], DictConfig]) 
     return pd.DataFrame(out, columns=["seed", "modality", "step", "val_map"])
 
 
-def diagnose(overrides: list[str], experts_only: bool = False) -> dict[str, Any]:
-    """Evaluate every row of the table (only its single-modal rows with ``experts_only``) for the seeds every row
-    has (the race's first look, :meth:`~ablate.tables.raceplan.RacePlan.first`); returns the per-object and gate
-    frames, the experts' curves and their AP per condition."""
+def diagnose(overrides: list[str], experts_only: bool = False, rows: list[str] | None = None) -> dict[str, Any]:
+    """Evaluate every row of the table, or the ``rows`` named (only its single-modal rows with ``experts_only``),
+    for the seeds every row has (the race's first look, :meth:`~ablate.tables.raceplan.RacePlan.first`); returns
+    the per-object and gate frames, the experts' curves and their AP per condition."""
     base = compose(overrides)
     table = base.table
+    if unknown := sorted(set(rows or []) - {str(spec.row) for spec in table.rows}):
+        raise ValueError(f"row={','.join(unknown)}: not a row of {table.name}")
+    chosen = [spec for spec in table.rows if not rows or spec.row in rows]
     if not base.get("experts"):
         raise ValueError(f"{table.name}: not a two-stage table (experts: null); nothing to compare fusion with")
     if str(base.task.get("_target_")) not in DIAGNOSED:
@@ -112,7 +116,7 @@ def diagnose(overrides: list[str], experts_only: bool = False) -> dict[str, Any]
     plan = RacePlan.of_table(base)
     seeds = plan.first if plan is not None else 1
     found = Found()
-    for seed, spec in tqdm([(s, r) for s in range(seeds) for r in table.rows], desc=f"diagnose {table.name}"):
+    for seed, spec in tqdm([(s, r) for s in range(seeds) for r in chosen], desc=f"diagnose {table.name}"):
         cfg = compose(overrides + [f"row={spec.row}", f"seed={seed}"])
         if cfg.stage.name == "single":
             found.experts[(seed, cfg.stage.modality)] = expert_config(cfg, cfg.stage.modality)
@@ -169,13 +173,13 @@ class Found:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m ablate.diagnose [experiment=<table>] [experts_only=true] [key=value ...]``, its arguments read by
-    :func:`ablate.cli.diagnose` (``--help`` and a bad option end the process there, status 0 and 2): write the
+    """``python -m ablate.diagnose [experiment=<table>] [row=x,y] [experts_only=true] [key=value ...]``, its
+    arguments read by :func:`ablate.cli.diagnose` (``--help`` and a bad option end the process there, status 0 and 2): write the
     diagnosis and its figures; 1 where the table cannot be diagnosed here (a missing checkpoint)."""
     parsed = cli.diagnose(__doc__, argv)
     experts_only = parsed.experts_only
     try:
-        result = diagnose(parsed.overrides, experts_only)
+        result = diagnose(parsed.overrides, experts_only, parsed.row)
     except (MissingCheckpoint, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
