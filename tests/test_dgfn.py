@@ -17,11 +17,16 @@ CONDITIONS = [
 ]
 
 
+#: Two of the four test frames: every frame is tested once per condition, each through SSD300 at 300 px (most of a
+#: smoke DGFN job's time).
+FEW = "data.limit_frames={test:2}"
+
+
 @pytest.fixture(scope="module")
 def tables(tmp_path_factory):
     cwd = tmp_path_factory.mktemp("dgfn")
-    first = ablate(cwd, "-m", "experiment=dgfn_table1", SERIAL, *TINY)
-    second = ablate(cwd, "-m", "experiment=dgfn_table2", SERIAL, *TINY)
+    first = ablate(cwd, "-m", "experiment=dgfn_table1", SERIAL, FEW, *TINY)
+    second = ablate(cwd, "-m", "experiment=dgfn_table2", SERIAL, FEW, *TINY)
     return cwd, first, second
 
 
