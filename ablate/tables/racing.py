@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -191,12 +191,14 @@ def _shared(a: pd.Series, b: pd.Series) -> tuple[list[int], np.ndarray]:
     return [int(s) for s in seeds], a.to_numpy(dtype=float)[ia] - b.to_numpy(dtype=float)[ib]
 
 
-def _first(series: pd.Series | None, n: int) -> pd.Series:
-    """The values of seeds ``0 .. n-1`` that are there."""
+def _first(series: pd.Series | Sequence[float] | np.ndarray | None, n: int) -> pd.Series:
+    """The values of seeds ``0 .. n-1`` that are there (by position where ``series`` has no index)."""
     if series is None or not len(series):
         return pd.Series(dtype=float)
+    # values in seed order where they come as an array or a list
+    given = series if isinstance(series, pd.Series) else pd.Series(series, dtype=float)
     # on the arrays, one Series made at the end: a race is replayed thousands of times by the tests of its rates
-    values, seeds = series.to_numpy(dtype=float), np.asarray(series.index, dtype=int)
+    values, seeds = given.to_numpy(dtype=float), np.asarray(given.index, dtype=int)
     keep = ~np.isnan(values) & (seeds >= 0) & (seeds < n)
     order = np.argsort(seeds[keep], kind="stable")
     return pd.Series(values[keep][order], index=seeds[keep][order])
