@@ -15,6 +15,9 @@ $(VENV)/.installed: pyproject.toml
 	# uncompiled package is compiled again by every process that imports it (10 s more per job on the AVX2 EPYC).
 	{ $(PY) -m pip install --quiet uv && $(VENV)/bin/uv pip install --quiet --compile-bytecode --python $(PY) -e ".[test,slurm,ray,server,browser]"; } \
 		|| $(PY) -m pip install --quiet -e ".[test,slurm,ray,server,browser]"
+	# the project's own modules too (an editable install is not compiled): every job process imports them, 0.2 s
+	# each uncompiled on the AVX2 EPYC; a module edited later is compiled again where it is imported, as always
+	$(PY) -m compileall -q ablate hydra_plugins
 	touch $@
 
 setup: $(VENV)/.installed
