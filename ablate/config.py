@@ -35,16 +35,14 @@ def compose(overrides: Sequence[str]) -> DictConfig:
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    inside = GlobalHydra.instance()
-    # inside the running app (a sweep's end): its own config source
+    hydra = GlobalHydra.instance()
+    inside = hydra.is_initialized()  # inside the running app (a sweep's end): its own config source
     sources = (
-        tuple((s.provider, s.path) for s in inside.config_loader().get_sources())
-        if inside.is_initialized()
-        else (("main", str(CONF)),)
+        tuple((s.provider, s.path) for s in hydra.config_loader().get_sources()) if inside else (("main", str(CONF)),)
     )
     key = (sources, tuple(overrides))
     if key not in _composed:
-        if inside.is_initialized():
+        if inside:
             made = hydra_compose("config", overrides=list(overrides))
         else:
             with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):

@@ -25,8 +25,8 @@ trained checkpoints on the test split:
   clear-weather AP.
 
 ``row=x,y`` diagnoses those rows of the table only (a table swept on some of its rows, ``python -m ablate -m
-experiment=smoe_table1 row=x,y``). ``experts_only=true`` evaluates the single-modal rows only: the data check, before any fused row is trained
-(written to ``results/<table>_experts.md`` / ``.png``).
+experiment=smoe_table1 row=x,y``). ``experts_only=true`` evaluates the single-modal rows only: the data check,
+before any fused row is trained (written to ``results/<table>_experts.md`` / ``.png``).
 
 Writes ``results/<table>_diagnosis.md`` and ``.png``, and two figures of seed 0: ``<table>_masks.png`` (SMoE Fig.
 6: ground truth and every row's masks on the busiest frame of each condition) and ``<table>_gates.png`` (the gate
@@ -174,8 +174,8 @@ class Found:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m ablate.diagnose [experiment=<table>] [row=x,y] [experts_only=true] [key=value ...]``, its
-    arguments read by :func:`ablate.cli.diagnose` (``--help`` and a bad option end the process there, status 0 and 2): write the
-    diagnosis and its figures; 1 where the table cannot be diagnosed here (a missing checkpoint)."""
+    arguments read by :func:`ablate.cli.diagnose` (``--help`` and a bad option end the process there, status 0 and
+    2): write the diagnosis and its figures; 1 where the table cannot be diagnosed here (a missing checkpoint)."""
     parsed = cli.diagnose(__doc__, argv)
     experts_only = parsed.experts_only
     try:
