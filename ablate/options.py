@@ -201,6 +201,7 @@ RULES: dict[str, Rule] = {
     "logger.tracking_uri": Rule((NAME,)),
     "logger.artifact_root": Rule((NAME,), null="beside the store"),
     "logger.log_checkpoint": Rule((BOOL,)),
+    "logger.log_figures": Rule((BOOL,)),
     "logger.system_metrics": Rule((BOOL,)),
     "logger.outage_s": Rule((NON_NEGATIVE,), note="seconds"),
     "trainer.accelerator": Rule((Kind("str", values=("auto", "cpu", "gpu", "cuda", "mps")),)),

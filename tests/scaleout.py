@@ -23,7 +23,10 @@ TINY = [
     "trainer.enable_progress_bar=false",
     "comp_time.repeats=2",
     "publish=true",
+    "logger.log_figures=false",  # 1-4 s a job; the tests about figures turn them on (FIGURES)
 ]
+#: What a test about a job's figures adds after TINY.
+FIGURES = "logger.log_figures=true"
 # a sweep whose parallelism is not what a test is about runs its jobs in its own process: a parallel sweep's two
 # worker processes would import torch and Lightning again (seconds each) for tiny jobs
 SERIAL = "hydra/launcher=basic"

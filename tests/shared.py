@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.scaleout import SERIAL, TINY, ablate
+from tests.scaleout import FIGURES, SERIAL, TINY, ablate
 
 #: Files of a launch directory that may name its absolute path (configs, sweep records, tables, logs).
 TEXT = {".yaml", ".json", ".md", ".txt", ".log", ".csv"}
@@ -90,7 +90,9 @@ def relocated_copy(source: Path, target: Path) -> Path:
 def smoke_table2(tmp_path_factory: pytest.TempPathFactory, name: str) -> tuple[Path, subprocess.CompletedProcess]:
     """A copy of its own (folder ``name``) of ChiNet Table II swept at scale=smoke, one job after the other
     (``python -m ablate -m experiment=chinet_table2``), and what the sweep returned, its paths those of the copy."""
-    shared, out = shared_run(tmp_path_factory, "chinet_table2", "-m", "experiment=chinet_table2", SERIAL, *TINY)
+    shared, out = shared_run(
+        tmp_path_factory, "chinet_table2", "-m", "experiment=chinet_table2", SERIAL, *TINY, FIGURES
+    )
     cwd = relocated_copy(shared, tmp_path_factory.mktemp(name))
     moved = [text.replace(str(shared), str(cwd)) for text in (out.stdout, out.stderr)]
     return cwd, subprocess.CompletedProcess(out.args, out.returncode, *moved)

@@ -7,7 +7,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
-from test_cli import REPO, SERIAL, TINY, ablate, runs
+from test_cli import FIGURES, REPO, SERIAL, TINY, ablate, runs
 
 from ablate.fusion.bidirectional import WithContext  # (importing ablate registers ${channels:...})
 from ablate.tables.spec import sweep_params
@@ -90,7 +90,7 @@ def test_recipes(scale, lr, epochs, expert_epochs, freeze):
 
 
 def test_table4_end_to_end_at_smoke_scale(tmp_path):
-    out = ablate(tmp_path, "-m", "experiment=bifnet_table4", SERIAL, *TINY)
+    out = ablate(tmp_path, "-m", "experiment=bifnet_table4", SERIAL, *TINY, FIGURES)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     client, jobs = runs(tmp_path, "bifnet_table4")
     assert sorted(r.data.tags["row"] for r in jobs) == sorted(TABLES["bifnet_table4"])

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.scaleout import REPO, SERIAL, TINY, ablate  # noqa: F401 (the other end-to-end tests import them from here)
+from tests.scaleout import FIGURES, REPO, SERIAL, TINY, ablate  # noqa: F401 (the other end-to-end tests import them from here)
 from tests.scaleout import runs as store_runs
 from tests.shared import smoke_table2
 

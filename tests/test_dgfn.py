@@ -3,7 +3,7 @@
 import math
 
 import pytest
-from test_cli import SERIAL, TINY, ablate, runs
+from test_cli import FIGURES, SERIAL, TINY, ablate, runs
 
 CONDITIONS = [
     "full",
@@ -25,7 +25,7 @@ FEW = "data.limit_frames={test:2}"
 @pytest.fixture(scope="module")
 def tables(tmp_path_factory):
     cwd = tmp_path_factory.mktemp("dgfn")
-    first = ablate(cwd, "-m", "experiment=dgfn_table1", SERIAL, FEW, *TINY)
+    first = ablate(cwd, "-m", "experiment=dgfn_table1", SERIAL, FEW, *TINY, FIGURES)
     second = ablate(cwd, "-m", "experiment=dgfn_table2", SERIAL, FEW, *TINY)
     return cwd, first, second
 
@@ -55,6 +55,9 @@ def test_table1_tests_each_model_under_every_condition(tables):
     assert not math.isclose(gated["camera_blank/gate_rgb"], gated["normal/gate_rgb"])
     dgfn = next(r for r in jobs if r.data.tags["row"] == "dgfn")
     assert {"gates.png", "predictions.png"} <= {a.path for a in client.list_artifacts(dgfn.info.run_id)}
+    # Table II's sweep ran with logger.log_figures=false (TINY): its jobs drew no figure
+    _, second = runs(cwd, "dgfn_table2")
+    assert second and not any(a.path.endswith(".png") for r in second for a in client.list_artifacts(r.info.run_id))
     # each frame's matched detections: AP re-accumulated from them equals the logged AP (ablate.metrics.accumulate)
     from ablate.store import FRAME_DETECTIONS
     from ablate.tables.frames import _read_detections, ap_left_out

@@ -7,7 +7,9 @@ import sys
 import pandas as pd
 import pytest
 
+import ablate.data.datamodule
 import ablate.data.kitti
+import ablate.jobs.fingerprint
 import ablate.tasks.semantic
 from ablate.config import compose
 from ablate.jobs.fingerprint import COMPONENTS, compute, decode, differs, encode
@@ -25,6 +27,17 @@ def test_the_fingerprint_is_numbers_per_component_and_repeats(chinet):
     assert list(fingerprint) == list(COMPONENTS) and all(len(v) for v in fingerprint.values())
     assert differs(fingerprint, compute(cfg)) is None
     assert differs(fingerprint, decode(encode(fingerprint))) is None
+
+
+def test_the_jobs_of_one_process_generate_the_frames_once_and_get_a_fresh_processs_numbers(chinet, monkeypatch):
+    generated = []
+    generate = ablate.data.datamodule.generate
+    monkeypatch.setattr(ablate.data.datamodule, "generate", lambda *a, **k: generated.append(a) or generate(*a, **k))
+    unet = compose(["experiment=chinet_table2", "row=unet"])
+    shared = compute(unet)
+    assert not generated  # the frames ChiNet's fingerprint generated in this process
+    monkeypatch.setattr(ablate.jobs.fingerprint, "_SCRATCH", {})  # as a fresh process
+    assert compute(unet) == shared and len(generated) == 1
 
 
 def test_a_rename_or_a_move_keeps_every_number(chinet, tmp_path, monkeypatch):

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.scaleout import REPO, SERIAL, TINY, ablate, free_port, most_at_once, need, output, runs
+from tests.scaleout import FIGURES, REPO, SERIAL, TINY, ablate, free_port, most_at_once, need, output, runs
 
 SCRIPT = REPO / "scripts" / "tracking_server.py"
 
@@ -229,6 +229,7 @@ def sweep(server, tmp_path_factory):
         "hydra/launcher=joblib",
         "hydra.launcher.n_jobs=2",
         *TINY,
+        FIGURES,
         env={"MLFLOW_TRACKING_URI": uri},
     )
     return uri, store, cwd, out

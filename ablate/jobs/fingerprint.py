@@ -5,8 +5,9 @@ too much (a rename moves no number), so a job records, at its start, what its re
 fixed input, on the CPU in fp32 with 1 thread (:func:`compute`), in five components:
 
 - ``data``: the first two training frames of a small generated dataset (``DATA``: 8 frames at 64 x 208, the job's
-  own modalities, targets, conditions and corruptions) as the data pipeline delivers them, generated afresh in a
-  temporary folder (no cache: the generator and the derived modalities are today's code);
+  own modalities, targets, conditions and corruptions) as the data pipeline delivers them, generated afresh by each
+  process in a temporary folder of its own (no cache across processes: the generator and the derived modalities
+  are today's code; the jobs of one process, whose code is one, share it: :func:`scratch`);
 - ``model``: the model's outputs on the first of them from its seeded initial weights (eval mode);
 - ``loss``: the training loss after two optimiser steps on it (the job's optimiser and training corruptions);
 - ``schedule``: the learning rate at steps 0, 1, 10, 100, 500 and 999 of the job's schedule over 1000 steps;
@@ -26,10 +27,14 @@ evaluator tag (:data:`ablate.metrics.EVALUATORS`) names such changes outright.
 
 from __future__ import annotations
 
+import atexit
+import os
+import shutil
 import tempfile
 import time
 import warnings
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any, cast
 
 import lightning as L
@@ -97,10 +102,27 @@ def compute(cfg: DictConfig) -> dict[str, list[float]]:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", ".*self.trainer.*reference is not registered.*")
             warnings.filterwarnings("ignore", ".*self.log.*")
-            with tempfile.TemporaryDirectory(prefix="ablate-fingerprint-") as data_dir:
-                return _compute(tiny(cfg, data_dir))
+            return _compute(tiny(cfg, str(scratch())))
     finally:
         torch.set_num_threads(threads)
+
+
+_SCRATCH: dict[int, Path] = {}
+
+
+def scratch() -> Path:
+    """This process's folder for the fingerprint's generated frames, made on first use and removed at its exit. A
+    forked process makes its own: its parent may remove the parent's while it runs."""
+    pid = os.getpid()
+    if pid not in _SCRATCH:
+        _SCRATCH[pid] = Path(tempfile.mkdtemp(prefix="ablate-fingerprint-"))
+        atexit.register(_remove, pid, _SCRATCH[pid])
+    return _SCRATCH[pid]
+
+
+def _remove(pid: int, folder: Path) -> None:
+    if os.getpid() == pid:  # not a forked child's exit: the folder is its parent's
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def _compute(cfg: DictConfig) -> dict[str, list[float]]:

@@ -183,9 +183,14 @@ def test(
     tracker.set_tags(run_id, {"evaluator": task.evaluator} if getattr(task, "evaluator", None) else {})
     # the figures' forward pass where the job ran, not on one CPU thread: ChiNet at the paper's size takes 35 s a
     # frame there, and drew its 4 frames for most of a GPU job's 95 s test
-    task.to(device)
-    for name, figure in task.figures(sample).items():
-        tracker.log_figure(run_id, figure, name)
+    if spec.cfg.logger.get("log_figures", True):
+        task.to(device)
+        figures = task.figures(sample)
+        import matplotlib.pyplot as plt  # after the tasks' figure modules, which choose the Agg backend
+
+        for name, figure in figures.items():
+            tracker.log_figure(run_id, figure, name)
+            plt.close(figure)  # pyplot keeps every figure it made: the jobs of one process would pile them up
     log_frame_counts(tracker, run_id, getattr(task, "frame_counts", []))
     log_frame_detections(tracker, run_id, getattr(task, "frame_detections", []))
     if best and spec.cfg.logger.get("log_checkpoint", True) and Path(best).resolve().parent == spec.ckpt_dir.resolve():
