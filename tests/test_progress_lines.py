@@ -42,6 +42,7 @@ def test_a_line_every_period_with_the_time_left_from_the_steps_done(caplog: pyte
 def test_a_redirected_sweeps_log_has_no_progress_bar_and_every_jobs_end(tmp_path: Path) -> None:
     # the output is a pipe, as a log file: enable_progress_bar is left at its default (auto)
     tiny = ["scale=smoke", "data.synth.frames=20", "comp_time.repeats=2", "trainer.max_epochs=2", "plan.measure_s=30"]
+    tiny.append("logger.log_figures=false")
     out = ablate(tmp_path, "-m", "task=semantic", "model=unet,fusenet", *tiny, SERIAL)
     assert out.returncode == 0, output(out)
     text = out.stdout + out.stderr

@@ -11,7 +11,13 @@ from pathlib import Path
 from tests.scaleout import REPO, SERIAL, ablate, output, runs
 
 #: TINY without publish=true: as a user tries things
-TRY = ["scale=smoke", "data.synth.frames=20", "trainer.enable_progress_bar=false", "comp_time.repeats=2"]
+TRY = [
+    "scale=smoke",
+    "data.synth.frames=20",
+    "trainer.enable_progress_bar=false",
+    "comp_time.repeats=2",
+    "logger.log_figures=false",
+]
 
 
 def published(where: Path) -> dict[str, bytes]:
