@@ -2,7 +2,11 @@
 keeps every number, a changed loss or data pipeline changes the component it is in, and runs without a
 fingerprint fall back to the file check."""
 
+import os
+import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -38,6 +42,15 @@ def test_the_jobs_of_one_process_generate_the_frames_once_and_get_a_fresh_proces
     assert not generated  # the frames ChiNet's fingerprint generated in this process
     monkeypatch.setattr(ablate.jobs.fingerprint, "_SCRATCH", {})  # as a fresh process
     assert compute(unet) == shared and len(generated) == 1
+
+
+def test_a_killed_processs_frames_are_removed_by_the_next_process(monkeypatch):
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    orphan = Path(tempfile.mkdtemp(prefix=f"{ablate.jobs.fingerprint.SCRATCH_PREFIX}{gone.pid}-"))
+    monkeypatch.setattr(ablate.jobs.fingerprint, "_SCRATCH", {})  # as a fresh process
+    mine = ablate.jobs.fingerprint.scratch()
+    assert not orphan.exists() and mine.is_dir() and mine.name.startswith(f"ablate-fingerprint-{os.getpid()}-")
 
 
 def test_a_rename_or_a_move_keeps_every_number(chinet, tmp_path, monkeypatch):

@@ -108,16 +108,37 @@ def compute(cfg: DictConfig) -> dict[str, list[float]]:
 
 
 _SCRATCH: dict[int, Path] = {}
+SCRATCH_PREFIX = "ablate-fingerprint-"
 
 
 def scratch() -> Path:
-    """This process's folder for the fingerprint's generated frames, made on first use and removed at its exit. A
+    """This process's folder for the fingerprint's generated frames (``ablate-fingerprint-<pid>-*`` in the temporary
+    folder), made on first use and removed at its exit; a killed process's, by the next process that makes one. A
     forked process makes its own: its parent may remove the parent's while it runs."""
     pid = os.getpid()
     if pid not in _SCRATCH:
-        _SCRATCH[pid] = Path(tempfile.mkdtemp(prefix="ablate-fingerprint-"))
+        _remove_orphans()
+        _SCRATCH[pid] = Path(tempfile.mkdtemp(prefix=f"{SCRATCH_PREFIX}{pid}-"))
         atexit.register(_remove, pid, _SCRATCH[pid])
     return _SCRATCH[pid]
+
+
+def _remove_orphans() -> None:
+    """Remove the scratch folders of processes that are gone without removing theirs (killed)."""
+    for folder in Path(tempfile.gettempdir()).glob(f"{SCRATCH_PREFIX}*-*"):
+        owner = folder.name.removeprefix(SCRATCH_PREFIX).split("-", 1)[0]
+        if owner.isdigit() and not _alive(int(owner)):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's
+        return True
+    return True
 
 
 def _remove(pid: int, folder: Path) -> None:
