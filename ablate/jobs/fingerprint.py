@@ -43,6 +43,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from ablate.data.datamodule import collate
+from ablate.jobs.preempt import alive
 from ablate.store.fingerprint import COMPONENTS, TAG, decode, differs, encode
 
 __all__ = ["COMPONENTS", "TAG", "compute", "decode", "differs", "encode", "timed"]
@@ -127,18 +128,8 @@ def _remove_orphans() -> None:
     """Remove the scratch folders of processes that are gone without removing theirs (killed)."""
     for folder in Path(tempfile.gettempdir()).glob(f"{SCRATCH_PREFIX}*-*"):
         owner = folder.name.removeprefix(SCRATCH_PREFIX).split("-", 1)[0]
-        if owner.isdigit() and not _alive(int(owner)):
+        if owner.isdigit() and not alive(int(owner)):
             shutil.rmtree(folder, ignore_errors=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's
-        return True
-    return True
 
 
 def _remove(pid: int, folder: Path) -> None:

@@ -173,7 +173,6 @@ def test(
         results = trainer.test(task, datamodule=datamodule, ckpt_path=best, verbose=False)[0]
     logger.deliver()  # what waits in the outbox first, waiting for the server up to logger.outage_s
     metrics = {k.split("/", 1)[-1]: float(v) for k, v in results.items() if k.startswith("test/")}
-    sample = next(iter(datamodule.test_dataloader()))
     metrics["params_m"] = sum(p.numel() for p in task.model.parameters()) / 1e6
     tracker.log_metrics(run_id, metrics, step=trainer.global_step)
     device = trainer.strategy.root_device  # the model's parameters are back on the CPU once the test ends
@@ -185,7 +184,7 @@ def test(
     # frame there, and drew its 4 frames for most of a GPU job's 95 s test
     if spec.cfg.logger.get("log_figures", True):
         task.to(device)
-        figures = task.figures(sample)
+        figures = task.figures(next(iter(datamodule.test_dataloader())))
         import matplotlib.pyplot as plt  # after the tasks' figure modules, which choose the Agg backend
 
         for name, figure in figures.items():
