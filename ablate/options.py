@@ -147,6 +147,12 @@ RULES: dict[str, Rule] = {
     **_race("table.seeds", "every swept job at once"),
     # conf/tune/lr_wd.yaml reads it with oc.select, whose default (8) stands in for a missing key only: null is not 8
     "table.tune_trials": Rule((POSITIVE_INT,), note="the family's N of tune=lr_wd; leave it out for 8"),
+    "table.tune_halving": Rule(
+        (MAPPING,),
+        null="every trial to the full budget",
+        keys=("eta", "rungs"),
+        note="the table's default of tune=lr_wd",
+    ),
     "table.tune": Rule((MAPPING,), null="no tuning phase", keys=TUNE_KEYS),
     "table.tune.trials": Rule((POSITIVE_INT,), note="trial 0 is the recipe"),
     "table.tune.space": Rule((Kind("mapping", filled=True),), note="parameter -> interval(...) or choice(...)"),

@@ -9,7 +9,8 @@ the phase's CPU minutes both ways (halving's: each trial's seconds scaled by the
 whether halving meets the bar for being the default (``docs/tuning.md#successive-halving``): at most half the CPU
 minutes, and every row's choice the same or within the table's δ on validation.
 
-Usage: ``python bench/bench_halving.py TABLE [--eta 3] [--rungs 0.111111 0.333333 1] [--delta D]``.
+Usage: ``python bench/bench_halving.py TABLE [--records DIR] [--eta 3] [--rungs 0.111111 0.333333 1] [--delta D]``;
+the full-budget phases measured for ``docs/tuning.md`` are in ``bench/measured/halving`` (``--records`` that folder).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ def main() -> int:
     parser.add_argument("--records", default=str(ROOT / "results"))
     parser.add_argument("--eta", type=int, default=3)
     parser.add_argument("--rungs", type=float, nargs="+", default=[0.111111, 0.333333, 1.0])
-    parser.add_argument("--delta", type=float, default=None, help="the table's δ, on the objective's scale")
+    parser.add_argument("--delta", type=float, default=None, help="δ on the objective's scale (default: the table's)")
     args = parser.parse_args()
     from ablate.jobs.rungs import read_curve
     from ablate.sweep.halving import Halving, best_until, full_choice, replay
@@ -36,12 +37,18 @@ def main() -> int:
 
     halving = Halving.from_config({"eta": args.eta, "rungs": args.rungs})
     assert halving is not None
+    if args.delta is None:
+        from omegaconf import OmegaConf
+
+        from ablate.config import compose
+
+        args.delta = OmegaConf.select(compose([f"experiment={args.table}"]), "table.rope.delta")
     trials = read_trials(args.records, args.table)
     trials = trials[trials["rung"].astype(float) == FULL]
     if trials.empty or not trials["val_curve"].notna().any():
         print(f"{args.table}: no full-budget trial with a recorded val_curve in {args.records}; tune it again")
         return 1
-    print(f"{args.table}: {halving.describe()}; CPU of the records: {trials['cpu'].iloc[0]}")
+    print(f"{args.table}: {halving.describe()}; δ {args.delta}; CPU of the records: {trials['cpu'].iloc[0]}")
     full_min = halved_min = 0.0
     safe = True
     for row, sel in trials.groupby("row", sort=False):

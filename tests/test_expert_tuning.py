@@ -73,6 +73,10 @@ def test_a_tables_n_is_its_familys_and_a_table_that_races_on_the_recipe_says_why
     assert spec("experiment=smoe_table1", "tune=lr_wd").trials == 4  # type: ignore[union-attr]
     assert spec("experiment=chinet_table2", "tune=lr_wd", "table.tune.trials=3").trials == 3  # type: ignore[union-attr]
     assert spec("fusion=sum", "tune=lr_wd").trials == 8  # type: ignore[union-attr]
+    # halving is tune=lr_wd's default only where it was measured safe (docs/tuning.md): BiFNet IV, not ChiNet
+    assert spec("experiment=bifnet_table4", "tune=lr_wd").halving is not None  # type: ignore[union-attr]
+    assert spec("experiment=bifnet_table4", "tune=lr_wd", "table.tune.halving=null").halving is None  # type: ignore[union-attr]
+    assert spec("experiment=chinet_table4", "tune=lr_wd").halving is None  # type: ignore[union-attr]
     none = pd.DataFrame(columns=COLUMNS)
     lines = section(none, compose(["experiment=dgfn_table2"]).table, {})
     assert lines[-1].startswith("No tuning phase: every row raced on the recipe, because its first look alone")

@@ -22,6 +22,8 @@ def test_each_rung_keeps_the_top_third_and_costs_less_than_the_full_budget() -> 
     assert halving.counts(8) == [8, 3, 1] and halving.counts(1) == [1, 1, 1] and halving.counts(27) == [27, 9, 3]
     assert halving.rung_epochs(10) == [1, 3, 10] and halving.rung_epochs(2) == [1, 1, 2]
     assert halving.cost(8) == pytest.approx(8 / 9 + 3 * 2 / 9 + 2 / 3)  # each trial's epochs once: resumed
+    assert halving.cost(8, epochs=6) == pytest.approx((8 * 1 + 3 * 1 + 1 * 4) / 6)  # whole epochs 1, 2, 6
+    assert halving.cost(6, epochs=2) == pytest.approx((6 * 1 + 2 * 0 + 1 * 1) / 2)  # 58%: a 2-epoch recipe
     assert halving.override(0) == ["++rung=0.111111"] and halving.override(2) == []  # the last: the full budget
 
 

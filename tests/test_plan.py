@@ -23,6 +23,7 @@ from ablate.sweep.plan import (
     wall_seconds,
 )
 from tests.test_progress import planned_jobs, sweep_config
+from tests.test_tuning import FULL_BUDGET
 
 EXPERT = StepTimes(train_s=2.0, cached_s=2.0, eval_s=0.5, train_batches=10, eval_batches=2, test_batches=4)
 FUSED = StepTimes(train_s=1.0, cached_s=0.25, eval_s=0.5, train_batches=10, eval_batches=2, test_batches=4)
@@ -152,7 +153,7 @@ def test_a_tuned_table_plans_its_trials_before_its_first_look(tmp_path: Path, mo
 def tuned_on_experts(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> list:
     """The plan of BiFNet Table IV with a tuning phase of 2 trials: the experts' trials, stage 2's, the first look."""
     monkeypatch.chdir(tmp_path)
-    return items(sweep_config("experiment=bifnet_table4", "tune=lr_wd", "table.tune.trials=2"))
+    return items(sweep_config("experiment=bifnet_table4", *FULL_BUDGET))
 
 
 def test_stage_2_trials_plan_no_experts_they_copy_them_from_the_experts_chosen_trials(tuned_on_experts: list) -> None:
@@ -183,7 +184,7 @@ def test_a_resumed_tuning_phase_plans_stage_2_and_the_race_on_the_trials_it_chos
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.chdir(tmp_path)
-    config = sweep_config("experiment=bifnet_table4", "tune=lr_wd", "table.tune.trials=2")
+    config = sweep_config("experiment=bifnet_table4", *FULL_BUDGET)
     objectives = {  # the store's after the phase: the LiDAR expert and the summing row chose trial 1
         "expert bev": {0: 0.5, 1: 0.9},
         "expert rgb": {0: 0.9, 1: 0.5},

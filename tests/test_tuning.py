@@ -14,6 +14,8 @@ import pytest
 from ablate.sweep.tuning import TuneSpec, choose, run_phase, tuned_overrides
 
 SPACE = {"task.optimizer.lr": "tag(log, interval(1e-4, 1e-2))"}
+#: A 2-trial phase that trains every trial in full, on tables whose `tune=lr_wd` halves (`table.tune_halving`)
+FULL_BUDGET = ("tune=lr_wd", "table.tune.trials=2", "table.tune.halving=null")
 
 
 def test_every_row_gets_the_same_trials_one_batch_per_trial_index() -> None:
@@ -300,7 +302,7 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     from tests.scaleout import SERIAL, TINY, ablate, output, runs
 
     rows = "row=bifnet_bev,bifnet_dst_sum"  # the LiDAR expert's row, and a fused row on frozen experts
-    out = ablate(tmp_path, "-m", "experiment=bifnet_table4", rows, "tune=lr_wd", "table.tune.trials=2", SERIAL, *TINY)
+    out = ablate(tmp_path, "-m", "experiment=bifnet_table4", rows, *FULL_BUDGET, SERIAL, *TINY)
     assert out.returncode == 0, output(out)
     # the progress counts the whole sweep from its first job: 4 experts' trials, 2 of stage 2, 2 raced jobs
     done = re.findall(r"Sweep progress: (\d+)/(\d+) jobs finished", out.stdout + out.stderr)
@@ -373,7 +375,7 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     assert (tmp_path / "results" / "runs" / "bifnet_table4.trials.csv").is_file()
     assert (tmp_path / "results" / "bifnet_table4_tuning.png").is_file()
     # the same command again: its plan finds every trial and raced job done, stage 2's on the chosen experts included
-    again = ablate(tmp_path, "-m", "experiment=bifnet_table4", rows, "tune=lr_wd", "table.tune.trials=2", SERIAL, *TINY)
+    again = ablate(tmp_path, "-m", "experiment=bifnet_table4", rows, *FULL_BUDGET, SERIAL, *TINY)
     assert again.returncode == 0, output(again)
     plan = re.search(r"Sweep plan: (\d+) job\(s\)[^\n]*", again.stdout + again.stderr)
     assert plan and f"; {plan[1]} done already (skipped)" in plan[0] and "to train first" not in plan[0], plan

@@ -73,9 +73,12 @@ class Halving:
         full-budget trial's own config)."""
         return [] if rung == len(self.rungs) - 1 else [f"++rung={self.rungs[rung]:.6g}"]
 
-    def cost(self, trials: int) -> float:
-        """A row's tuning cost in full-budget trials (each trial's epochs once: promoted trials resume)."""
-        spans = [b - a for a, b in zip((0.0, *self.rungs), self.rungs)]
+    def cost(self, trials: int, epochs: int | None = None) -> float:
+        """A row's tuning cost in full-budget trials (each trial's epochs once: promoted trials resume). With the
+        recipe's ``epochs``, at its rungs' whole epochs (:meth:`rung_epochs`), as a phase trains: a short recipe
+        halves less (6 trials of a 2-epoch recipe cost 3.5 full trials, not 2.33)."""
+        ends = [e / epochs for e in self.rung_epochs(epochs)] if epochs else list(self.rungs)
+        spans = [b - a for a, b in zip((0.0, *ends), ends)]
         return sum(n * span for n, span in zip(self.counts(trials), spans))
 
     def describe(self) -> str:
