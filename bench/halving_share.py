@@ -1,6 +1,6 @@
 """What successive halving can save in each tuned table's phase, before any trial trains: from the table's N
-(``table.tune_trials``) and each row's recipe epochs (a single-modal row of a two-stage family trains its expert's
-``experts.max_epochs``, a fused row the stage-2 ``trainer.max_epochs``), the share of the full-budget phase's
+(``table.tune_trials``) and each row's recipe epochs (a single-modal row's trial trains its expert, on the expert's own
+epochs, :func:`ablate.jobs.experts.expert_config`; a fused row the stage-2 ``trainer.max_epochs``), the share of the full-budget phase's
 epochs that halving trains (:meth:`ablate.sweep.halving.Halving.cost` at whole epochs). A rung rounds to whole
 epochs, so a short recipe halves little: the cost bar of ``docs/tuning.md#successive-halving`` (at most half) is
 out of reach where the share printed is above 50%, whatever the curves. The table's share weighs its rows by
@@ -28,6 +28,7 @@ def main() -> int:
     from omegaconf import OmegaConf
 
     from ablate.config import compose
+    from ablate.jobs.experts import expert_config
     from ablate.sweep.halving import Halving
 
     halving = Halving.from_config({"eta": args.eta, "rungs": args.rungs})
@@ -44,9 +45,9 @@ def main() -> int:
         parts = []
         for row in (str(r.row) for r in table.rows if not r.get("paper_only")):
             cfg = compose([f"experiment={name}", f"row={row}"])
-            expert = OmegaConf.select(cfg, "stage.name") == "single"
-            epochs = int(OmegaConf.select(cfg, "experts.max_epochs") or 0) if expert else 0
-            epochs = epochs or int(cfg.trainer.max_epochs)
+            if OmegaConf.select(cfg, "stage.name") == "single":  # a single-modal row's trial trains its expert
+                cfg = expert_config(cfg, str(cfg.stage.modality))
+            epochs = int(cfg.trainer.max_epochs)
             share = halving.cost(int(trials), epochs) / int(trials)
             spent, full = spent + share * epochs, full + epochs
             parts.append(f"{row} {epochs} ep {halving.rung_epochs(epochs)} {share:.0%}")
