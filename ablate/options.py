@@ -117,6 +117,7 @@ RULES: dict[str, Rule] = {
     "force": Rule((BOOL,)),
     "publish": Rule((BOOL,)),
     "plan.measure_s": Rule((NON_NEGATIVE,), note="0: no timing"),
+    "trace.every": Rule((POSITIVE_INT,), null="no trace"),
     "experts": Rule((MAPPING,), null="trains end to end"),
     "experts.freeze": Rule((BOOL,)),
     "experts.cache_features": Rule((BOOL,)),
@@ -204,6 +205,7 @@ RULES: dict[str, Rule] = {
     "model.input_size": Rule((Kind("ints", low=1, size=2),), note="[height, width]"),
     "model.l2norm_scale": Rule((POSITIVE,)),
     "model.batch_norm": Rule((BOOL,)),
+    "model.blank_running_stats": Rule((BOOL,)),
     "logger.tracking_uri": Rule((NAME,)),
     "logger.artifact_root": Rule((NAME,), null="beside the store"),
     "logger.log_checkpoint": Rule((BOOL,)),
@@ -219,6 +221,8 @@ RULES: dict[str, Rule] = {
     "trainer.channels_last": Rule((BOOL, AUTO)),
     "trainer.compile": Rule((BOOL, Kind("str", filled=True, says="a backend's name")), note="true: inductor"),
     "trainer.threads": Rule((POSITIVE_INT,), null="torch's default, every core"),
+    "trainer.gradient_clip_val": Rule((POSITIVE,), null="no clipping"),
+    "trainer.gradient_clip_algorithm": Rule((Kind("str", values=("norm", "value")),)),
     "trainer.strategy.find_unused_parameters": Rule((BOOL,)),
 }
 

@@ -25,7 +25,7 @@ FEW = "data.limit_frames={test:2}"
 @pytest.fixture(scope="module")
 def tables(tmp_path_factory):
     cwd = tmp_path_factory.mktemp("dgfn")
-    first = ablate(cwd, "-m", "experiment=dgfn_table1", SERIAL, FEW, *TINY, FIGURES)
+    first = ablate(cwd, "-m", "experiment=dgfn_table1", SERIAL, FEW, *TINY, FIGURES, "trace.every=1")
     second = ablate(cwd, "-m", "experiment=dgfn_table2", SERIAL, FEW, *TINY)
     return cwd, first, second
 
@@ -53,6 +53,13 @@ def test_table1_tests_each_model_under_every_condition(tables):
     baseline = next(r for r in jobs if r.data.tags["row"] == "dgfn_baseline").data.metrics
     assert baseline["camera_blank/gate_rgb"] == 1.0 and 0 < gated["camera_blank/gate_rgb"] < 1
     assert not math.isclose(gated["camera_blank/gate_rgb"], gated["normal/gate_rgb"])
+    # trace.every=1 (ablate.jobs.trace): each trunk's gradient norm; the gated row's weight maps at each SSD map
+    assert (
+        gated["trace/grad_branches.rgb"] > 0 and gated["trace/grad_branches.dhi"] > 0 and gated["trace/grad_head"] > 0
+    )
+    assert {f"trace/gate{k}_{m}" for k in range(6) for m in ("rgb", "dhi")} <= set(gated)
+    assert 0 < gated["trace/gate0_rgb"] < 1 and 0 <= gated["trace/gate0_rgb_shut"] <= 1
+    assert "trace/grad_fuse" in baseline and not any(k.startswith("trace/gate") for k in baseline)
     dgfn = next(r for r in jobs if r.data.tags["row"] == "dgfn")
     assert {"gates.png", "predictions.png"} <= {a.path for a in client.list_artifacts(dgfn.info.run_id)}
     # Table II's sweep ran with logger.log_figures=false (TINY): its jobs drew no figure

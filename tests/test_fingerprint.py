@@ -74,6 +74,12 @@ def test_a_changed_constant_in_the_loss_is_named(chinet, monkeypatch):
     assert differs(fingerprint, compute(cfg)) == "loss"
 
 
+def test_the_jobs_gradient_clipping_is_in_its_two_steps(chinet):
+    cfg, fingerprint = chinet
+    clipped = compose(["experiment=chinet_table2", "row=chinet", "++trainer.gradient_clip_val=1e-6"])
+    assert differs(fingerprint, compute(clipped)) == "loss"  # Adam's steps shrink once gradients are below its eps
+
+
 def test_a_changed_constant_in_the_data_pipeline_is_named(chinet, monkeypatch):
     cfg, fingerprint = chinet
     read = ablate.data.kitti.read_image

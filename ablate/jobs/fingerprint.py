@@ -137,6 +137,18 @@ def _remove(pid: int, folder: Path) -> None:
         shutil.rmtree(folder, ignore_errors=True)
 
 
+def clip(cfg: DictConfig, params: Any) -> None:
+    """The job's gradient clipping (``trainer.gradient_clip_val``, by norm or by value as Lightning clips)."""
+    value = OmegaConf.select(cfg, "trainer.gradient_clip_val")
+    if value is None:
+        return
+    params = list(params)
+    if OmegaConf.select(cfg, "trainer.gradient_clip_algorithm", default="norm") == "value":
+        torch.nn.utils.clip_grad_value_(params, float(value))
+    else:
+        torch.nn.utils.clip_grad_norm_(params, float(value))
+
+
 def _compute(cfg: DictConfig) -> dict[str, list[float]]:
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     datamodule = instantiate(cfg.data)
@@ -159,6 +171,7 @@ def _compute(cfg: DictConfig) -> dict[str, list[float]]:
         loss = task.training_step(step_batch, step)
         loss = loss["loss"] if isinstance(loss, dict) else loss
         loss.backward()
+        clip(cfg, task.trainable())
         optimizer.step()
     with torch.no_grad():
         after = task.training_step(batch, 2)

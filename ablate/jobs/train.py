@@ -35,6 +35,7 @@ from ablate.jobs.preempt import STOP, SaveOnStop, Stopped
 from ablate.jobs.progress_lines import ProgressLines, progress_bar
 from ablate.jobs.rungs import StopAtRung, ValCurve, stop_epoch
 from ablate.jobs.spec import JobSpec
+from ablate.jobs.trace import Trace
 from ablate.store import FRAME_COUNTS, FRAME_DETECTIONS, KIND_TRIAL, SKIPPED_FRAMES, RunLogger, Tracker
 
 log = logging.getLogger(__name__)
@@ -73,6 +74,8 @@ def fit_and_test(
     curve = ValCurve(task.monitor)  # a tuning trial's validation value per epoch (ablate.sweep.halving replays it)
     if spec.kind == KIND_TRIAL:
         callbacks.append(curve)
+    if (every := OmegaConf.select(cfg, "trace.every")) is not None:  # gates and gradients over training
+        callbacks.append(Trace(every))
     if (epoch := stop_epoch(cfg)) is not None:  # a trial at a rung of successive halving stops there
         callbacks.append(StopAtRung(epoch))
     trainer = build_trainer(cfg, logger, callbacks, spec.ckpt_dir)

@@ -32,6 +32,7 @@ UNHASHED = (
     "force",
     "publish",
     "plan",
+    "trace",
     "tuned",
     "logger",
     "hydra",

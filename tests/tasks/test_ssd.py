@@ -144,6 +144,39 @@ def test_ssd_head_on_dgfn_maps_and_on_a_fusion_models_fpn():
     assert torch.isfinite(SSDLoss(fpn.head.anchors, K)(out, t, (64, 208))["total"])
 
 
+def test_a_blanked_trunk_normalises_with_its_running_statistics_and_leaves_them():
+    def stats(model, modality):
+        norms = [m for m in model.branches[modality].modules() if isinstance(m, torch.nn.BatchNorm2d)]
+        return torch.cat([torch.cat([m.running_mean, m.running_var]) for m in norms])
+
+    head = functools.partial(SSDHead, num_classes=K)
+    gfu = functools.partial(build, "gfu")
+    models = {}
+    for flag in (False, True):
+        torch.manual_seed(0)
+        models[flag] = DGFN(
+            {"rgb": 3, "dhi": 3}, head, gfu, width=0.0625, input_size=(272, 272), batch_norm=True,
+            blank_running_stats=flag,
+        )  # fmt: skip
+        models[flag].train()
+    blank = {"rgb": torch.zeros(2, 3, 64, 208), "dhi": torch.rand(2, 3, 64, 208)}
+    before = {m: stats(models[True], m) for m in ("rgb", "dhi")}
+    for model in models.values():
+        model(blank)
+    torch.testing.assert_close(stats(models[True], "rgb"), before["rgb"])  # the blanked camera's: as they were
+    assert not torch.equal(stats(models[True], "dhi"), before["dhi"])  # the LiDAR's batch has statistics
+    assert not torch.equal(stats(models[False], "rgb"), before["rgb"])  # without the option: the zeros' statistics
+    branch = models[True].branches["rgb"].eval()
+    with torch.no_grad():
+        expected = branch(models[True]._resize(blank["rgb"]))
+    models[True].train()
+    with torch.no_grad():
+        got = models[True]._trunk("rgb", models[True]._resize(blank["rgb"]))
+    for a, b in zip(got, expected):
+        torch.testing.assert_close(a, b)  # normalised as at test
+    assert all(m.training for m in models[True].modules())  # and back in training mode
+
+
 def test_bad_model_options_name_the_option():
     head = functools.partial(SSDHead, num_classes=K)
     with pytest.raises(ValueError, match="model.single: 'lidar'"):

@@ -39,7 +39,11 @@ class DGFN(nn.Module):
     the predictor right after, at SSD's 20.
 
     ``batch_norm``: trunks with a BatchNorm after every conv (ScratchDet's remedy for SSD from scratch; see
-    :mod:`ablate.nn.vgg`), not in DGFN.
+    :mod:`ablate.nn.vgg`), not in DGFN. ``blank_running_stats``: in training, a trunk whose batch is one value
+    throughout (a blanked sensor, DGFN §IV-A's corruption drawn for the whole update) normalises with its
+    BatchNorms' running statistics and leaves them as they are, as at test. Such a batch has no statistics: its
+    batch variance is 0, so BatchNorm divides by sqrt(eps) and the trunk's gradient norm reaches 10^2-10^3, and
+    the running variance falls 10 % per such update (docs/recipes.md#detection_cpu).
 
     ``input_size``: the (H, W) every input is resized to (bilinear, antialiased) before the trunks, as SSD300
     warps its input to 300x300; null keeps the data's size (it must then be about 270 px or more on each side, for
@@ -58,6 +62,7 @@ class DGFN(nn.Module):
         weights: str | Mapping | None = None,
         l2norm_scale: float = 20.0,
         batch_norm: bool = False,
+        blank_running_stats: bool = False,
     ) -> None:
         super().__init__()
         modalities = {str(k): int(v) for k, v in dict(modalities).items()}
@@ -72,6 +77,7 @@ class DGFN(nn.Module):
         if input_size is not None and (len(input_size) != 2 or min(input_size) < 1):
             raise ValueError(f"model.input_size: expected [H, W], got {input_size}")
         self.modalities, self.single = modalities, single
+        self.blank_running_stats = bool(blank_running_stats)
         self.input_size = tuple(int(s) for s in input_size) if input_size is not None else None
         files = weights if isinstance(weights, Mapping) else {m: weights for m in modalities}
         self.branches = nn.ModuleDict({m: VGG16SSD(c, width, batch_norm=batch_norm) for m, c in modalities.items()})
@@ -99,10 +105,23 @@ class DGFN(nn.Module):
         missing = [m for m in self.modalities if m not in inputs]
         if missing:
             raise KeyError(f"DGFN needs inputs {list(self.modalities)}; missing {missing}, got {list(inputs)}")
-        maps = {m: self.branches[m](self._resize(inputs[m])) for m in self.modalities}
+        maps = {m: self._trunk(m, self._resize(inputs[m])) for m in self.modalities}
         if self.single is not None:
             return self.head(maps[self.single])
         return self.head([op([maps[m][k] for m in self.modalities]) for k, op in enumerate(self.fuse)])
+
+    def _trunk(self, modality: str, x: Tensor) -> Tensor:
+        branch = self.branches[modality]
+        if not (self.training and self.blank_running_stats and bool(x.amax() == x.amin())):
+            return branch(x)
+        norms = [m for m in branch.modules() if isinstance(m, nn.BatchNorm2d) and m.training]
+        for m in norms:
+            m.eval()
+        try:
+            return branch(x)
+        finally:
+            for m in norms:
+                m.train()
 
     def _resize(self, x: Tensor) -> Tensor:
         if self.input_size is None or tuple(x.shape[-2:]) == self.input_size:
