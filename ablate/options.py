@@ -181,6 +181,7 @@ RULES: dict[str, Rule] = {
     "data.order_seed": Rule((WHOLE,)),
     **{f"data.synth.{size}": Rule((POSITIVE_INT,)) for size in ("frames", "height", "width")},
     "data.synth.seed": Rule((WHOLE,)),
+    "data.synth.furniture": Rule((BOOL,), note="street furniture in every scene (ablate.data.synth)"),
     "data.conditions": Rule((Kind("strs", values=CONDITIONS, filled=True),)),
     "data.lidar_weather": Rule((Kind("strs", values=LIDAR_WEATHER, filled=True),), null="no weather"),
     "data.severity": Rule((NON_NEGATIVE,), note="1: the defaults, 0: no change"),

@@ -22,6 +22,7 @@ def main(argv: list[str] | None = None) -> None:
     syn.add_argument("--height", type=int, default=DEFAULT_SYNTH["height"])
     syn.add_argument("--width", type=int, default=DEFAULT_SYNTH["width"])
     syn.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    syn.add_argument("--furniture", action="store_true", help="street furniture in every scene")
     prep = sub.add_parser("prepare", help="precompute the cache of derived LiDAR modalities")
     prep.add_argument("--root", required=True)
     prep.add_argument("--data-dir", default="data")
@@ -39,7 +40,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.command == "synth":
         from ablate.data.generate import generate
 
-        generate(args.out, args.frames, args.seed, args.height, args.width, workers=args.workers)
+        generate(
+            args.out, args.frames, args.seed, args.height, args.width, workers=args.workers, furniture=args.furniture
+        )
     elif args.command == "masks":
         from ablate.data.datamodule import resolve_split_dir
         from ablate.data.masks import figure

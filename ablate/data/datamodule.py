@@ -82,7 +82,9 @@ def collate(samples: list[dict]) -> dict:
 
 
 def synth_dir(data_dir: str | Path, params: dict) -> Path:
-    """data_dir/synth-<hash of the generator parameters>."""
+    """data_dir/synth-<hash of the generator parameters>; ``furniture`` counts only where on (the datasets made
+    before it keep their names)."""
+    params = {k: v for k, v in params.items() if k != "furniture" or v}
     key = hashlib.sha1(json.dumps(params, sort_keys=True).encode()).hexdigest()[:8]
     return Path(data_dir) / f"synth-{key}"
 
@@ -111,6 +113,7 @@ def ensure_synth(data_dir: str | Path, params: dict | None) -> Path:
                     params["height"],
                     params["width"],
                     workers=min(2, os.cpu_count() or 1),
+                    furniture=bool(params.get("furniture", False)),
                 )
     return out
 

@@ -47,11 +47,14 @@ def frame_rng(seed: int, index: int) -> np.random.Generator:
     return np.random.default_rng([seed, index])
 
 
-def render_frame(seed: int, index: int, height: int = 128, width: int = 416, lidar_fov: float = 45.0) -> dict:
+def render_frame(
+    seed: int, index: int, height: int = 128, width: int = 416, lidar_fov: float = 45.0, furniture: bool = False
+) -> dict:
     """Render one frame: rgb (H,W,3) uint8, depth (H,W) float32 (0 = sky), points (N,4) float32, labels
-    (list of Object3D), instance (H,W) uint16, road (H,W) bool, calib."""
+    (list of Object3D), instance (H,W) uint16, road (H,W) bool, calib. ``furniture``: street furniture in the
+    scene (:func:`ablate.data.synth.sample_scene`)."""
     rng = frame_rng(seed, index)
-    scene = sample_scene(rng)
+    scene = sample_scene(rng, furniture)
     calib = calibration(height, width)
     rays = camera_rays(calib.P2, height, width)
     hit = cast(scene, np.zeros(3, np.float32), rays)
@@ -157,8 +160,8 @@ def write_frame(out: Path, frame: dict, name: str) -> None:
 
 
 def _job(args: tuple) -> None:
-    out, seed, index, height, width, fov = args
-    write_frame(Path(out), render_frame(seed, index, height, width, fov), f"{index:06d}")
+    out, seed, index, height, width, fov, furniture = args
+    write_frame(Path(out), render_frame(seed, index, height, width, fov, furniture), f"{index:06d}")
 
 
 def split_frames(
@@ -181,12 +184,14 @@ def generate(
     lidar_fov: float = 45.0,
     workers: int = 1,
     progress: bool = True,
+    furniture: bool = False,
 ) -> Path:
-    """Write ``frames`` generated frames under ``out`` (KITTI object layout) with a 60/20/20 split."""
+    """Write ``frames`` generated frames under ``out`` (KITTI object layout) with a 60/20/20 split; ``furniture``:
+    street furniture in every scene (:func:`ablate.data.synth.sample_scene`)."""
     out = Path(out)
     for sub in ("image_2", "velodyne", "calib", "label_2", "instance_2", "gt_image_2", "ImageSets"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    jobs = [(str(out), seed, i, height, width, lidar_fov) for i in range(frames)]
+    jobs = [(str(out), seed, i, height, width, lidar_fov, furniture) for i in range(frames)]
     # a bar on a terminal only (tqdm's disable=None): in a log file its refreshes would be most of the log
     bar = tqdm(total=frames, desc=f"generating {out}", disable=(not progress) or None, unit="frame")
     if workers > 1 and frames > 1:
@@ -207,6 +212,7 @@ def generate(
         "width": width,
         "lidar_fov": lidar_fov,
         "version": GENERATOR_VERSION,
+        **({"furniture": True} if furniture else {}),  # absent where off: the older datasets' parameters
     }
     (out / "synth.json").write_text(json.dumps(params, indent=1) + "\n")
     return out

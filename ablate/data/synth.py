@@ -10,6 +10,11 @@ the number of worker processes. Each scene mixes cues that only one sensor carri
   glossy metallic paint give the LiDAR few or no returns (ablate.data.lidar_physics) while the camera sees them.
 - LiDAR only: a raised kerb whose sidewalk has the road's colour and texture, objects painted like the road
   or sidewalk behind them (``camouflaged``: height and distance tell them apart), distances.
+- Street furniture (``furniture=True``; off in the data of every published table but where its config sets it):
+  poles, tree trunks under their crowns, bollards and bins, hedges along the sidewalks. In depth a hedge is a
+  car-sized block and a bin or bollard a pedestrian-sized one; the camera tells them apart by colour, texture and
+  shape. Real streets have this clutter: on one pixel grid, KITTI's frames have 4x the generated frames' share of
+  background pixels at a depth edge without it (``bench/depth_clutter.py``, docs/recipes.md#instance_cpu).
 
 Car colours follow a fleet-like palette (white, silver, grey, black, red, blue, other) with the reflectance of
 each paint at 905 nm; a share of non-black cars has glossy metallic paint. Objects: parked and moving cars,
@@ -33,7 +38,7 @@ BEAMS = np.linspace(2.0, -24.8, 64)  # HDL-64E elevation angles (degrees), top t
 CAR, PEDESTRIAN, BUILDING = 0, 1, 2
 CLASS_NAMES = {CAR: "Car", PEDESTRIAN: "Pedestrian"}
 # Box parts: how the camera shades them and whether their faces are glass.
-FACADE, BODY, CABIN, WHEEL, HEAD, TORSO, LEGS = range(7)
+FACADE, BODY, CABIN, WHEEL, HEAD, TORSO, LEGS, FURNITURE = range(8)
 #: Car paints: (share, RGB, reflectance range at 905 nm).
 PAINTS = [
     (0.22, (0.88, 0.88, 0.86), (0.6, 0.8)),
@@ -90,8 +95,9 @@ class _Boxes:
         s["box_refl"], s["box_gloss"] = np.array(cols[5], np.float32), np.array(cols[6], np.float32)
 
 
-def sample_scene(rng: np.random.Generator) -> dict[str, Any]:
-    """Road layout, border mode, palette, sun, buildings, cars and pedestrians of one frame."""
+def sample_scene(rng: np.random.Generator, furniture: bool = False) -> dict[str, Any]:
+    """Road layout, border mode, palette, sun, buildings, cars and pedestrians of one frame; with ``furniture``,
+    street furniture too (drawn last, so the rest of the scene is the same as without it)."""
     s = _road_layout(rng)
     _border(rng, s)
     boxes = _Boxes()
@@ -99,7 +105,11 @@ def sample_scene(rng: np.random.Generator) -> dict[str, Any]:
         if rng.random() < 0.25:
             continue
         _buildings(rng, s, boxes, sign)
-    objects = _road_users(rng, s, boxes)
+    placed: list[tuple[float, float, float]] = []
+    objects = _road_users(rng, s, boxes, placed)
+    if furniture:
+        for sign in (-1, 1):
+            _street_furniture(rng, s, boxes, sign, placed)
     boxes.into(s)
     s["objects"] = objects
     return s
@@ -161,11 +171,13 @@ def _buildings(rng: np.random.Generator, s: dict[str, Any], boxes: _Boxes, sign:
         z += length + rng.uniform(0, 8)
 
 
-def _road_users(rng: np.random.Generator, s: dict[str, Any], boxes: _Boxes) -> list[tuple]:
+def _road_users(
+    rng: np.random.Generator, s: dict[str, Any], boxes: _Boxes, placed: list[tuple[float, float, float]]
+) -> list[tuple]:
     """Parked and moving cars and pedestrians on sidewalks and crossing, none overlapping another; returns their
-    (class, x, bottom y, z, l, h, w, yaw) in the camera frame."""
+    (class, x, bottom y, z, l, h, w, yaw) in the camera frame and adds their footprints (x, z, radius) to
+    ``placed``."""
     half, side = s["road_half_width"], s["sidewalk"]
-    placed: list[tuple[float, float, float]] = []
     objects: list[tuple] = []  # (class, x, bottom y, z, l, h, w, yaw) in the camera frame
     for _ in range(int(rng.integers(2, 12))):
         is_car = rng.random() < 0.7
@@ -192,6 +204,59 @@ def _road_users(rng: np.random.Generator, s: dict[str, Any], boxes: _Boxes) -> l
         (_car if is_car else _pedestrian)(boxes, len(objects), rng, xc, base, zc, dims, yaw, camo)
         objects.append((CAR if is_car else PEDESTRIAN, xc, base, zc, *dims, yaw))
     return objects
+
+
+#: Street furniture: (share, kind). Sizes in metres, reflectances at 905 nm (foliage about 0.8, the HDL-64E
+#: datasheet's figure; painted metal and plastic as car paint).
+FURNITURE_KINDS = ((0.3, "pole"), (0.25, "tree"), (0.3, "bollard"), (0.15, "hedge"))
+FOLIAGE = ((0.16, 0.32, 0.10), (0.22, 0.38, 0.14), (0.12, 0.24, 0.08))
+STREET_GREYS = ((0.45, 0.46, 0.48), (0.25, 0.27, 0.25), (0.12, 0.30, 0.16), (0.55, 0.50, 0.40))
+
+
+def _street_furniture(
+    rng: np.random.Generator, s: dict[str, Any], boxes: _Boxes, sign: int, placed: list[tuple[float, float, float]]
+) -> None:
+    """Poles and bollards at the kerb, trees and hedges at the sidewalk's outer edge, on one side of the road
+    (``sign``: -1 left, 1 right), 2-70 m ahead, a gap of 3-12 m after each; background (owner -1, no label) for
+    every task. None stands on a road user's footprint (``placed``)."""
+    half, side, kerb = s["road_half_width"], s["sidewalk"], CAMERA_HEIGHT - s["curb"]
+    z = rng.uniform(2, 8)
+    while z < 70:
+        kind = FURNITURE_KINDS[rng.choice(len(FURNITURE_KINDS), p=[k[0] for k in FURNITURE_KINDS])][1]
+        outer = kind in ("tree", "hedge")
+        lateral = sign * (half + (side - rng.uniform(0.4, 0.8) if outer else rng.uniform(0.3, 0.6)))
+        xc = road_centre(s, z) + lateral
+        along = np.pi / 2 + np.arctan(s["curvature"] * z)  # a box's length along the road
+        if kind == "hedge":
+            length, width, height = rng.uniform(2, 8), rng.uniform(0.6, 1.0), rng.uniform(0.8, 1.6)
+        elif kind == "tree":
+            length = width = rng.uniform(0.2, 0.4)
+            height = rng.uniform(2.0, 3.0)
+        elif kind == "pole":
+            length = width = rng.uniform(0.1, 0.25)
+            height = rng.uniform(3.0, 8.0)
+        else:
+            length = width = rng.uniform(0.25, 0.7)
+            height = rng.uniform(0.5, 1.2)
+        zc, radius = z + (length / 2 if kind == "hedge" else 0.0), max(length, width) / 2
+        if not any(np.hypot(xc - px, zc - pz) < radius + pr + 0.2 for px, pz, pr in placed):
+            if kind in ("hedge", "tree"):
+                colour = np.array(FOLIAGE[rng.integers(len(FOLIAGE))]) * rng.uniform(0.8, 1.2, 3)
+                refl = rng.uniform(0.5, 0.8)
+            else:
+                colour = np.array(STREET_GREYS[rng.integers(len(STREET_GREYS))]) * rng.uniform(0.85, 1.15, 3)
+                refl = rng.uniform(0.2, 0.6)
+            if kind == "tree":  # a brown trunk under a crown of foliage
+                boxes.add((xc, kerb, zc, length / 2, height / 2, width / 2, along), -1, BUILDING, FURNITURE,
+                          np.array((0.30, 0.22, 0.15)) * rng.uniform(0.8, 1.2), rng.uniform(0.3, 0.5))  # fmt: skip
+                crown = rng.uniform(2.0, 4.0)
+                boxes.add((xc, kerb - height, zc, crown / 2, rng.uniform(1.0, 2.0), crown / 2, along), -1, BUILDING,
+                          FURNITURE, colour, refl)  # fmt: skip
+            else:
+                boxes.add((xc, kerb, zc, length / 2, height / 2, width / 2, along), -1, BUILDING, FURNITURE, colour,
+                          refl)  # fmt: skip
+            placed.append((xc, zc, radius))
+        z += (length if kind == "hedge" else 0.0) + rng.uniform(3, 12)
 
 
 def _car(

@@ -71,3 +71,24 @@ def test_cli_same_seed_same_bytes(tmp_path):
     read_labels(root / "label_2" / "000000.txt")
     sets = {s: (root / "ImageSets" / f"{s}.txt").read_text().split() for s in ("train", "val", "test")}
     assert sorted(sum(sets.values(), [])) == [f"{i:06d}" for i in range(5)] and len(sets["train"]) == 3
+
+
+def test_street_furniture_adds_unlabelled_depth_clutter_and_leaves_the_rest_of_the_scene():
+    from ablate.data.datamodule import synth_dir
+    from ablate.data.synth import BUILDING, FURNITURE, sample_scene
+
+    plain, furnished = (sample_scene(np.random.default_rng([0, 5]), furniture=f) for f in (False, True))
+    extra = len(furnished["boxes"]) - len(plain["boxes"])
+    assert extra > 0 and (furnished["part"][-extra:] == FURNITURE).all()  # drawn after everything else
+    assert (furnished["owner"][-extra:] == -1).all() and (furnished["cls"][-extra:] == BUILDING).all()
+    np.testing.assert_array_equal(furnished["boxes"][:-extra], plain["boxes"])
+    assert furnished["objects"] == plain["objects"]  # the same road users: the same labels to find
+    for f in (render_frame(0, 5, 64, 208, furniture=True),):
+        ids = np.unique(f["instance"])  # furniture is background: no instance, no label of its own
+        assert list(ids[ids > 0]) == [k + 1 for k, o in enumerate(f["labels"]) if o.type != "DontCare"]
+    params = {"frames": 5, "seed": 0, "height": 64, "width": 208, "version": 2}
+    assert (
+        synth_dir("d", {**params, "furniture": False})
+        == synth_dir("d", params)
+        != synth_dir("d", {**params, "furniture": True})
+    )
