@@ -53,13 +53,17 @@ def ledger(pred: dict, target: dict, height: int) -> list[tuple[float, str]]:
     order = torch.argsort(scores, descending=True)
     iou, inside = ious(masks, gt) if len(gt) and len(masks) else (None, None)
     ignore = target.get("ignore")
+    in_ignore = (  # at least half of each detection inside the DontCare region
+        (masks & ignore.bool()).flatten(1).sum(1) >= 0.5 * masks.flatten(1).sum(1)
+        if ignore is not None and len(masks)
+        else torch.zeros(len(masks), dtype=torch.bool)
+    )
     matched = torch.zeros(len(gt), dtype=torch.bool)
     out: list[tuple[float, str]] = []
     for d in order.tolist():
         score = float(scores[d])
         if iou is None:
-            in_ignore = ignore is not None and float((masks[d] & ignore.bool()).sum()) >= 0.5 * float(masks[d].sum())
-            out.append((score, "ignored" if in_ignore else "background"))
+            out.append((score, "ignored" if in_ignore[d] else "background"))
             continue
         same = labels == classes[d]
         free = same & is_counted & ~matched & (iou[d] >= 0.5)
@@ -67,9 +71,7 @@ def ledger(pred: dict, target: dict, height: int) -> list[tuple[float, str]]:
             k = int(torch.where(free, iou[d], torch.full_like(iou[d], -1)).argmax())
             matched[k] = True
             out.append((score, "tp"))
-        elif (~is_counted & (inside[d] >= 0.5)).any() or (
-            ignore is not None and float((masks[d] & ignore.bool()).sum()) >= 0.5 * float(masks[d].sum())
-        ):
+        elif (~is_counted & (inside[d] >= 0.5)).any() or in_ignore[d]:
             out.append((score, "ignored"))
         elif (same & matched & (iou[d] >= 0.5)).any():
             out.append((score, "duplicate"))
