@@ -246,15 +246,18 @@ def _street_furniture(
             else:
                 colour = np.array(STREET_GREYS[rng.integers(len(STREET_GREYS))]) * rng.uniform(0.85, 1.15, 3)
                 refl = rng.uniform(0.2, 0.6)
-            if kind == "tree":  # a brown trunk under a crown of foliage
-                boxes.add((xc, kerb, zc, length / 2, height / 2, width / 2, along), -1, BUILDING, FURNITURE,
-                          np.array((0.30, 0.22, 0.15)) * rng.uniform(0.8, 1.2), rng.uniform(0.3, 0.5))  # fmt: skip
+            # a tree's box is its brown trunk, under a crown of foliage
+            trunk = kind == "tree"
+            base = (
+                (np.array((0.30, 0.22, 0.15)) * rng.uniform(0.8, 1.2), rng.uniform(0.3, 0.5))
+                if trunk
+                else (colour, refl)
+            )
+            boxes.add((xc, kerb, zc, length / 2, height / 2, width / 2, along), -1, BUILDING, FURNITURE, *base)
+            if trunk:
                 crown = rng.uniform(2.0, 4.0)
-                boxes.add((xc, kerb - height, zc, crown / 2, rng.uniform(1.0, 2.0), crown / 2, along), -1, BUILDING,
-                          FURNITURE, colour, refl)  # fmt: skip
-            else:
-                boxes.add((xc, kerb, zc, length / 2, height / 2, width / 2, along), -1, BUILDING, FURNITURE, colour,
-                          refl)  # fmt: skip
+                box = (xc, kerb - height, zc, crown / 2, rng.uniform(1.0, 2.0), crown / 2, along)
+                boxes.add(box, -1, BUILDING, FURNITURE, colour, refl)
             placed.append((xc, zc, radius))
         z += (length if kind == "hedge" else 0.0) + rng.uniform(3, 12)
 
