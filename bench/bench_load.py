@@ -95,12 +95,14 @@ HEADER = (
 
 
 def kind_of(err: BaseException) -> str:
-    """A short name of what went wrong: the exception's class and, for the store's own words, those words."""
+    """A short name of what went wrong: the exception's class and the store's own words (a known phrase, else the
+    message's first 300 characters)."""
     text = str(err).lower()
     for words in ("database is locked", "database is busy", "does not answer", "unique constraint", "timed out"):
         if words in text:
             return f"{type(err).__name__}: {words}"
-    return type(err).__name__
+    first = " ".join(str(err).split())[:300]
+    return f"{type(err).__name__}: {first}" if first else type(err).__name__
 
 
 def writer(load: Load, index: int, barrier) -> None:

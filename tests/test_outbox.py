@@ -189,6 +189,12 @@ def test_what_counts_as_a_server_that_does_not_answer():
     assert symptom(MlflowException(REFUSED)) == "connection refused"
     assert symptom(requests.exceptions.ConnectTimeout("x")) == "connection error"
     assert symptom(MlflowException("API request to http://h failed with timeout exception x")) == "timed out"
+    broken = "('Connection broken: IncompleteRead(0 bytes read, 2 more expected)', IncompleteRead(0 bytes read))"
+    # a server killed while it sent its answer (the request may have been stored: the outbox sends it again)
+    assert symptom(MlflowException(f"API request to http://h/api/2.0/mlflow/runs/log-batch failed {broken}")) == (
+        "connection dropped"
+    )
+    assert symptom(requests.exceptions.ChunkedEncodingError("x")) == "connection error"
     assert symptom(MlflowException("INVALID_PARAMETER_VALUE: bad metric")) is None
     assert symptom(MlflowException("API request failed with error code 401 != 200")) is None
     assert shown("postgresql://ablate:secret@127.0.0.1:5433/mlflow") == "postgresql://127.0.0.1:5433/mlflow"

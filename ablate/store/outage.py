@@ -43,6 +43,8 @@ SYMPTOMS = (
     ("connection reset", "connection dropped"),
     ("remotedisconnected", "connection dropped"),
     ("remote end closed connection", "connection dropped"),
+    ("connection broken", "connection dropped"),  # killed while it sent its answer (urllib3's IncompleteRead)
+    ("response ended prematurely", "connection dropped"),
     ("server closed the connection unexpectedly", "connection dropped"),
     ("timeout exception", "timed out"),
     ("timed out", "timed out"),
@@ -65,7 +67,11 @@ def symptom(err: BaseException) -> str | None:
     for phrase, words in SYMPTOMS:
         if phrase in text:
             return words
-    network = (requests.exceptions.ConnectionError, requests.exceptions.Timeout)
+    network = (
+        requests.exceptions.ConnectionError,
+        requests.exceptions.Timeout,
+        requests.exceptions.ChunkedEncodingError,
+    )
     return "connection error" if isinstance(err, network) else None
 
 
