@@ -1,4 +1,5 @@
-# `make run`: set up (a venv in .venv) and run ChiNet Table II on the generated default data.
+# `make run`: set up (a venv in .venv) and race BiFNet Table IV on the generated default data: every row on its
+# published config (table.tuned_from=published), one planned look of 3 seeds per row (the cheapest paper table).
 # `make test`: set up and run the tests.
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -23,7 +24,7 @@ $(VENV)/.installed: pyproject.toml
 setup: $(VENV)/.installed
 
 run: setup
-	$(PY) -m ablate -m experiment=chinet_table2
+	$(PY) -m ablate -m experiment=bifnet_table4 table.tuned_from=published 'scale.race.looks=[3]'
 
 # the test files spread over every core, one file per worker at a time (module fixtures are built once; the Ray and
 # PostgreSQL tests of one file never run beside each other), in the order tests/conftest.py gives them, slowest
