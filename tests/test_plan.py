@@ -74,7 +74,7 @@ def test_the_headline_sweep_plans_its_two_experts_first_and_estimates_its_wall_t
     # two at a time: both experts side by side, then the four rows two by two
     assert wall_seconds(plan, 2) == pytest.approx(plan[0].seconds + 2 * fused)
     assert wall_seconds(plan, 1) == pytest.approx(2 * plan[0].seconds + 4 * fused)
-    text = lines(plan, 2, race=False)
+    text = lines(plan, 2, race=0)
     assert text[0] == "Sweep plan: 4 job(s), 2 at a time; 2 expert(s) to train first"
     assert text[-1] == f"Sweep ETA: ~{(plan[0].seconds + 2 * fused) / 60:.1f} min"
 
@@ -100,9 +100,12 @@ def test_trained_experts_and_finished_jobs_cost_nothing_and_a_race_plans_its_fir
     clock = Clock()
     estimate(plan, measure=clock.measure, clock=clock)
     assert clock.measured == ["sum", "max"]  # each row once, its first seed to train
-    text = lines(plan, 2, race=True)
+    text = lines(plan, 2, race=3)
     assert text[0] == "Sweep plan: 6 job(s) (the first look of a race), 2 at a time; 2 done already (skipped)"
     assert len(text) == 2 + 4 and text[-1].endswith("; later looks add seeds where rows are undecided")
+    text = lines(plan, 2, race=1)  # a race of one planned look (`make run`'s): no later look to promise
+    assert text[0] == "Sweep plan: 6 job(s) (a race of one look), 2 at a time; 2 done already (skipped)"
+    assert "later looks" not in text[-1]
 
 
 def test_a_later_look_plans_the_experts_of_its_new_seeds_only(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

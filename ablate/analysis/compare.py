@@ -1,13 +1,14 @@
 """Your runs of a paper table beside the published ones: does your machine give the published numbers?
 
-``make run`` races ChiNet Table II on the user's machine and ends here instead of overwriting the published table:
+``make run`` races BiFNet Table IV on the user's machine and ends here instead of overwriting the published table:
 for each row, the user's mean of the table's primary metric beside the published mean (from the committed records,
 :mod:`ablate.tables.records`), how many of the user's seeds lie inside the published row's 95 % prediction interval
 for a new seed (:func:`ablate.tables.significance.prediction_interval`: the range one new run should fall in), and
 which of CPU, ISA, precision and threads differ from the published runs', and whether each row ran the published
-config: compared by its hash (the same config whatever route set its values), else by the tuned config (a
-published row raced on the config a tuning phase chose for it, :mod:`ablate.sweep.tuning`, while ``make run``
-races the recipe). Results follow the instruction set's
+config: compared by its hash (the same config whatever route set its values: ``make run`` races each row on its
+published config, ``table.tuned_from=published``), else by the tuned config (a published row raced on the config a
+tuning phase chose for it, :mod:`ablate.sweep.tuning`, beside a row raced on the recipe). Results follow the
+instruction set's
 kernels and the thread count (a reduction adds in another order), so a machine of another ISA is expected to give
 other numbers for the same seed, inside the interval rather than equal to it.
 """

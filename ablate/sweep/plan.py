@@ -225,12 +225,14 @@ def kind_seconds(plan: list[Item]) -> dict[str, float]:
     return {kind: sum(s) / len(s) for kind, s in seconds.items()}
 
 
-def lines(plan: list[Item], parallel: int, race: bool) -> list[str]:
-    """The plan as log lines: a header, one line per item, the estimated wall time."""
+def lines(plan: list[Item], parallel: int, race: int) -> list[str]:
+    """The plan as log lines: a header, one line per item, the estimated wall time; ``race``: the looks of the race
+    whose first look the jobs are (0: no race)."""
     experts = [i for i in plan if i.key.startswith("expert") and not i.done]
     jobs = [i for i in plan if not i.key.startswith("expert")]
     skipped = sum(i.done for i in jobs)
-    header = f"Sweep plan: {len(jobs)} job(s){' (the first look of a race)' if race else ''}, {parallel} at a time"
+    what = " (the first look of a race)" if race > 1 else " (a race of one look)" if race == 1 else ""
+    header = f"Sweep plan: {len(jobs)} job(s){what}, {parallel} at a time"
     header += f"; {len(experts)} expert(s) to train first" if experts else ""
     header += f"; {skipped} done already (skipped)" if skipped else ""
     out = [header]
@@ -238,7 +240,7 @@ def lines(plan: list[Item], parallel: int, race: bool) -> list[str]:
         guess = f"~{_minutes(item.seconds)} ({item.how})" if item.seconds is not None else "not estimated"
         out.append(f"  {item.name}: {guess}")
     wall = wall_seconds(plan, parallel)
-    more = "; later looks add seeds where rows are undecided" if race else ""
+    more = "; later looks add seeds where rows are undecided" if race > 1 else ""
     out.append(f"Sweep ETA: {'~' + _minutes(wall) if wall is not None else 'unknown until a job ends'}{more}")
     return out
 
@@ -249,10 +251,10 @@ def _minutes(seconds: float | None) -> str:
 
 
 def log_plan(
-    config: DictConfig, jobs: list[list[str]], parallel: int, done: Callable[[DictConfig], bool], race: bool
+    config: DictConfig, jobs: list[list[str]], parallel: int, done: Callable[[DictConfig], bool], race: int
 ) -> list[Item]:
     """Compose, estimate and log the plan of a sweep's ``jobs`` (``plan.measure_s`` seconds of step timing at most; 0:
-    none; ``race``: they are the first look of a race); return it."""
+    none; ``race``: the looks of the race whose first look they are, 0 for none); return it."""
     measure_s = float(OmegaConf.select(config, "plan.measure_s", default=MEASURE_S))
     plan = items(config, done, jobs=jobs)
     said = lines(plan, parallel, race)
@@ -275,6 +277,6 @@ def log_sweep(config: DictConfig, sweep: SweepPlan, tracker: Tracker, sweep_dir:
     def done(cfg: DictConfig) -> bool:
         return done_in_store(tracker, exp, config_hash(cfg), run_kind(cfg))
 
-    plan = log_plan(config, jobs, workers(config), done, race=sweep.race is not None)
+    plan = log_plan(config, jobs, workers(config), done, race=len(sweep.race.looks) if sweep.race is not None else 0)
     estimated(sweep_dir, kind_seconds(plan), row_jobs(plan))
     experts_planned(sweep_dir, *expert_seconds(plan))
