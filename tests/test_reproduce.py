@@ -9,7 +9,7 @@ import pytest
 
 from ablate.tables.records import reseal_records
 from ablate.tables.significance import prediction_interval
-from tests.test_cli import TINY, ablate, runs
+from tests.test_cli import REPO, TINY, ablate, runs
 
 
 @pytest.fixture(scope="module")
@@ -105,25 +105,45 @@ def test_a_tuned_row_is_rerun_on_the_config_it_was_tuned_to() -> None:
         tuned_config(mixed, cfg)
 
 
-@pytest.mark.parametrize("table", ["chinet_table2", "bifnet_table4"])
-def test_one_command_races_every_row_on_its_published_config_hash_for_hash(table):
-    """``table.tuned_from=published`` puts each row's jobs on the config its published records were tuned to: with
-    the records' own numerics, every row's job of seed 0 has the published run's config hash, tuned rows included."""
+def on_published_hashes(args: list[str]):
+    """The sweep plan of ``python -m ablate -m ARGS``, after checking that every row's job of seed 0 has the published
+    run's config hash (with the records' own numerics)."""
     from ablate.config import compose
     from ablate.jobs.spec import resolved_config
     from ablate.store import config_hash
     from ablate.sweep.launches import SweepPlan
     from ablate.tables import published
 
-    args = [f"experiment={table}", "table.tuned_from=published"]
-    plan = SweepPlan.of(compose(args), args, {})
-    records = pd.read_csv(published.records(table))
+    cfg = compose(args)
+    plan = SweepPlan.of(cfg, args, {})
+    records = pd.read_csv(published.records(str(cfg.table.name)))
     assert records["tuned_config"].notna().any()  # some row raced on a tuned config: the case that matters
     for row, overrides in plan.rows.items():
         mine = records[(records["row"] == row) & (records["seed"] == 0)]
         numerics = f"trainer.precision={mine['made_precision'].iloc[0]}"  # channels_last follows it (auto)
         job, _, _ = resolved_config(compose([*overrides, "seed=0", numerics]))
         assert config_hash(job) == mine["config_hash"].iloc[0], (row, overrides)
+    return plan
+
+
+@pytest.mark.parametrize("table", ["chinet_table2", "bifnet_table4"])
+def test_one_command_races_every_row_on_its_published_config_hash_for_hash(table):
+    """``table.tuned_from=published`` puts each row's jobs on the config its published records were tuned to: with
+    the records' own numerics, every row's job of seed 0 has the published run's config hash, tuned rows included."""
+    on_published_hashes([f"experiment={table}", "table.tuned_from=published"])
+
+
+def test_make_run_races_a_paper_table_on_its_published_configs_in_one_look_of_3_seeds():
+    """The Makefile's ``run`` recipe, as written: a paper table's every row on its published config hash, at least 3
+    seeds per row, in one planned look."""
+    import shlex
+
+    recipe = re.search(r"^run:.*\n\t(.+)$", (REPO / "Makefile").read_text(), re.MULTILINE)
+    assert recipe is not None
+    words = shlex.split(recipe.group(1))
+    assert words[1:4] == ["-m", "ablate", "-m"], words
+    plan = on_published_hashes(words[4:])
+    assert plan.race is not None and list(plan.race.looks) == [3] and len(plan.rows) >= 2
 
 
 def test_racing_on_published_configs_is_refused_where_there_are_none_or_a_tuning_phase_is_asked_too():
