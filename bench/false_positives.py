@@ -48,7 +48,7 @@ def surface_map(seed: int, index: int, height: int, width: int, furniture: bool)
     as :func:`ablate.data.generate.render_frame` casts it)."""
     from ablate.data.generate import calibration, frame_rng
     from ablate.data.raycast import BORDER, BOX, ROAD, SKY, cast
-    from ablate.data.shade import ground_shadow
+    from ablate.data.shade import ground_shadow, lane_marking
     from ablate.data.synth import FACADE, FURNITURE, camera_rays, sample_scene
 
     scene = sample_scene(frame_rng(seed, index), furniture)
@@ -58,13 +58,10 @@ def surface_map(seed: int, index: int, height: int, width: int, furniture: bool)
     part = np.where(kind == BOX, scene["part"][np.maximum(box, 0)], -1)
     owner = np.where(kind == BOX, scene["owner"][np.maximum(box, 0)], -1)
     shadow, contact = ground_shadow(scene, point, (kind == ROAD) | (kind == BORDER))
-    dx, half = hit["dx"], scene["road_half_width"]
-    dash = (np.mod(point[:, 2], 2 * scene["lane_dash"]) < scene["lane_dash"]) & (np.abs(dx) < 0.08)
-    marking = (kind == ROAD) & (dash | (np.abs(np.abs(dx) - (half - 0.25)) < 0.08))
     out = np.full(len(kind), SURFACES.index("road"))
     out[kind == SKY] = SURFACES.index("sky")
     out[(kind == ROAD) & (shadow | contact)] = SURFACES.index("road in shadow")
-    out[marking] = SURFACES.index("lane marking")
+    out[lane_marking(scene, hit)] = SURFACES.index("lane marking")
     out[kind == BORDER] = SURFACES.index("border")
     out[(kind == BOX) & (part == FACADE)] = SURFACES.index("facade")
     out[(kind == BOX) & (part == FURNITURE)] = SURFACES.index("furniture")
@@ -142,9 +139,16 @@ class Surfaces:
         self.by_condition: Counter[str] = Counter()
         self.frames: Counter[str] = Counter()
 
-    def add(self, frame: str, condition: str, pred: dict, rows: list[tuple[float, str]], found: list[int]) -> None:
-        h, w = pred["masks"].shape[-2:] if len(pred["masks"]) else (self.synth["height"], self.synth["width"])
-        surface = surface_map(int(self.synth["seed"]), int(frame), int(h), int(w), bool(self.synth.get("furniture")))
+    def add(
+        self,
+        frame: str,
+        condition: str,
+        size: tuple[int, int],
+        pred: dict,
+        rows: list[tuple[float, str]],
+        found: list[int],
+    ) -> None:
+        surface = surface_map(int(self.synth["seed"]), int(frame), *size, bool(self.synth.get("furniture")))
         self.pixels += np.bincount(surface.ravel(), minlength=len(SURFACES))
         self.frames[condition] += 1
         for (_, kind), d in zip(rows, found):
@@ -189,7 +193,7 @@ def run(
                 rows = ledger(pred, target, size[0], found)
                 out += rows
                 if tally is not None:
-                    tally.add(batch["frame"][i], batch["condition"][i], pred, rows, found)
+                    tally.add(batch["frame"][i], batch["condition"][i], size, pred, rows, found)
     return out, tally
 
 

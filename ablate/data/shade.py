@@ -95,6 +95,14 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
+def lane_marking(scene: dict, hit: dict) -> np.ndarray:
+    """Per ray: on a painted road marking (the dashed centre line, a solid line 0.25 m inside each road edge)."""
+    dx, half, z = hit["dx"], scene["road_half_width"], hit["point"][:, 2]
+    dash = (np.mod(z, 2 * scene["lane_dash"]) < scene["lane_dash"]) & (np.abs(dx) < 0.08)
+    edge = np.abs(np.abs(dx) - (half - 0.25)) < 0.08
+    return (hit["kind"] == ROAD) & (dash | edge)
+
+
 def shade(scene: dict, hit: dict, dirs: np.ndarray) -> np.ndarray:
     """RGB in [0, 1] of every camera ray."""
     p, kind, box = hit["point"], hit["kind"], hit["box"]
@@ -106,10 +114,7 @@ def shade(scene: dict, hit: dict, dirs: np.ndarray) -> np.ndarray:
     rgb = np.zeros((n, 3), np.float32)
     rgb[kind == ROAD] = scene["road_rgb"]
     rgb[kind == BORDER] = scene["border_rgb"]
-    dx, half = hit["dx"], scene["road_half_width"]
-    dash = (np.mod(p[:, 2], 2 * scene["lane_dash"]) < scene["lane_dash"]) & (np.abs(dx) < 0.08)
-    edge = np.abs(np.abs(dx) - (half - 0.25)) < 0.08
-    rgb[(kind == ROAD) & (dash | edge)] = 0.9
+    rgb[lane_marking(scene, hit)] = 0.9
     rgb[isbox] = scene["box_rgb"][box[isbox]]
     part = np.where(isbox, scene["part"][np.maximum(box, 0)], -1)
     lx, ly, lz = hit["local"].T
