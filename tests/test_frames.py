@@ -43,3 +43,29 @@ def test_the_road_max_f_is_recomputed_exactly_from_the_level_histograms_per_fram
     expected = float(metric.compute()["max_f"])  # float32
     assert expected < 95 and max_f_from_histograms(per_frame.sum(axis=0)) == pytest.approx(expected, rel=1e-6)
     assert np.isnan(max_f_from_histograms(np.zeros(514)))  # no road cell
+
+
+def test_the_counts_split_by_run_in_one_pass_are_each_runs_own() -> None:
+    """:func:`counts_by_run` (one pass, what the frames' variance reads) gives each (row, seed) exactly what
+    filtering for it gives (:func:`run_counts`), rows sorted by frame whatever order the records list them in, and
+    leaves out a condition's other runs."""
+    import pandas as pd
+
+    from ablate.tables.frames import counts_by_run, run_counts
+
+    gen = np.random.default_rng(0)
+    rows = [
+        {"row": row, "seed": seed, "frame": f"{frame:06d}", "condition": cond, "c0": gen.integers(9), "c1": 1}
+        for row in ("a", "b")
+        for seed in (0, 1, 2)
+        for cond in ("", "night")
+        for frame in gen.permutation(5)
+        if not (row == "b" and seed == 2 and cond == "")
+    ]
+    frames = pd.DataFrame(rows).sample(frac=1.0, random_state=1).reset_index(drop=True)
+    split = counts_by_run(frames, "")
+    assert sorted(split) == [("a", 0), ("a", 1), ("a", 2), ("b", 0), ("b", 1)]
+    for (row, seed), counts in split.items():
+        pd.testing.assert_frame_equal(counts, run_counts(frames, row, seed, ""))
+        assert list(counts.index) == [f"{i:06d}" for i in range(5)] and list(counts.columns) == ["c0", "c1"]
+    assert run_counts(frames, "b", 2, "").empty and len(counts_by_run(frames, "night")) == 6

@@ -59,3 +59,17 @@ def test_a_package_on_the_way_counts_its_module_imports_not_its_re_exports(tmp_p
     assert "pkg/nn/vgg.py" in files("pkg.nn.chinet.build", "pkg.detector.Detector")
     real = {str(p.relative_to(ROOT)) for p in dependencies({"ablate.nn.chinet.build"})}
     assert "ablate/nn/unet.py" in real and "ablate/nn/vgg.py" not in real
+
+
+def test_a_module_edited_while_the_process_runs_is_read_again(tmp_path):
+    """The imports of each file are parsed once a process (a report asks for the same files for every table), but a
+    file edited since is parsed again."""
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    for name in ("__init__", "a", "b", "c"):
+        (pkg / f"{name}.py").write_text("")
+    (pkg / "a.py").write_text("from pkg.b import f\n")
+    files = lambda: {p.name for p in dependencies({"pkg.a.run"}, "pkg", tmp_path)}  # noqa: E731
+    assert files() == {"__init__.py", "a.py", "b.py"}
+    (pkg / "a.py").write_text("from pkg.b import f\nfrom pkg.c import g\n")
+    assert files() == {"__init__.py", "a.py", "b.py", "c.py"}

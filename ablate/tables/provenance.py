@@ -19,6 +19,7 @@ scored with as its ``evaluator`` tag, and :data:`ablate.metrics.EVALUATORS` name
 from __future__ import annotations
 
 import ast
+import functools
 import subprocess
 import tempfile
 from collections.abc import Callable, Sequence
@@ -47,14 +48,27 @@ def module_file(name: str, root: Path = ROOT) -> Path | None:
 def _imported(path: Path, package: str, root: Path, modules_only: bool = False) -> set[str]:
     """The ``package`` names ``path`` imports; ``modules_only``: just those that are modules (``import a.b``,
     ``from a import b`` with ``a/b.py``), not the names imported from them."""
-    names = set()
+    stat = path.stat()
+    plain, froms = _imports(path, stat.st_mtime_ns, stat.st_size)
+    names = set(plain)
+    for module, members in froms:  # `from module import member`: a module or a name
+        names |= {m for m in members if module_file(m, root)} if modules_only else {*members, module}
+    return {n for n in names if n == package or n.startswith(package + ".")}
+
+
+@functools.lru_cache(maxsize=1024)
+def _imports(path: Path, mtime_ns: int, size: int) -> tuple[tuple[str, ...], tuple[tuple[str, tuple[str, ...]], ...]]:
+    """The absolute imports of the source ``path`` as of its ``mtime_ns`` and ``size``: the modules of ``import
+    a.b``, and (module, its dotted members) of each ``from module import member``. Parsed once a process per version
+    of the file: a report's tables ask for the same files again and again."""
+    plain: list[str] = []
+    froms: list[tuple[str, tuple[str, ...]]] = []
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
-            names |= {a.name for a in node.names}
+            plain += [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            members = {f"{node.module}.{a.name}" for a in node.names}  # `from pkg import module` or a name
-            names |= {m for m in members if module_file(m, root)} if modules_only else members | {node.module}
-    return {n for n in names if n == package or n.startswith(package + ".")}
+            froms.append((node.module, tuple(f"{node.module}.{a.name}" for a in node.names)))
+    return tuple(plain), tuple(froms)
 
 
 def dependencies(targets: set[str], package: str = "ablate", root: Path = ROOT) -> set[Path]:

@@ -46,10 +46,11 @@ from ablate.tables.frames import (
     FROM_COUNTS,
     FROM_DETECTIONS,
     ap_left_out,
+    counts_by_run,
+    detections_by_run,
     detections_from_store,
     from_store,
     run_counts,
-    run_detections,
 )
 
 #: frames_var(row_a, row_b, seeds) -> V_frames of the seed-mean difference a - b over those seeds.
@@ -79,9 +80,13 @@ LeftOut = Callable[[str, int], pd.Series]
 def counts_left_out(frames: pd.DataFrame, primary: str, condition: str = "") -> LeftOut:
     """:data:`LeftOut` from counts per frame (:data:`ablate.tables.frames.FROM_COUNTS`)."""
     metric = FROM_COUNTS[primary]
+    split: list[dict[tuple[str, int], pd.DataFrame]] = []  # the counts by run, split on the first run asked for
 
     def left_out(row: str, seed: int) -> pd.Series:
-        counts = run_counts(frames, row, seed, condition)
+        split[:] = split or [counts_by_run(frames, condition)]
+        counts = split[0].get((row, int(seed)))
+        if counts is None:
+            counts = run_counts(frames, row, seed, condition)  # none: the same empty counts, with their columns
         return pd.Series(left_out_of(counts.to_numpy(), metric), index=counts.index)
 
     return left_out
@@ -89,10 +94,12 @@ def counts_left_out(frames: pd.DataFrame, primary: str, condition: str = "") -> 
 
 def detections_left_out(detections: pd.DataFrame, primary: str, condition: str = "") -> LeftOut:
     """:data:`LeftOut` from the detections per frame of an AP metric (:data:`ablate.tables.frames.FROM_DETECTIONS`)."""
+    split: list[dict[tuple[str, int], pd.DataFrame]] = []  # the detections by run, split on the first run asked for
 
     def left_out(row: str, seed: int) -> pd.Series:
-        rows = run_detections(detections, row, seed, primary, condition)
-        return ap_left_out(rows, primary)[1] if len(rows) else pd.Series(dtype=float)
+        split[:] = split or [detections_by_run(detections, primary, condition)]
+        rows = split[0].get((row, int(seed)))
+        return ap_left_out(rows, primary)[1] if rows is not None and len(rows) else pd.Series(dtype=float)
 
     return left_out
 
