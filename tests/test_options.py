@@ -16,6 +16,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+from hydra.errors import HydraException
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mlflow.tracking import MlflowClient
@@ -404,3 +405,31 @@ def test_a_config_composed_again_is_the_same_and_a_callers_change_stays_its_own(
         compose(["experiment=chinet_table2", "seed=3"])
     )
     assert compose(["experiment=chinet_table3"]).table.name == "chinet_table3"
+
+
+def test_the_same_overrides_in_another_order_or_spelling_are_composed_once_and_a_key_set_twice_keeps_its_order(
+    monkeypatch,
+) -> None:
+    """A sweep's jobs list their row first and say ``False``; the command line said ``false``: one config, composed
+    once. Where the order matters (a key set twice, one inside another, a group appended) it is kept."""
+    import ablate.config as config
+
+    made = []
+    real = config._canonical
+
+    def counted(overrides):
+        made.append(tuple(overrides))
+        return real(overrides)
+
+    monkeypatch.setattr(config, "_composed", type(config._composed)())
+    monkeypatch.setattr(config, "_canonical", counted)
+    first = compose(["experiment=chinet_table2", "publish=false", "row=unet", "++draws.task.optimizer.lr=1e-3"])
+    assert len(config._composed) == 1
+    again = compose(["row=unet", "experiment=chinet_table2", "++draws.task.optimizer.lr=0.001", "publish=False"])
+    assert len(config._composed) == 1 and OmegaConf.to_yaml(again) == OmegaConf.to_yaml(first) and len(made) == 2
+    assert compose(["seed=1", "seed=2"]).seed == 2 and compose(["seed=2", "seed=1"]).seed == 1
+    assert len(config._composed) == 3
+    inner = compose(["data.limit_frames={test:2}", "data.limit_frames.test=3"])
+    assert inner.data.limit_frames.test == 3 and len(config._composed) == 4
+    with pytest.raises(HydraException, match="data.limit_frames.test"):  # set before the dict it lies in: no key
+        compose(["data.limit_frames.test=3", "data.limit_frames={test:2}"])
