@@ -35,6 +35,7 @@ from ablate.tables.frames import (
     write_frames,
 )
 from ablate.tables.frames import from_store as frames_from_store
+from ablate.tables.kept import keep
 from ablate.tables.provenance import Recompute, config_of, provenance
 from ablate.tables.records import RUNS_DIR, check_records, read_records, records_path, write_records
 from ablate.tables.rows import write_rows
@@ -77,16 +78,16 @@ def write_table(
     frames = frames_from_store(tracker, runs) if len(runs) and decomposes else pd.DataFrame()
     if publish and (kept := write_frames(frames, results_dir, str(table.name))) is not None:
         written.append(kept)
-    runs.attrs["frames"] = frames  # the counts per test frame the verdicts read (ablate.tables.twolevel)
+    keep(runs, "frames", frames)  # the counts per test frame the verdicts read (ablate.tables.twolevel)
     matched = str(table.primary) in FROM_DETECTIONS  # an AP task that keeps its detections per test frame
     detections = detections_from_store(tracker, runs) if len(runs) and matched else pd.DataFrame()
     if publish and (kept := write_detections(detections, results_dir, str(table.name))) is not None:
         written.append(kept)
-    runs.attrs["detections"] = detections
+    keep(runs, "detections", detections)
     trials = trials_from_store(tracker, str(table.name))
     if publish and (kept := write_trials(trials, results_dir, str(table.name))) is not None:
         written.append(kept)
-    runs.attrs["trials"] = trials  # what the tuning phase spent (ablate.tables.cost)
+    keep(runs, "trials", trials)  # what the tuning phase spent (ablate.tables.cost)
     runs_dir = Path(results_dir) / RUNS_DIR
     if publish and any(p.parent == runs_dir for p in written):  # each records file sealed by its writer
         written.append(seal_path(runs_dir, str(table.name)))
@@ -115,10 +116,10 @@ def render_records(
     if not path.exists():
         return None
     runs = read_records(path)
-    runs.attrs["frames"] = read_frames(results_dir, str(table.name))
-    runs.attrs["detections"] = read_detections(results_dir, str(table.name))
+    keep(runs, "frames", read_frames(results_dir, str(table.name)))
+    keep(runs, "detections", read_detections(results_dir, str(table.name)))
     trials = read_trials(results_dir, str(table.name))
-    runs.attrs["trials"] = trials  # what the tuning phase spent (ablate.tables.cost)
+    keep(runs, "trials", trials)  # what the tuning phase spent (ablate.tables.cost)
     footer = footer_lines(runs, fingerprint, config(runs) if config is not None else None, 0)
     written = render(cfg, table, runs, results_dir, footer, None, None, tuning_section(trials, table))
     written += tuning_figure(trials, table, results_dir)

@@ -13,6 +13,7 @@ from ablate.tables.comparison import Comparison
 from ablate.tables.cost import table_cost
 from ablate.tables.decide import machine, undecided
 from ablate.tables.frames import FROM_DETECTIONS
+from ablate.tables.kept import kept
 from ablate.tables.raceplan import RacePlan
 from ablate.tables.racing import RaceState, race, race_lines, recorded_plan, seed_values
 from ablate.tables.significance import (
@@ -144,8 +145,9 @@ def kernels_sd(table: DictConfig) -> float:
 
 def table_frames(runs: pd.DataFrame, table: DictConfig) -> FramesVariance | None:
     """The test frames' variance of a table's primary metric, from the counts per frame its runs kept
-    (``runs.attrs["frames"]``, put there by the table's writer; :mod:`ablate.tables.twolevel`); None without."""
-    frames, detections = runs.attrs.get("frames"), runs.attrs.get("detections")
+    (``runs.attrs["frames"]``, put there by the table's writer: :mod:`ablate.tables.kept`;
+    :mod:`ablate.tables.twolevel`); None without."""
+    frames, detections = kept(runs, "frames"), kept(runs, "detections")
     frames = frames if isinstance(frames, pd.DataFrame) else None
     detections = detections if isinstance(detections, pd.DataFrame) else None
     primary, condition = str(table.primary), str(table.get("primary_condition") or "")

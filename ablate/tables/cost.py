@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
+from ablate.tables.kept import kept
 from ablate.tables.racing import RaceState
 
 
@@ -93,7 +94,7 @@ def table_cost(raced: RaceState, runs: pd.DataFrame) -> Cost:
     (``runs.attrs["trials"]``)."""
     comparisons = list(raced.comparisons.values())
     return Cost(
-        tuning_minutes(runs.attrs.get("trials"), runs),
+        tuning_minutes(kept(runs, "trials"), runs),
         race_minutes(runs),
         sum(c.decided for c in comparisons),
         len(comparisons),
