@@ -104,6 +104,11 @@ def test_your_seeds_are_placed_in_the_published_rows_prediction_interval() -> No
     assert line.splitlines()[-1].endswith(
         "; another config (its hash differs from the published one's at the same seed) |"
     )
+    # yours at scale=smoke on the published tuned config (it records only what it set beyond the recipe): the scale
+    # is named, not a tuned config it did not differ in
+    smoke = mine.assign(config_hash=["b0", "b1"], scale="smoke", tuned_config="")
+    line = compare(smoke, theirs.assign(tuned_config=tuned, seed=[0, 1, 2], config_hash="a", scale="cpu"), table)
+    assert line.splitlines()[-1].endswith("; another scale: cpu -> smoke |") and "recipe" not in line, line
     # yours trained on a GPU, the published rows on the CPU (records from before the column name none)
     line = compare(ours.assign(made_gpu="NVIDIA H200"), theirs, table).splitlines()[-1]
     assert "GPU: none -> NVIDIA H200" in line, line

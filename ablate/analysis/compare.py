@@ -57,12 +57,17 @@ def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> s
 def differing(mine: pd.DataFrame, published: pd.DataFrame) -> str:
     """``name: published -> yours`` for each of :data:`ablate.tables.records.NUMERICS` whose values differ, then the
     config: ``same config`` where every seed both have ran the published config hash (however its values were
-    set: a tuning phase, or its draws given on the command line), else the tuned configs where they differ (``the
-    recipe`` for an untuned row, :func:`ablate.tables.tuning.config_text`), else that the hashes differ."""
+    set: a tuning phase, or its draws given on the command line), else the scale where it differs (its config then
+    differs whatever the tuned values: a run raced on the published config at ``scale=smoke`` records only what it
+    set beyond the recipe), else the tuned configs where they differ (``the recipe`` for an untuned row,
+    :func:`ablate.tables.tuning.config_text`), else that the hashes differ."""
     out = numerics_differ(published, mine)
     same = same_config(mine, published)
     if same:
         return "; ".join([*out, "same config"])
+    scales = [sorted({str(s) for s in runs.get("scale", pd.Series(dtype=str)).dropna()}) for runs in (published, mine)]
+    if all(scales) and scales[0] != scales[1]:
+        return "; ".join([*out, f"another scale: {' / '.join(scales[0])} -> {' / '.join(scales[1])}"])
     before, now = (
         sorted({config_text(str(c)) for c in runs.get("tuned_config", pd.Series([""])).fillna("")})
         for runs in (published, mine)
