@@ -6,10 +6,10 @@
 from __future__ import annotations
 
 import argparse
-import os
 
 from ablate.config import RESULTS
 from ablate.data import DEFAULT_SYNTH
+from ablate.hardware import cores
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -21,7 +21,7 @@ def main(argv: list[str] | None = None) -> None:
     syn.add_argument("--seed", type=int, default=DEFAULT_SYNTH["seed"])
     syn.add_argument("--height", type=int, default=DEFAULT_SYNTH["height"])
     syn.add_argument("--width", type=int, default=DEFAULT_SYNTH["width"])
-    syn.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    syn.add_argument("--workers", type=int, default=cores(), help="processes (default: the cores it may use)")
     syn.add_argument("--furniture", action="store_true", help="street furniture in every scene")
     prep = sub.add_parser("prepare", help="precompute the cache of derived LiDAR modalities")
     prep.add_argument("--root", required=True)

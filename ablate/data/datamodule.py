@@ -54,7 +54,6 @@ import fcntl
 import hashlib
 import json
 import logging
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -68,6 +67,7 @@ from ablate.data import DEFAULT_SYNTH, GENERATOR_VERSION, DataError, kitti
 from ablate.data.dataset import LIDAR_DERIVED, MODALITIES, KittiDataset
 from ablate.data.generate import generate, split_frames
 from ablate.data.order import ResumableLoader, trained_batches
+from ablate.hardware import cores
 
 LIST_KEYS = ("frame", "condition", "lidar_condition", "instances", "boxes2d")
 #: What ``data.on_bad_frame`` takes: a bad frame is one DataError (``error``) or is left out and logged (``skip``).
@@ -112,7 +112,7 @@ def ensure_synth(data_dir: str | Path, params: dict | None) -> Path:
                     params["seed"],
                     params["height"],
                     params["width"],
-                    workers=min(2, os.cpu_count() or 1),
+                    workers=cores(),  # the other jobs wait for it: every core; the frames are the same at any count
                     furniture=bool(params.get("furniture", False)),
                 )
     return out
