@@ -66,14 +66,14 @@ def _canonical(overrides: Sequence[str]) -> tuple:
     given = ("as given", tuple(overrides))
     try:
         parsed = OverridesParser.create().parse_overrides(list(overrides))
-    except Exception:  # composing them says what is wrong
+        keys = [(o.key_or_group, str(o.package)) for o in parsed]
+        names = [k for k, _ in keys]
+        nested = any(a.startswith(b + ".") for a in names for b in names)
+        if nested or len(set(keys)) < len(keys) or any(o.is_sweep_override() or o.is_add() for o in parsed):
+            return given
+        return ("by key", tuple(sorted((*k, o.type.name, repr(o.value())) for k, o in zip(keys, parsed, strict=True))))
+    except Exception:  # overrides Hydra cannot read: composing them says what is wrong
         return given
-    keys = [(o.key_or_group, str(o.package)) for o in parsed]
-    names = [k for k, _ in keys]
-    nested = any(a.startswith(b + ".") for a in names for b in names)
-    if nested or len(set(keys)) < len(keys) or any(o.is_sweep_override() or o.is_add() for o in parsed):
-        return given
-    return ("by key", tuple(sorted((*k, o.type.name, repr(o.value())) for k, o in zip(keys, parsed, strict=True))))
 
 
 def searchpath(config: DictConfig) -> list[str]:
