@@ -49,7 +49,7 @@ def main() -> None:
     parser.add_argument("tables", nargs="*", help="published tables (default: all)")
     names = parser.parse_args().tables or experiments()
     torch.set_num_threads(1)
-    print(f"CPU: {cpu().model}, 1 thread; {len(names)} table(s) rendered from a copy of their records")
+    print(f"CPU: {cpu().model} ({cpu().isa}), 1 thread; {len(names)} table(s) rendered from a copy of their records")
     print(f"{'table':<24} {'render (s)':>11} {'with fingerprint check (s)':>27}")
     totals = [0.0, 0.0]
     with tempfile.TemporaryDirectory(prefix="ablate-bench-report-") as scratch:

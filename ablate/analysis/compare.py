@@ -8,9 +8,8 @@ which of CPU, ISA, precision and threads differ from the published runs', and wh
 config: compared by its hash (the same config whatever route set its values: ``make run`` races each row on its
 published config, ``table.tuned_from=published``), else by the tuned config (a published row raced on the config a
 tuning phase chose for it, :mod:`ablate.sweep.tuning`, beside a row raced on the recipe). Results follow the
-instruction set's
-kernels and the thread count (a reduction adds in another order), so a machine of another ISA is expected to give
-other numbers for the same seed, inside the interval rather than equal to it.
+instruction set's kernels and the thread count (a reduction adds in another order), so a machine of another ISA is
+expected to give other numbers for the same seed, inside the interval rather than equal to it.
 """
 
 from __future__ import annotations

@@ -141,36 +141,20 @@ def _read(path: Path) -> pd.DataFrame:
     return frames.fillna(0)
 
 
-def run_counts(frames: pd.DataFrame, row: str, seed: int, condition: str = "") -> pd.DataFrame:
-    """One (row, seed)'s counts under ``condition``, by frame name: [frames, k]."""
-    sel = frames[(frames["row"] == row) & (frames["condition"].astype(str) == condition)]
-    return _by_frame(sel[pd.to_numeric(sel["seed"]) == seed], _count_columns(frames))
-
-
 def counts_by_run(frames: pd.DataFrame, condition: str = "") -> dict[tuple[str, int], pd.DataFrame]:
-    """:func:`run_counts` of every (row, seed) under ``condition`` at once, by (row, seed): one pass over a table's
-    counts, where filtering them again for each run took most of a report's time."""
+    """Each (row, seed)'s counts under ``condition`` ([frames, k] as floats, sorted and indexed by frame name), by
+    (row, seed): one pass over a table's counts (filtering them again for each run took most of a report's time)."""
     sel = frames[frames["condition"].astype(str) == condition]
-    columns = _count_columns(frames)
+    columns = [c for c in frames.columns if c.startswith("c") and c[1:].isdigit()]
     names, counts = sel["frame"].astype(str).to_numpy(), sel[columns].to_numpy(dtype=float)
     runs: dict[tuple[str, int], list[int]] = {}
     for i, key in enumerate(zip(sel["row"].astype(str), pd.to_numeric(sel["seed"]).astype(int), strict=True)):
         runs.setdefault(key, []).append(i)
-    return {(row, int(seed)): _sorted(names[at], counts[at], columns) for (row, seed), at in runs.items()}
-
-
-def _count_columns(frames: pd.DataFrame) -> list[str]:
-    return [c for c in frames.columns if c.startswith("c") and c[1:].isdigit()]
-
-
-def _by_frame(one: pd.DataFrame, columns: list[str]) -> pd.DataFrame:
-    return _sorted(one["frame"].astype(str).to_numpy(), one[columns].to_numpy(dtype=float), columns)
-
-
-def _sorted(names: np.ndarray, counts: np.ndarray, columns: list[str]) -> pd.DataFrame:
-    """One run's counts [frames, k] as floats, its rows sorted by frame name, indexed by it."""
-    order = np.argsort(names, kind="stable")
-    return pd.DataFrame(counts[order], index=pd.Index(names[order], name="frame"), columns=columns)
+    out = {}
+    for key, at in runs.items():
+        order = np.asarray(at)[np.argsort(names[at], kind="stable")]
+        out[key] = pd.DataFrame(counts[order], index=pd.Index(names[order], name="frame"), columns=columns)
+    return out
 
 
 def _mask_ap(rows: dict[str, np.ndarray], keep: np.ndarray | None = None) -> float:

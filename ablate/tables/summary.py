@@ -93,8 +93,7 @@ def reference(summary: pd.DataFrame, table: DictConfig) -> str | None:
 
 def per_seed(runs: pd.DataFrame, row: str, key: str) -> pd.Series:
     """The values of ``key`` of ``row``'s runs, by seed (none missing)."""
-    mine = (runs["row"] == row) if key in runs else None
-    if mine is None or not mine.any():
+    if key not in runs or not (mine := runs["row"] == row).any():
         return pd.Series(dtype=float)
     values = runs[key][mine]  # two columns of a wide frame: selecting its rows first takes 50x longer
     return values.set_axis(pd.Index(runs["seed"][mine], name="seed")).dropna()

@@ -35,6 +35,7 @@ it): conservative again, never liberal. Simulations of the race (``tests/test_tw
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import numpy as np
@@ -50,7 +51,6 @@ from ablate.tables.frames import (
     detections_by_run,
     detections_from_store,
     from_store,
-    run_counts,
 )
 
 #: frames_var(row_a, row_b, seeds) -> V_frames of the seed-mean difference a - b over those seeds.
@@ -80,13 +80,12 @@ LeftOut = Callable[[str, int], pd.Series]
 def counts_left_out(frames: pd.DataFrame, primary: str, condition: str = "") -> LeftOut:
     """:data:`LeftOut` from counts per frame (:data:`ablate.tables.frames.FROM_COUNTS`)."""
     metric = FROM_COUNTS[primary]
-    split: list[dict[tuple[str, int], pd.DataFrame]] = []  # the counts by run, split on the first run asked for
+    by_run = functools.cache(lambda: counts_by_run(frames, condition))  # split on the first run asked for
 
     def left_out(row: str, seed: int) -> pd.Series:
-        split[:] = split or [counts_by_run(frames, condition)]
-        counts = split[0].get((row, int(seed)))
-        if counts is None:
-            counts = run_counts(frames, row, seed, condition)  # none: the same empty counts, with their columns
+        counts = by_run().get((row, int(seed)))
+        if counts is None:  # a run that kept no counts: no frames (variance_of then finds none shared)
+            return pd.Series(dtype=float)
         return pd.Series(left_out_of(counts.to_numpy(), metric), index=counts.index)
 
     return left_out
@@ -94,11 +93,10 @@ def counts_left_out(frames: pd.DataFrame, primary: str, condition: str = "") -> 
 
 def detections_left_out(detections: pd.DataFrame, primary: str, condition: str = "") -> LeftOut:
     """:data:`LeftOut` from the detections per frame of an AP metric (:data:`ablate.tables.frames.FROM_DETECTIONS`)."""
-    split: list[dict[tuple[str, int], pd.DataFrame]] = []  # the detections by run, split on the first run asked for
+    by_run = functools.cache(lambda: detections_by_run(detections, primary, condition))  # split on first use
 
     def left_out(row: str, seed: int) -> pd.Series:
-        split[:] = split or [detections_by_run(detections, primary, condition)]
-        rows = split[0].get((row, int(seed)))
+        rows = by_run().get((row, int(seed)))
         return ap_left_out(rows, primary)[1] if rows is not None and len(rows) else pd.Series(dtype=float)
 
     return left_out
