@@ -28,7 +28,8 @@ def chinet():
 
 def test_the_fingerprint_is_numbers_per_component_and_repeats(chinet):
     cfg, fingerprint = chinet
-    assert list(fingerprint) == list(COMPONENTS) and all(len(v) for v in fingerprint.values())
+    # every component but the training corruptions', which ChiNet does not train on
+    assert list(fingerprint) == list(COMPONENTS[:-1]) and all(len(v) for v in fingerprint.values())
     assert differs(fingerprint, compute(cfg)) is None
     assert differs(fingerprint, decode(encode(fingerprint))) is None
 
@@ -92,6 +93,9 @@ def test_within_the_tolerance_is_the_same_and_beyond_it_is_not():
     assert differs(a, {**a, "model": [3.0 * (1 + 2e-5)]}) is None
     assert differs(a, {**a, "model": [3.0 * (1 + 1e-3)]}) == "model"
     assert differs(a, {**a, "metric": [1e-3]}) == "metric"
+    # a component one side lacks is no rounding: it differs on any kernels
+    assert differs(a, {**a, "corruptions": [1.0]}, across_kernels=True) == "corruptions"
+    assert differs({**a, "loss": [0.5, 0.1]}, a, across_kernels=True) == "loss"
 
 
 OLD = "8edd5de63f9cb74394c0f2c4dea5b28b3c903f21"  # before the top of ablate became store/tables/run
@@ -173,3 +177,19 @@ def test_a_run_recorded_on_avx512_is_compared_across_kernels_where_today_runs_ot
     monkeypatch.setattr("ablate.hardware.kernels", lambda: "AVX512")
     lines = provenance(one, recompute=lambda cfg: moved, config=lambda run_id: None)
     assert any("**Numbers may have moved** for row chinet" in line and "loss differs" in line for line in lines)
+
+
+def test_how_a_blanked_sensors_trunk_trains_is_in_the_fingerprint_and_an_older_record_is_flagged():
+    # DGFN trains on a blanked sensor one update in ten; the two updates of the loss component draw none, so only
+    # the corruption steps see that a blanked trunk now normalises with its running statistics
+    cfg = compose(["experiment=dgfn_table1", "row=dgfn", "scale=smoke"])
+    fingerprint = compute(cfg)
+    before = compute(compose(["experiment=dgfn_table1", "row=dgfn", "scale=smoke", "model.blank_running_stats=false"]))
+    assert differs(fingerprint, before) == "corruptions"
+    older = {name: v for name, v in fingerprint.items() if name != "corruptions"}  # recorded before the component
+    lines = provenance(runs(encode(older)), recompute=lambda cfg: fingerprint, config=lambda run_id: None)
+    assert any(
+        line.startswith("**Numbers may have moved** for row chinet")
+        and "predates the corruptions component that today's code computes" in line
+        for line in lines
+    )

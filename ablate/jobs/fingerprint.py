@@ -2,7 +2,7 @@
 
 A table asks whether its runs' numbers are still what today's code gives. Files changed since a run's commit say
 too much (a rename moves no number), so a job records, at its start, what its resolved config computes on a tiny
-fixed input, on the CPU in fp32 with 1 thread (:func:`compute`), in five components:
+fixed input, on the CPU in fp32 with 1 thread (:func:`compute`), in five components, six for a job that trains on corruptions:
 
 - ``data``: the first two training frames of a small generated dataset (``DATA``: 8 frames at 64 x 208, the job's
   own modalities, targets, conditions and corruptions) as the data pipeline delivers them, generated afresh by each
@@ -11,7 +11,9 @@ fixed input, on the CPU in fp32 with 1 thread (:func:`compute`), in five compone
 - ``model``: the model's outputs on the first of them from its seeded initial weights (eval mode);
 - ``loss``: the training loss after two optimiser steps on it (the job's optimiser and training corruptions);
 - ``schedule``: the learning rate at steps 0, 1, 10, 100, 500 and 999 of the job's schedule over 1000 steps;
-- ``metric``: the task's test metrics on the outputs of the model after those two steps.
+- ``metric``: the task's test metrics on the outputs of the model after those two steps;
+- ``corruptions``, for a job that trains on corruptions only: the loss under each of them in turn
+  (:func:`corruption_steps`).
 
 Each tensor is summarised by three float64 numbers (its sum, its sum of squares, and its sum weighted by
 ``sin(index)``, which sees a permutation); they are stored as numbers, not a hash, and compared with a relative
@@ -45,6 +47,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from ablate.data.datamodule import collate
 from ablate.jobs.preempt import alive
 from ablate.store.fingerprint import COMPONENTS, TAG, decode, differs, encode
+from ablate.tasks.conditions import corrupt
 
 __all__ = ["COMPONENTS", "TAG", "compute", "decode", "differs", "encode", "timed"]
 
@@ -166,13 +169,8 @@ def _compute(cfg: DictConfig) -> dict[str, list[float]]:
     task.train()
     optimizer = task.optimizer_factory(params=task.trainable())  # the base rate: no schedule for two steps
     for step in range(2):
-        step_batch = task.train_corruptions.apply(batch, step) if task.train_corruptions is not None else batch
-        optimizer.zero_grad()
-        loss = task.training_step(step_batch, step)
-        loss = loss["loss"] if isinstance(loss, dict) else loss
-        loss.backward()
-        clip(cfg, task.trainable())
-        optimizer.step()
+        corrupted = task.train_corruptions.apply(batch, step) if task.train_corruptions is not None else batch
+        train_step(cfg, task, optimizer, corrupted, step)
     with torch.no_grad():
         after = task.training_step(batch, 2)
     out["loss"] = summary(after["loss"] if isinstance(after, dict) else after)
@@ -181,7 +179,40 @@ def _compute(cfg: DictConfig) -> dict[str, list[float]]:
     with torch.no_grad():
         task._eval_step(batch, "test")
     out["metric"] = summary([_computed(getattr(task, name)) for name in task._test_metric_names()])
+    if task.train_corruptions is not None:
+        out["corruptions"] = corruption_steps(cfg, task, batch)
     return out
+
+
+def train_step(cfg: DictConfig, task: Any, optimizer: torch.optim.Optimizer, batch: dict, step: int) -> torch.Tensor:
+    """Optimiser step ``step`` of ``task`` on ``batch`` (the job's clipping included); the loss before it."""
+    optimizer.zero_grad()
+    loss = task.training_step(batch, step)
+    loss = loss["loss"] if isinstance(loss, dict) else loss
+    loss.backward()
+    clip(cfg, task.trainable())
+    optimizer.step()
+    return loss.detach()
+
+
+def corruption_steps(cfg: DictConfig, task: Any, batch: dict) -> list[float]:
+    """The ``corruptions`` component: the training loss on the first frame under each corruption the job trains
+    with (every spec of ``task.train_corruptions.choices`` but no action, in their order), one optimiser step after
+    each, from the weights the other components left. The two updates of ``loss`` draw their corruptions as the job
+    would, and may draw none: a change in how the network trains on a blanked or occluded sensor (DGFN §IV-A; the
+    trunk's BatchNorm on a blanked batch, ``model.blank_running_stats``) is seen here."""
+    corruptions = task.train_corruptions
+    specs = [spec for options in corruptions.choices for spec in options if spec]
+    task.train()
+    optimizer = task.optimizer_factory(params=task.trainable())
+    return summary(
+        [
+            train_step(
+                cfg, task, optimizer, corrupt(batch, spec, (corruptions.seed, step, 0), corruptions.severity), step
+            )
+            for step, spec in enumerate(specs)
+        ]
+    )
 
 
 def schedule(task: Any) -> list[float]:

@@ -12,7 +12,7 @@ import math
 import numpy as np
 
 #: The components in the order a difference is looked for: the first that differs is named.
-COMPONENTS = ("data", "model", "loss", "schedule", "metric")
+COMPONENTS = ("data", "model", "loss", "schedule", "metric", "corruptions")
 #: Relative tolerance of a comparison on the kernels the fingerprint was recorded with.
 RTOL, ATOL = 1e-4, 1e-8
 #: Across instruction sets' kernels (AVX-512, AVX2, SSE: ``ATEN_CPU_CAPABILITY``, ``ONEDNN_MAX_CPU_ISA``), measured
@@ -31,16 +31,17 @@ def differs(
 ) -> str | None:
     """The first component (:data:`COMPONENTS`) whose numbers differ beyond ``RTOL``, or None; ``across_kernels``:
     the two were computed on other instruction sets' kernels, and only :data:`ACROSS` is compared, each at its own
-    tolerance."""
+    tolerance. A component one side has and the other lacks (a record made before it was fingerprinted), or with
+    another count of numbers, differs on any kernels."""
     for name in COMPONENTS:
-        if across_kernels and name not in ACROSS:
-            continue
-        rtol = ACROSS[name] if across_kernels else RTOL
         a, b = recorded.get(name), today.get(name)
-        if a is None or b is None or len(a) != len(b):
+        if a is None or b is None or len(a) != len(b):  # another shape is not rounding, on any kernels
             if a != b:
                 return name
             continue
+        if across_kernels and name not in ACROSS:
+            continue
+        rtol = ACROSS[name] if across_kernels else RTOL
         if not np.allclose(np.asarray(a, float), np.asarray(b, float), rtol=rtol, atol=ATOL, equal_nan=True):
             return name
     return None

@@ -147,14 +147,22 @@ def config_of(tracker: Tracker, run_id: str) -> DictConfig:
 def fingerprint_check(
     runs: pd.DataFrame, recompute: Recompute, config: Callable[[str], DictConfig]
 ) -> dict[str, str | None]:
-    """{row: the first fingerprint component that differs today (None: none)} for the rows of ``runs`` that carry
-    a fingerprint, recomputed for each row's lowest seed."""
+    """{row: how its fingerprint differs today, in words (None: it does not)} for the rows of ``runs`` that carry
+    a fingerprint, recomputed for each row's lowest seed: "its fingerprint's <component> differs from today's
+    code", or, for a component its record predates, that the record lacks what today's code fingerprints."""
     out: dict[str, str | None] = {}
     with_tag = runs[runs["fingerprint"].fillna("") != ""] if "fingerprint" in runs else runs.iloc[0:0]
     for row, sel in with_tag.groupby("row", sort=True):
         first = sel.sort_values("seed").iloc[0]
-        across = across_kernels(first)
-        out[str(row)] = differs(decode(first["fingerprint"]), recompute(config(first["run_id"])), across)
+        recorded = decode(first["fingerprint"])
+        component = differs(recorded, recompute(config(first["run_id"])), across_kernels(first))
+        out[str(row)] = (
+            None
+            if component is None
+            else f"its fingerprint's {component} differs from today's code"
+            if component in recorded
+            else f"its fingerprint predates the {component} component that today's code computes for it"
+        )
     return out
 
 
@@ -196,12 +204,11 @@ def provenance(
         sel = runs[commit.str.removesuffix("-dirty") == sha]
         has = sel["fingerprint"].fillna("") != "" if "fingerprint" in sel else pd.Series(False, index=sel.index)
         if recompute is not None and config is not None and has.any():
-            for row, component in fingerprint_check(sel[has], recompute, config).items():
+            for row, reason in fingerprint_check(sel[has], recompute, config).items():
                 checked += 1
-                if component is not None:
+                if reason is not None:
                     lines.append(
-                        f"**Numbers may have moved** for row {row} since {sha[:12]}: its fingerprint's "
-                        f"{component} differs from today's code; rerun it (`force=true`)."
+                        f"**Numbers may have moved** for row {row} since {sha[:12]}: {reason}; rerun it (`force=true`)."
                     )
             sel = sel[~has]
         if sel.empty:
