@@ -2,7 +2,8 @@
 
 A table asks whether its runs' numbers are still what today's code gives. Files changed since a run's commit say
 too much (a rename moves no number), so a job records, at its start, what its resolved config computes on a tiny
-fixed input, on the CPU in fp32 with 1 thread (:func:`compute`), in five components, six for a job that trains on corruptions:
+fixed input, on the CPU in fp32 with 1 thread (:func:`compute`), in five components (six for a job that trains on
+corruptions):
 
 - ``data``: the first two training frames of a small generated dataset (``DATA``: 8 frames at 64 x 208, the job's
   own modalities, targets, conditions and corruptions) as the data pipeline delivers them, generated afresh by each
