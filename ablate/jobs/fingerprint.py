@@ -181,7 +181,7 @@ def _compute(cfg: DictConfig) -> dict[str, list[float]]:
         task._eval_step(batch, "test")
     out["metric"] = summary([_computed(getattr(task, name)) for name in task._test_metric_names()])
     if task.train_corruptions is not None:
-        out["corruptions"] = corruption_steps(cfg, task, batch)
+        out["corruptions"] = corruption_steps(task, batch)
     return out
 
 
@@ -196,24 +196,22 @@ def train_step(cfg: DictConfig, task: Any, optimizer: torch.optim.Optimizer, bat
     return loss.detach()
 
 
-def corruption_steps(cfg: DictConfig, task: Any, batch: dict) -> list[float]:
+def corruption_steps(task: Any, batch: dict) -> list[float]:
     """The ``corruptions`` component: the training loss on the first frame under each corruption the job trains
-    with (every spec of ``task.train_corruptions.choices`` but no action, in their order), one optimiser step after
-    each, from the weights the other components left. The two updates of ``loss`` draw their corruptions as the job
-    would, and may draw none: a change in how the network trains on a blanked or occluded sensor (DGFN §IV-A; the
-    trunk's BatchNorm on a blanked batch, ``model.blank_running_stats``) is seen here."""
+    with (every spec of ``task.train_corruptions.choices`` but no action, in their order), in training mode from
+    the weights the other components left, forward only. The two updates of ``loss`` draw their corruptions as the
+    job would, and may draw none: a change in how the network meets a blanked or occluded sensor in training
+    (DGFN §IV-A; a blanked trunk's BatchNorm, ``model.blank_running_stats``) is seen here. Reading: a change in the
+    backward pass alone under a corruption is not (the ``loss`` component's steps see the backward pass)."""
     corruptions = task.train_corruptions
     specs = [spec for options in corruptions.choices for spec in options if spec]
     task.train()
-    optimizer = task.optimizer_factory(params=task.trainable())
-    return summary(
-        [
-            train_step(
-                cfg, task, optimizer, corrupt(batch, spec, (corruptions.seed, step, 0), corruptions.severity), step
-            )
-            for step, spec in enumerate(specs)
-        ]
-    )
+    losses = []
+    with torch.no_grad():
+        for step, spec in enumerate(specs):
+            loss = task.training_step(corrupt(batch, spec, (corruptions.seed, step, 0), corruptions.severity), step)
+            losses.append(loss["loss"] if isinstance(loss, dict) else loss)
+    return summary(losses)
 
 
 def schedule(task: Any) -> list[float]:
