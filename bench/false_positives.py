@@ -38,6 +38,7 @@ from ablate.analysis.diagnose import checkpoint
 from ablate.config import compose
 from ablate.data.difficulty import counted
 from ablate.jobs.experts import load_model
+from ablate.tasks.yolact.diagnose import mask_overlaps
 
 KINDS = ("ignored", "duplicate", "wrong class", "localisation", "background")
 SURFACES = ("sky", "road", "road in shadow", "lane marking", "border", "facade", "furniture", "object")
@@ -46,14 +47,12 @@ SURFACES = ("sky", "road", "road in shadow", "lane marking", "border", "facade",
 def surface_map(seed: int, index: int, height: int, width: int, furniture: bool) -> np.ndarray:
     """(H, W) index into :data:`SURFACES` of what each pixel of generated frame ``index`` shows (its scene cast again
     as :func:`ablate.data.generate.render_frame` casts it)."""
-    from ablate.data.generate import calibration, frame_rng
-    from ablate.data.raycast import BORDER, BOX, ROAD, SKY, cast
+    from ablate.data.generate import camera_cast
+    from ablate.data.raycast import BORDER, BOX, ROAD, SKY
     from ablate.data.shade import ground_shadow, lane_marking
-    from ablate.data.synth import FACADE, FURNITURE, camera_rays, sample_scene
+    from ablate.data.synth import FACADE, FURNITURE
 
-    scene = sample_scene(frame_rng(seed, index), furniture)
-    rays = camera_rays(calibration(height, width).P2, height, width)
-    hit = cast(scene, np.zeros(3, np.float32), rays)
+    _, scene, _, _, hit = camera_cast(seed, index, height, width, furniture)
     kind, box, point = hit["kind"], hit["box"], hit["point"]
     part = np.where(kind == BOX, scene["part"][np.maximum(box, 0)], -1)
     owner = np.where(kind == BOX, scene["owner"][np.maximum(box, 0)], -1)
@@ -75,14 +74,6 @@ def shares(mask: torch.Tensor, surface: np.ndarray) -> np.ndarray:
     return counts / max(counts.sum(), 1.0)
 
 
-def ious(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(IoU, intersection over a's area) of every mask of ``a`` (N,H,W) with every mask of ``b`` (M,H,W)."""
-    fa, fb = a.flatten(1).float(), b.flatten(1).float()
-    inter = fa @ fb.T
-    area = fa.sum(1, keepdim=True)
-    return inter / (area + fb.sum(1) - inter).clamp(min=1), inter / area.clamp(min=1)
-
-
 def ledger(pred: dict, target: dict, height: int, found: list[int] | None = None) -> list[tuple[float, str]]:
     """(score, kind) of every detection of one image; kind is "tp", one of :data:`KINDS`; plus ("miss") per counted
     ground truth left unmatched, with score nan. ``found``, where given, gets the index in ``pred`` of each
@@ -92,7 +83,7 @@ def ledger(pred: dict, target: dict, height: int, found: list[int] | None = None
     is_counted = counted(tall.double(), height) if len(gt) else torch.zeros(0, dtype=torch.bool)
     masks, scores, classes = pred["masks"].bool(), pred["scores"], pred["labels"]
     order = torch.argsort(scores, descending=True)
-    iou, inside = ious(masks, gt) if len(gt) and len(masks) else (None, None)
+    iou, inside = mask_overlaps(masks, gt) if len(gt) and len(masks) else (None, None)
     ignore = target.get("ignore")
     in_ignore = (  # at least half of each detection inside the DontCare region
         (masks & ignore.bool()).flatten(1).sum(1) >= 0.5 * masks.flatten(1).sum(1)

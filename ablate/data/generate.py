@@ -53,11 +53,7 @@ def render_frame(
     """Render one frame: rgb (H,W,3) uint8, depth (H,W) float32 (0 = sky), points (N,4) float32, labels
     (list of Object3D), instance (H,W) uint16, road (H,W) bool, calib. ``furniture``: street furniture in the
     scene (:func:`ablate.data.synth.sample_scene`)."""
-    rng = frame_rng(seed, index)
-    scene = sample_scene(rng, furniture)
-    calib = calibration(height, width)
-    rays = camera_rays(calib.P2, height, width)
-    hit = cast(scene, np.zeros(3, np.float32), rays)
+    rng, scene, calib, rays, hit = camera_cast(seed, index, height, width, furniture)
     rgb = shade(scene, hit, rays) + rng.normal(0, 0.01, (len(rays), 3)).astype(np.float32)
     image = np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8).reshape(height, width, 3)
     depth = np.where(np.isfinite(hit["t"]), hit["t"], 0).astype(np.float32).reshape(height, width)
@@ -72,6 +68,18 @@ def render_frame(
         "instance": instance,
         "road": (hit["kind"] == ROAD).reshape(height, width),
     }
+
+
+def camera_cast(
+    seed: int, index: int, height: int, width: int, furniture: bool = False
+) -> tuple[np.random.Generator, dict, Calibration, np.ndarray, dict]:
+    """Frame ``index``'s scene cast from the camera: (its generator, after the scene drew from it; the scene; the
+    calibration; one ray per pixel; what each ray hits, :func:`ablate.data.raycast.cast`)."""
+    rng = frame_rng(seed, index)
+    scene = sample_scene(rng, furniture)
+    calib = calibration(height, width)
+    rays = camera_rays(calib.P2, height, width)
+    return rng, scene, calib, rays, cast(scene, np.zeros(3, np.float32), rays)
 
 
 def scan(scene: dict, rng: np.random.Generator, height: int, width: int, lidar_fov: float = 45.0) -> np.ndarray:

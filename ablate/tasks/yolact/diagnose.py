@@ -29,6 +29,14 @@ from ablate.tasks.yolact.task import condition_group
 IOU = 0.5
 
 
+def mask_overlaps(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(IoU, intersection over a's area) of every mask of ``a`` (N,H,W) with every mask of ``b`` (M,H,W)."""
+    fa, fb = a.flatten(1).float(), b.flatten(1).float()
+    inter = fa @ fb.T
+    area = fa.sum(1, keepdim=True)
+    return inter / (area + fb.sum(1) - inter).clamp(min=1), inter / area.clamp(min=1)
+
+
 def found_objects(pred: dict, target: dict, height: int) -> tuple[np.ndarray, np.ndarray]:
     """(counted, found) per ground-truth object of one image: counted = tall enough for the AP; found = a
     same-class detection with mask IoU >= 0.5."""
@@ -41,11 +49,7 @@ def found_objects(pred: dict, target: dict, height: int) -> tuple[np.ndarray, np
     is_counted = counted(tall.double(), height).numpy()
     found = np.zeros(len(gt), dtype=bool)
     if len(gt) and len(pred["masks"]):
-        g = gt.flatten(1).float()
-        p = pred["masks"].bool().flatten(1).float().to(g.device)
-        inter = g @ p.T
-        union = g.sum(1, keepdim=True) + p.sum(1) - inter
-        iou = inter / union.clamp(min=1)
+        iou, _ = mask_overlaps(gt, pred["masks"].bool().to(gt.device))
         same = labels.view(-1, 1).to(pred["labels"].device) == pred["labels"].view(1, -1)
         found = ((iou * same.to(iou.device)) >= IOU).any(1).cpu().numpy()
     return is_counted, found
