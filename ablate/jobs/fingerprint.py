@@ -170,11 +170,14 @@ def _compute(cfg: DictConfig) -> dict[str, list[float]]:
     task.train()
     optimizer = task.optimizer_factory(params=task.trainable())  # the base rate: no schedule for two steps
     for step in range(2):
-        corrupted = task.train_corruptions.apply(batch, step) if task.train_corruptions is not None else batch
-        train_step(cfg, task, optimizer, corrupted, step)
+        step_batch = task.train_corruptions.apply(batch, step) if task.train_corruptions is not None else batch
+        optimizer.zero_grad()
+        loss = _loss(task.training_step(step_batch, step))
+        loss.backward()
+        clip(cfg, task.trainable())
+        optimizer.step()
     with torch.no_grad():
-        after = task.training_step(batch, 2)
-    out["loss"] = summary(after["loss"] if isinstance(after, dict) else after)
+        out["loss"] = summary(_loss(task.training_step(batch, 2)))
     out["schedule"] = schedule(task)
     task.eval()
     with torch.no_grad():
@@ -185,15 +188,9 @@ def _compute(cfg: DictConfig) -> dict[str, list[float]]:
     return out
 
 
-def train_step(cfg: DictConfig, task: Any, optimizer: torch.optim.Optimizer, batch: dict, step: int) -> torch.Tensor:
-    """Optimiser step ``step`` of ``task`` on ``batch`` (the job's clipping included); the loss before it."""
-    optimizer.zero_grad()
-    loss = task.training_step(batch, step)
-    loss = loss["loss"] if isinstance(loss, dict) else loss
-    loss.backward()
-    clip(cfg, task.trainable())
-    optimizer.step()
-    return loss.detach()
+def _loss(out: Any) -> torch.Tensor:
+    """The loss of a ``training_step``'s output (a tensor, or a dict holding it as ``loss``)."""
+    return out["loss"] if isinstance(out, dict) else out
 
 
 def corruption_steps(task: Any, batch: dict) -> list[float]:
@@ -209,8 +206,8 @@ def corruption_steps(task: Any, batch: dict) -> list[float]:
     losses = []
     with torch.no_grad():
         for step, spec in enumerate(specs):
-            loss = task.training_step(corrupt(batch, spec, (corruptions.seed, step, 0), corruptions.severity), step)
-            losses.append(loss["loss"] if isinstance(loss, dict) else loss)
+            corrupted = corrupt(batch, spec, (corruptions.seed, step, 0), corruptions.severity)
+            losses.append(_loss(task.training_step(corrupted, step)))
     return summary(losses)
 
 
