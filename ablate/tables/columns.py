@@ -12,7 +12,7 @@ from omegaconf import DictConfig
 from ablate.tables.comparison import Comparison
 from ablate.tables.cost import table_cost
 from ablate.tables.decide import machine, undecided
-from ablate.tables.frames import FROM_DETECTIONS
+from ablate.tables.frames import AP_DRAWS, FROM_DETECTIONS, verdict_metric
 from ablate.tables.kept import kept
 from ablate.tables.raceplan import RacePlan
 from ablate.tables.racing import RaceState, race, race_lines, recorded_plan, seed_values
@@ -77,7 +77,9 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
                 "measured by rerunning this table's seeds on AVX2 kernels: docs/verdicts.md), added to the seeds'."
             )
         if any(c.frames for c in raced.comparisons.values()):
-            lines.append(FRAMES_LINE)
+            lines.append(
+                AP_FRAMES_LINE if verdict_metric(str(table.primary), None)[0] in FROM_DETECTIONS else FRAMES_LINE
+            )
         elif str(table.primary) in FROM_DETECTIONS:
             lines.append(NO_FRAMES_LINE)
     lines += _top_against_second(summary, runs, key, label, raced, table_frames(runs, table))
@@ -90,6 +92,13 @@ FRAMES_LINE = (
     "re-accumulated from its matched detections), on "
     "Student's t with the seeds' n − 1 degrees of freedom: never narrower than the seeds' own t interval, and free "
     "of Monte Carlo error (ablate.tables.twolevel)."
+)
+AP_FRAMES_LINE = (
+    "The verdicts and Δ read the interval over seeds and test frames: the seeds' variance of the paired differences "
+    f"plus the test frames' (the variance over {AP_DRAWS} paired draws of the frames with replacement, from one fixed "
+    "stream, each run's AP re-accumulated from its matched detections: AP steps with single frames, which a "
+    "jackknife misjudges), on Student's t with the seeds' n − 1 degrees of freedom: never narrower than the seeds' "
+    "own t interval (ablate.tables.twolevel)."
 )
 NO_FRAMES_LINE = (
     "The verdicts read the seeds alone: these records keep no detections per test frame (they were raced before the "
@@ -150,9 +159,7 @@ def table_frames(runs: pd.DataFrame, table: DictConfig) -> FramesVariance | None
     frames, detections = kept(runs, "frames"), kept(runs, "detections")
     frames = frames if isinstance(frames, pd.DataFrame) else None
     detections = detections if isinstance(detections, pd.DataFrame) else None
-    primary, condition = str(table.primary), str(table.get("primary_condition") or "")
-    if "/" in primary:  # a conditions table's flattened primary: <condition>/<metric>
-        condition, primary = primary.split("/", 1)
+    primary, condition = verdict_metric(str(table.primary), table.get("primary_condition"))
     return frames_variance(frames, primary, condition, detections)
 
 

@@ -189,6 +189,26 @@ def detections_from_store(tracker: Tracker, runs: pd.DataFrame) -> pd.DataFrame:
     return _from_store(tracker, runs, FRAME_DETECTIONS, _read_detections)
 
 
+def verdict_metric(primary: str, primary_condition: str | None) -> tuple[str, str]:
+    """(metric, condition) whose frames a table's verdicts resample: its primary metric under its
+    ``primary_condition`` ("" where it has none), or the two halves of a conditions table's flattened primary
+    ``<condition>/<metric>``."""
+    condition = str(primary_condition or "")
+    if "/" in primary:
+        condition, primary = primary.split("/", 1)
+    return primary, condition
+
+
+def verdicts_read(detections: pd.DataFrame, metric: str, condition: str) -> pd.DataFrame:
+    """The rows of ``detections`` that a table's verdicts read (:func:`verdict_metric`): its primary metric under its
+    primary condition. A job keeps every metric under every test input (a DGFN job: 16 inputs by 6 class-levels,
+    about 1 M rows); a table publishes the one pair its intervals are drawn from, 2-5 % of them."""
+    if detections.empty:
+        return detections
+    keep = (detections["metric"] == metric) & (detections["condition"].fillna("").astype(str) == condition)
+    return detections[keep].reset_index(drop=True)
+
+
 def write_detections(detections: pd.DataFrame, results_dir: str | Path, table: str) -> Path | None:
     """``runs/<table>.detections.csv.gz``; None where there are none."""
     return _write(detections, detections_path(results_dir, table))
@@ -215,6 +235,32 @@ def detections_by_run(
     sel = d[(d["metric"] == metric) & (d["condition"].astype(str) == condition)]
     groups = sel.groupby([sel["row"], pd.to_numeric(sel["seed"])], sort=False)
     return {(str(row), int(seed)): one for (row, seed), one in groups}
+
+
+#: The draws of the test frames behind an AP metric's frames' term (:mod:`ablate.tables.twolevel`): how many, and
+#: the seed of the one stream every table and race uses (the same records give the same intervals).
+AP_DRAWS, AP_DRAWS_SEED = 1000, 0
+
+
+def frame_draws(count: int, draws: int = AP_DRAWS, seed: int = AP_DRAWS_SEED) -> np.ndarray:
+    """[draws, count] indices into a table's sorted frame names: each row ``count`` frames drawn with replacement."""
+    return np.random.default_rng(seed).integers(0, count, size=(draws, count))
+
+
+def ap_resampled(rows: pd.DataFrame, metric: str, frames: list[str], draws: np.ndarray) -> np.ndarray:
+    """``metric`` of one run's rows over each draw of ``frames`` ([draws] values): a frame drawn k times counts k
+    times (its rows repeated, in image order), a frame the run lacks adds nothing; NaN where a draw holds no ground
+    truth that counts."""
+    arrays = as_arrays({c: rows[c].to_numpy() for c in COLUMNS})
+    where = pd.Series(np.arange(len(rows))).groupby(rows["frame"].astype(str).to_numpy()).indices
+    none = np.zeros(0, np.int64)
+    positions = [np.asarray(where.get(f, none), np.int64) for f in frames]
+    compute = FROM_DETECTIONS[metric]
+    out = np.empty(len(draws))
+    for i, draw in enumerate(draws):
+        idx = np.sort(np.concatenate([positions[j] for j in draw]))
+        out[i] = compute({c: v[idx] for c, v in arrays.items()}, None)
+    return out
 
 
 def ap_left_out(rows: pd.DataFrame, metric: str) -> tuple[float, pd.Series]:
