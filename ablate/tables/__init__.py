@@ -87,6 +87,7 @@ def write_table(
     if publish and (kept := write_detections(detections, results_dir, str(table.name))) is not None:
         written.append(kept)
     keep(runs, "detections", detections)
+    keep(runs, "frames_terms", {})  # the frames' term built from them, once (ablate.tables.columns.table_frames)
     trials = trials_from_store(tracker, str(table.name))
     if publish and (kept := write_trials(trials, results_dir, str(table.name))) is not None:
         written.append(kept)
@@ -121,6 +122,7 @@ def render_records(
     runs = read_records(path)
     keep(runs, "frames", read_frames(results_dir, str(table.name)))
     keep(runs, "detections", read_detections(results_dir, str(table.name)))
+    keep(runs, "frames_terms", {})
     trials = read_trials(results_dir, str(table.name))
     keep(runs, "trials", trials)  # what the tuning phase spent (ablate.tables.cost)
     footer = footer_lines(runs, fingerprint, config(runs) if config is not None else None, 0)

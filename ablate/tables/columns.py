@@ -160,7 +160,12 @@ def table_frames(runs: pd.DataFrame, table: DictConfig) -> FramesVariance | None
     frames = frames if isinstance(frames, pd.DataFrame) else None
     detections = detections if isinstance(detections, pd.DataFrame) else None
     primary, condition = verdict_metric(str(table.primary), table.get("primary_condition"))
-    return frames_variance(frames, primary, condition, detections)
+    terms = kept(runs, "frames_terms")  # one term per table rendering: an AP term's draws are its cost
+    if not isinstance(terms, dict):
+        return frames_variance(frames, primary, condition, detections)
+    if (primary, condition) not in terms:
+        terms[(primary, condition)] = frames_variance(frames, primary, condition, detections)
+    return terms[(primary, condition)]
 
 
 def pair_frames(frames_var: FramesVariance | None, a: str, b: str) -> Callable[[list[int]], float] | None:
