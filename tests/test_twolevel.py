@@ -182,7 +182,7 @@ def test_an_ap_tables_frames_term_estimates_the_variance_of_another_draw_of_fram
     against 2.4 to 4.6 from draws). The AP tables' frames' term draws the frames; over new test sets of the same
     population it estimates the variance of the difference that another test set gives."""
     from ablate.tables.frames import FROM_DETECTIONS, ap_left_out
-    from ablate.tables.twolevel import detections_bootstrap
+    from ablate.tables.twolevel import detections_bootstrap, variance_of
 
     rng = np.random.default_rng(3)
     population = kitti_rows(rng, 1500)
@@ -203,9 +203,7 @@ def test_an_ap_tables_frames_term_estimates_the_variance_of_another_draw_of_fram
     for _ in range(25):
         rows = table(rng.choice(1500, 60, replace=False))
         drawn.append(detections_bootstrap(rows, "car_moderate", draws=150)("a", "b", [0]))
-        d = (ap_left_out(rows[rows["row"] == "a"], "car_moderate")[1] - ap_left_out(rows[rows["row"] == "b"],
-              "car_moderate")[1]).to_numpy()  # fmt: skip
-        left_out.append((len(d) - 1) / len(d) * ((d - d.mean()) ** 2).sum())
+        left_out.append(variance_of([tuple(ap_left_out(rows[rows["row"] == r], "car_moderate")[1] for r in "ab")]))
     assert np.mean(drawn) == pytest.approx(truth, rel=0.3)
     assert np.mean(left_out) > 2 * truth  # what the delete-one jackknife would have said
     # one stream: the same records, listed in another order, give the same term

@@ -83,7 +83,7 @@ def write_table(
     keep(runs, "frames", frames)  # the counts per test frame the verdicts read (ablate.tables.twolevel)
     matched = str(table.primary) in FROM_DETECTIONS  # an AP task that keeps its detections per test frame
     detections = detections_from_store(tracker, runs) if len(runs) and matched else pd.DataFrame()
-    detections = verdicts_read(detections, *verdict_metric(str(table.primary), table.get("primary_condition")))
+    detections = verdicts_read(detections, *verdict_metric(table))
     if publish and (kept := write_detections(detections, results_dir, str(table.name))) is not None:
         written.append(kept)
     keep(runs, "detections", detections)

@@ -77,9 +77,7 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
                 "measured by rerunning this table's seeds on AVX2 kernels: docs/verdicts.md), added to the seeds'."
             )
         if any(c.frames for c in raced.comparisons.values()):
-            lines.append(
-                AP_FRAMES_LINE if verdict_metric(str(table.primary), None)[0] in FROM_DETECTIONS else FRAMES_LINE
-            )
+            lines.append(AP_FRAMES_LINE if verdict_metric(table)[0] in FROM_DETECTIONS else FRAMES_LINE)
         elif str(table.primary) in FROM_DETECTIONS:
             lines.append(NO_FRAMES_LINE)
     lines += _top_against_second(summary, runs, key, label, raced, table_frames(runs, table))
@@ -159,7 +157,7 @@ def table_frames(runs: pd.DataFrame, table: DictConfig) -> FramesVariance | None
     frames, detections = kept(runs, "frames"), kept(runs, "detections")
     frames = frames if isinstance(frames, pd.DataFrame) else None
     detections = detections if isinstance(detections, pd.DataFrame) else None
-    primary, condition = verdict_metric(str(table.primary), table.get("primary_condition"))
+    primary, condition = verdict_metric(table)
     terms = kept(runs, "frames_terms")  # one term per table rendering: an AP term's draws are its cost
     if not isinstance(terms, dict):
         return frames_variance(frames, primary, condition, detections)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -189,11 +190,11 @@ def detections_from_store(tracker: Tracker, runs: pd.DataFrame) -> pd.DataFrame:
     return _from_store(tracker, runs, FRAME_DETECTIONS, _read_detections)
 
 
-def verdict_metric(primary: str, primary_condition: str | None) -> tuple[str, str]:
-    """(metric, condition) whose frames a table's verdicts resample: its primary metric under its
-    ``primary_condition`` ("" where it has none), or the two halves of a conditions table's flattened primary
-    ``<condition>/<metric>``."""
-    condition = str(primary_condition or "")
+def verdict_metric(table: Any) -> tuple[str, str]:
+    """(metric, condition) whose frames a table's verdicts resample (``table``: its spec,
+    :func:`ablate.tables.spec.table_spec`): its primary metric under its ``primary_condition`` ("" where it has
+    none), or the two halves of a conditions table's flattened primary ``<condition>/<metric>``."""
+    primary, condition = str(table.primary), str(table.get("primary_condition") or "")
     if "/" in primary:
         condition, primary = primary.split("/", 1)
     return primary, condition
