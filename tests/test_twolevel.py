@@ -4,6 +4,8 @@ and the same verdicts whatever the order of the records."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -211,3 +213,26 @@ def test_an_ap_tables_frames_term_estimates_the_variance_of_another_draw_of_fram
     again = rows.sample(frac=1, random_state=1).sort_values(["row", "index"], kind="stable")
     first = detections_bootstrap(rows, "car_moderate", draws=200)("a", "b", [0])
     assert detections_bootstrap(again, "car_moderate", draws=200)("a", "b", [0]) == first > 0
+
+
+RESULTS = Path(__file__).resolve().parents[1] / "results"
+
+
+@pytest.mark.parametrize("path", sorted(RESULTS.glob("*.md")), ids=lambda p: p.stem)
+def test_every_raced_table_says_which_test_frames_term_its_verdicts_read(path: Path) -> None:
+    """A table of counts per frame: the jackknife's line; an AP table with detections per frame: the draws' line;
+    an AP table without them, a conditions table (primary ``<condition>/<metric>``) too: that it reads the seeds
+    alone. Exactly one of them."""
+    from ablate.tables.columns import AP_FRAMES_LINE, FRAMES_LINE, NO_FRAMES_LINE
+
+    text = path.read_text()
+    if "Racing seeds:" not in text:
+        pytest.skip(f"{path.name}: not a raced table")
+    runs = RESULTS / "runs"
+    said = [line for line in (FRAMES_LINE, AP_FRAMES_LINE, NO_FRAMES_LINE) if line in text]
+    if (runs / f"{path.stem}.frames.csv.gz").exists():
+        assert said == [FRAMES_LINE], path.name
+    elif (runs / f"{path.stem}.detections.csv.gz").exists():
+        assert said == [AP_FRAMES_LINE], path.name
+    else:
+        assert said == [NO_FRAMES_LINE], path.name

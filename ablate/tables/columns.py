@@ -76,9 +76,10 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
                 f"Each seed's paired difference carries another CPU's kernels' variance too (sd {kernels_sd(table):g}, "
                 "measured by rerunning this table's seeds on AVX2 kernels: docs/verdicts.md), added to the seeds'."
             )
+        ap = verdict_metric(table)[0] in FROM_DETECTIONS  # a conditions table's primary is <condition>/<metric>
         if any(c.frames for c in raced.comparisons.values()):
-            lines.append(AP_FRAMES_LINE if verdict_metric(table)[0] in FROM_DETECTIONS else FRAMES_LINE)
-        elif str(table.primary) in FROM_DETECTIONS:
+            lines.append(AP_FRAMES_LINE if ap else FRAMES_LINE)
+        elif ap:
             lines.append(NO_FRAMES_LINE)
     lines += _top_against_second(summary, runs, key, label, raced, table_frames(runs, table))
     return columns, lines + _disagreeing_seed_lines(summary, runs, table)
@@ -86,8 +87,7 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
 
 FRAMES_LINE = (
     "The verdicts and Δ read the interval over seeds and test frames: the seeds' variance of the paired differences "
-    "plus the test frames' (a delete-one jackknife over frames, the metric recomputed from each frame's counts or "
-    "re-accumulated from its matched detections), on "
+    "plus the test frames' (a delete-one jackknife over frames, the metric recomputed from each frame's counts), on "
     "Student's t with the seeds' n − 1 degrees of freedom: never narrower than the seeds' own t interval, and free "
     "of Monte Carlo error (ablate.tables.twolevel)."
 )

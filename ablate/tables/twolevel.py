@@ -10,25 +10,22 @@ the two levels' terms (a nested two-stage design; Searle, Casella & McCulloch 19
 
 * ``s_d² / n``: the seeds' term, the sample variance of the paired differences over n (the paired t-test's);
 * ``V_frames``: the frames' term, the variance of the seed-mean difference ``θ(F) = mean_s [M(A_s, F) - M(B_s, F)]``
-  over draws of the frames F, the seeds held fixed, estimated for a metric of counts by the delete-one **jackknife
-  over frames**
-  (Efron & Stein 1981, Ann. Statist. 9(3): the jackknife variance is conservative in expectation;
-  Efron 1982, "The jackknife, the bootstrap and other resampling plans", ch. 3): ``(F - 1) / F · Σ_i (θ_(i) - θ_(.))²``
-  with frame i left out of every (row, seed)'s counts or detections. Each metric is a function of its counts summed
-  over frames (a ratio, an F-score's maximum over thresholds) or an AP re-accumulated from the frames' matched
-  detections (:mod:`ablate.metrics.accumulate`: the matching is per frame, so leaving a frame out changes only the
-  accumulation). For the counts' metrics, at the hundreds of frames a test split has, these are smooth enough that
-  the jackknife estimates the same first-order variance as the bootstrap over frames (checked against 2000 resamples
-  on three published tables, ``docs/verdicts.md``), without Monte Carlo error: the same records give the same
-  verdicts, whatever the order the records list the runs in (the frames are sorted by name, the seeds by number).
-* **An AP metric's** frames' term is the paired bootstrap over frames instead (Efron & Tibshirani 1993, "An
-  introduction to the bootstrap", ch. 6 and 11): the variance of ``θ(F*)`` over 1000 draws ``F*`` of the frames
-  with replacement, every run re-accumulated on the same draws, from one fixed stream (the same records give the
-  same term on any machine). AP is not smooth in the frames: the 11-point AP moves only where a frame tips one of
-  its eleven recall points, and the delete-one jackknife, inconsistent for such statistics (as for a median;
-  Efron 1982, ch. 3), misjudged it by an order of magnitude both ways on DGFN Table II (0.5 to 15 points per run
-  against 2.4 to 4.6 from draws; ``tests/test_twolevel.py`` simulates it: 4-9x the variance of another test set,
-  the draws within 0.87-1.21x).
+  over draws of the frames F, the seeds held fixed, estimated for a metric of counts by the delete-one **jackknife over
+  frames** (Efron & Stein 1981, Ann. Statist. 9(3): the jackknife variance is conservative in expectation; Efron 1982,
+  "The jackknife, the bootstrap and other resampling plans", ch. 3): ``(F - 1) / F · Σ_i (θ_(i) - θ_(.))²`` with frame i
+  left out of every (row, seed)'s counts. Each such metric is a function of its counts summed over frames (a ratio, an
+  F-score's maximum over thresholds); at the hundreds of frames a test split has, these are smooth enough that the
+  jackknife estimates the same first-order variance as the bootstrap over frames (checked against 2000 resamples on
+  three published tables, ``docs/verdicts.md``), without Monte Carlo error: the same records give the same verdicts,
+  whatever the order the records list the runs in (the frames are sorted by name, the seeds by number).
+* **An AP metric's** frames' term is the paired bootstrap over frames instead (Efron & Tibshirani 1993, "An introduction
+  to the bootstrap", ch. 6 and 11): the variance of ``θ(F*)`` over 1000 draws ``F*`` of the frames with replacement,
+  every run's AP re-accumulated on the same draws from its frames' matched detections (:mod:`ablate.metrics.accumulate`:
+  the matching is per frame, so a draw changes only the accumulation), from one fixed stream (the same records give the
+  same term on any machine). AP is not smooth in the frames: the 11-point AP moves only where a frame tips one of its
+  eleven recall points, and the delete-one jackknife, inconsistent for such statistics (as for a median; Efron 1982, ch.
+  3), misjudged it by an order of magnitude both ways on DGFN Table II (0.5 to 15 points per run against 2.4 to 4.6 from
+  draws; ``tests/test_twolevel.py`` simulates it: 4-9x the variance of another test set, the draws within 0.87-1.21x).
 
 **The interval and the tests** use Student's t on the seeds' n - 1 degrees of freedom with the two-level standard
 error ``sqrt(s_d² / n + V_frames)`` (:func:`ablate.tables.verdicts.paired_tests`). Reading chosen: the
