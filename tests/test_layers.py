@@ -2,6 +2,7 @@
 through others. The imports are read from the source (:mod:`ast`), an import inside a function included."""
 
 import ast
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -138,3 +139,24 @@ def test_a_process_that_trains_nothing_does_not_import_lightning(module):
     # Lightning (and torch through it) takes seconds to import: a report, a bad option or the sweeper need none of it
     code = f"import sys, {module}; sys.exit('lightning' in sys.modules or 'torch' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
+
+
+def test_a_report_with_no_fingerprint_to_recompute_imports_neither_lightning_nor_torch(tmp_path):
+    # the report reads tuning rungs and curves (ablate.jobs.rungs, through the reproduction check's job specs): that
+    # once imported Lightning, 5 s of an 8-s report of a table without records (AMD EPYC family 25 model 17)
+    code = (
+        "import runpy, sys\n"
+        "sys.argv = ['ablate.report', 'experiment=chinet_table2']\n"
+        "try:\n"
+        "    runpy.run_module('ablate.report', run_name='__main__')\n"
+        "except SystemExit as end:\n"
+        "    assert not end.code, end.code\n"
+        "sys.exit(sorted({'lightning', 'torch'} & set(sys.modules)) or None)"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1])
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "chinet_table2: no run records yet" in done.stdout

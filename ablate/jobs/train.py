@@ -33,7 +33,8 @@ from ablate.jobs.experts import feature_cache
 from ablate.jobs.generators import GlobalGenerators
 from ablate.jobs.preempt import STOP, SaveOnStop, Stopped
 from ablate.jobs.progress_lines import ProgressLines, progress_bar
-from ablate.jobs.rungs import StopAtRung, ValCurve, stop_epoch
+from ablate.jobs.rung_callbacks import StopAtRung, ValCurve
+from ablate.jobs.rungs import stop_epoch
 from ablate.jobs.spec import JobSpec
 from ablate.jobs.trace import Trace
 from ablate.store import FRAME_COUNTS, FRAME_DETECTIONS, KIND_TRIAL, SKIPPED_FRAMES, RunLogger, Tracker

@@ -10,11 +10,11 @@ full budget; the best of the trials that reached it is chosen. Here a rung is a 
   promotion rule (the top ``ceil(n / η)`` of that row's trials at the rung, by the validation objective, of equals
   the lower trial number; a failed trial last), so a row's count of trials at each rung is every other row's.
 * **Resumed, never retrained**: a trial at a rung trains the recipe's schedule (its learning rate decays over all
-  the recipe's epochs) and stops at the rung's epoch (``rung=<fraction>``, :class:`ablate.jobs.rungs.StopAtRung`);
-  promoted, it resumes from its checkpoint (the rungs of a trial share its checkpoint folder,
-  :attr:`ablate.jobs.spec.JobSpec.ckpt_dir`), so a trial that reaches the last rung has trained exactly as a
-  full-budget trial (the preemption resumes' exactness, :mod:`ablate.jobs.generators`) and its last rung's run *is*
-  the full-budget trial's (``rung`` null: the same config hash).
+  the recipe's epochs) and stops at the rung's epoch (``rung=<fraction>``,
+  :class:`ablate.jobs.rung_callbacks.StopAtRung`); promoted, it resumes from its checkpoint (the rungs of a trial
+  share its checkpoint folder, :attr:`ablate.jobs.spec.JobSpec.ckpt_dir`), so a trial that reaches the last rung
+  has trained exactly as a full-budget trial (the preemption resumes' exactness, :mod:`ablate.jobs.generators`)
+  and its last rung's run *is* the full-budget trial's (``rung`` null: the same config hash).
 * **The objective at a rung** is the best validation value over the epochs trained so far (``val_best``, as a
   full-budget trial's): a trial is judged on what it reached, never on its last epoch alone.
 * **Replayable**: every trial's validation value per epoch is kept (tag ``val_curve``, the records'
