@@ -193,3 +193,18 @@ def test_how_a_blanked_sensors_trunk_trains_is_in_the_fingerprint_and_an_older_r
         and "predates the corruptions component that today's code computes" in line
         for line in lines
     )
+
+
+def test_the_report_computes_a_row_shared_by_tables_once_and_another_seed_again(monkeypatch):
+    # ChiNet Tables II-V all hold the ChiNet row: its lowest seed is one config hash in each, one fingerprint
+    import ablate.analysis.report as report
+
+    calls = []
+    monkeypatch.setattr(report, "_fingerprints", {})
+    monkeypatch.setattr(ablate.jobs.fingerprint, "compute", lambda cfg: calls.append(cfg.seed) or {"data": [1.0]})
+    shared = [compose([f"experiment={t}", "row=chinet", "seed=0"]) for t in ("chinet_table2", "chinet_table3")]
+    got = [report.fingerprint(cfg) for cfg in shared]
+    got[0]["data"].append(2.0)  # a caller changing what it got changes no other caller's
+    assert report.fingerprint(shared[1]) == {"data": [1.0]} and calls == [0]
+    report.fingerprint(compose(["experiment=chinet_table2", "row=chinet", "seed=1"]))
+    assert calls == [0, 1]
