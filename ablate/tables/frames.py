@@ -262,16 +262,3 @@ def ap_resampled(rows: pd.DataFrame, metric: str, frames: list[str], draws: np.n
         idx = np.sort(np.concatenate([positions[j] for j in draw]))
         out[i] = compute({c: v[idx] for c, v in arrays.items()}, None)
     return out
-
-
-def ap_left_out(rows: pd.DataFrame, metric: str) -> tuple[float, pd.Series]:
-    """``metric`` over every frame of one run's rows, and with each frame left out (by frame name: a frame tested
-    under several conditions pooled leaves all of its images out)."""
-    arrays = as_arrays({c: rows[c].to_numpy() for c in COLUMNS})
-    frame_of = rows.groupby("index")["frame"].first()
-    compute = FROM_DETECTIONS[metric]
-    left = {}
-    for frame, indices in frame_of.groupby(frame_of).groups.items():
-        keep = frame_of.index.difference(indices).to_numpy()
-        left[str(frame)] = compute(arrays, keep)
-    return compute(arrays, None), pd.Series(left).sort_index()
