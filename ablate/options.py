@@ -177,6 +177,7 @@ RULES: dict[str, Rule] = {
     "data.data_dir": Rule((NAME,)),
     "data.batch_size": Rule((POSITIVE_INT,)),
     "data.num_workers": Rule((WHOLE,)),
+    "data.memo_gb": Rule((NON_NEGATIVE,), note="GiB a split keeps in memory between epochs; 0: off"),
     "data.seed": Rule((WHOLE,)),
     "data.order_seed": Rule((WHOLE,)),
     **{f"data.synth.{size}": Rule((POSITIVE_INT,)) for size in ("frames", "height", "width")},

@@ -58,10 +58,10 @@ def first_seeds(cfg: DictConfig) -> int:
 
 def measure_key(cfg: DictConfig) -> str:
     """What a measurement depends on: the resolved model, task, modalities, targets, data module (but the frames'
-    count, the batch, and the training frames' order, ``data.order_seed``, which is the job's seed) and the experts'
-    freezing; rows of several tables with the same share a measurement."""
+    count, the batch, the loader's workers and memo, and the training frames' order, ``data.order_seed``, which is
+    the job's seed) and the experts' freezing; rows of several tables with the same share a measurement."""
     data = cast("dict[str, Any]", OmegaConf.to_container(cfg, resolve=True))
-    unmeasured = ("batch_size", "num_workers", "data_dir", "order_seed")
+    unmeasured = ("batch_size", "num_workers", "memo_gb", "data_dir", "order_seed")
     datamodule = {k: v for k, v in data["data"].items() if k not in unmeasured}
     datamodule["synth"] = {k: v for k, v in (datamodule.get("synth") or {}).items() if k != "frames"}
     experts = data.get("experts") or {}

@@ -202,6 +202,7 @@ class KittiDataModule(L.LightningDataModule):
         lidar_weather: list[str] | None = None,
         augment: dict | None = None,
         on_bad_frame: str = "error",
+        memo_gb: float = 0,
     ) -> None:
         super().__init__()
         self.on_bad_frame = check_on_bad_frame(on_bad_frame)
@@ -218,6 +219,8 @@ class KittiDataModule(L.LightningDataModule):
         self.lidar_weather = list(lidar_weather) if lidar_weather else None
         # flip / scale / translation of the training split (ablate.data.augment): {flip: p, scale: [lo, hi]}
         self.augment = dict(augment) if augment else None
+        # GiB of decoded training and validation frames kept in memory between epochs (ablate.data.memo), per split
+        self.memo_gb = float(memo_gb)
         # Real KITTI images range from 1224x370 to 1242x375: crop to the smallest unless told otherwise.
         self.image_size = image_size if image_size or root is None else [370, 1224]
         self.datasets: dict[str, KittiDataset] = {}
@@ -270,6 +273,8 @@ class KittiDataModule(L.LightningDataModule):
                 self.image_size,
                 self.lidar_weather,
                 self.augment if name == "train" else None,
+                # the test split is read once (per condition): nothing to keep
+                self.memo_gb * 2**30 if name in ("train", "val") else 0,
             )
         self.datasets, self.bad_frames = datasets, bad_frames
         if skipped := sum(len(bad) for bad in bad_frames.values()):
@@ -279,6 +284,14 @@ class KittiDataModule(L.LightningDataModule):
                 split_dir,
                 ", ".join(f"{name} {len(bad)}" for name, bad in bad_frames.items()),
             )
+
+    def teardown(self, stage: str) -> None:
+        """Lightning's hook at the end of a fit or test: once a fit ends, the frames its splits kept between epochs
+        (ablate.data.memo) are let go, so that a process that fits again holds one fit's frames at a time."""
+        if stage == "fit":
+            for dataset in self.datasets.values():
+                if dataset.memo is not None:
+                    dataset.memo.clear()
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         self.setup()

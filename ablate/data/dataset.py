@@ -16,12 +16,13 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, get_worker_info
 
 from ablate.data import DataError, kitti, lidar, masks
 from ablate.data.augment import Augment, View, flip_calibration, mirror_points, warp
 from ablate.data.conditions import apply_condition, apply_corruption
 from ablate.data.lidar_weather import LIDAR_WEATHER, apply_lidar_weather
+from ablate.data.memo import FrameMemo
 from ablate.data.targets import BOX_LABELS, CLASSES, calib_array, calibration, image_targets, mirrored, road_bev
 
 #: The targets' label ids and the calibration and road helpers (ablate.data.targets) are importable from here too.
@@ -102,6 +103,7 @@ class KittiDataset(Dataset):
         image_size: Sequence[int] | None = None,
         lidar_weather: list[str] | None = None,
         augment: dict[str, Any] | None = None,
+        memo_bytes: float = 0,
     ) -> None:
         for m in modalities:
             if m not in MODALITIES:
@@ -129,6 +131,8 @@ class KittiDataset(Dataset):
                 raise KeyError(f"unknown LiDAR weather {w!r}; valid: {', '.join(LIDAR_WEATHER)}")
         self.lidar_condition = spread(self.frames, lidar_weather, seed, 1) if lidar_weather else {}
         self.augment = Augment.from_config(dict(augment)) if augment else None  # ablate.data.augment
+        # decoded frames kept from one epoch to the next (ablate.data.memo): never with augmentation
+        self.memo = FrameMemo(memo_bytes) if memo_bytes > 0 and self.augment is None else None
 
     def _check_available(self) -> None:
         d = self.split_dir
@@ -265,6 +269,13 @@ class KittiDataset(Dataset):
         )
 
     def __getitem__(self, i: int) -> dict[str, Any]:
+        if self.memo is None or get_worker_info() is not None:  # a loader worker keeps no copy of its own
+            return self._read(i)
+        sample = self.memo.get(i)
+        return sample if sample is not None else self.memo.put(i, self._read(i))
+
+    def _read(self, i: int) -> dict[str, Any]:
+        """Frame ``i``'s sample, built from its files (and the cache of derived LiDAR modalities)."""
         frame = self.frames[i]
         paths = kitti.frame_paths(self.split_dir, frame)
         condition = self.condition[frame]

@@ -40,6 +40,7 @@ UNHASHED = (
     "scale.race",
     "trainer.enable_progress_bar",
     "data.num_workers",
+    "data.memo_gb",
     "experts.cache_features",
     "experts.cache_max_gb",
     "comp_time.threads",

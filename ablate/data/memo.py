@@ -1,0 +1,76 @@
+"""Decoded frames kept in memory from one epoch to the next (``data.memo_gb``).
+
+A frame of a split without augmentation is the same sample in every epoch: its condition, corruption and LiDAR
+weather come from a per-frame seeded generator (:class:`ablate.data.dataset.KittiDataset`), so reading it again
+decodes the same PNGs, the same scan and the same derived LiDAR modalities to the same tensors. A second epoch
+therefore needs none of that work: the memo keeps each sample as first built and hands out a copy of it (tensors
+cloned: a caller that changes a batch in place cannot change the next epoch's frame). The numbers a job logs are
+those of a job without it (tests/data/test_memo.py compares them).
+
+It is off where a frame changes between epochs or cannot be shared: a split with augmentation (a new view of the
+frame every epoch), and inside a loader worker process (``data.num_workers`` > 0: each worker would keep its own
+copy of every frame it met). Its size is bounded: frames beyond ``max_bytes`` are read from disk each time, as
+without it. The data module lets them go once its fit ends
+(:meth:`ablate.data.datamodule.KittiDataModule.teardown`): a process that fits several times (a job's experts, then
+its fused network) holds one fit's frames at a time.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+
+def tensor_bytes(tree: Any) -> int:
+    """Bytes held by the tensors of nested dicts and lists (other values count nothing)."""
+    if torch.is_tensor(tree):
+        return tree.numel() * tree.element_size()
+    if isinstance(tree, dict):
+        return sum(tensor_bytes(v) for v in tree.values())
+    if isinstance(tree, (list, tuple)):
+        return sum(tensor_bytes(v) for v in tree)
+    return 0
+
+
+def copied(tree: Any) -> Any:
+    """Nested dicts and lists with every tensor cloned (the other values are immutable: names, numbers)."""
+    if torch.is_tensor(tree):
+        return tree.clone()
+    if isinstance(tree, dict):
+        return {k: copied(v) for k, v in tree.items()}
+    if isinstance(tree, list):
+        return [copied(v) for v in tree]
+    return tree
+
+
+class FrameMemo:
+    """Samples by index, up to ``max_bytes`` of tensors; :attr:`hits` and :attr:`misses` count the reads."""
+
+    def __init__(self, max_bytes: float) -> None:
+        self.max_bytes = max_bytes
+        self.samples: dict[int, dict[str, Any]] = {}
+        self.nbytes = 0
+        self.hits = self.misses = 0
+
+    def get(self, index: int) -> dict[str, Any] | None:
+        """A copy of the sample kept for ``index``, or None (counted as a miss)."""
+        sample = self.samples.get(index)
+        if sample is None:
+            self.misses += 1
+            return None
+        self.hits += 1
+        return copied(sample)
+
+    def clear(self) -> None:
+        """Let every kept frame go (the counts stay)."""
+        self.samples.clear()
+        self.nbytes = 0
+
+    def put(self, index: int, sample: dict[str, Any]) -> dict[str, Any]:
+        """Keep a copy of ``sample`` for ``index`` while it fits; returns ``sample`` itself."""
+        size = tensor_bytes(sample)
+        if index not in self.samples and self.nbytes + size <= self.max_bytes:
+            self.samples[index] = copied(sample)
+            self.nbytes += size
+        return sample
