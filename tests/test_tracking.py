@@ -102,6 +102,18 @@ def test_experiment_creation_is_idempotent_and_stale_runs_are_killed(tmp_path):
     assert tracker.finished_run(exp, "abc").info.run_id == done
 
 
+def test_a_downloaded_artifact_draws_no_progress_bar(tmp_path, capfd, monkeypatch):
+    monkeypatch.delenv("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", raising=False)
+    tracker = Tracker(sqlite_uri(tmp_path), str(tmp_path / "artifacts"))
+    run = tracker.start(tracker.experiment_id("table"), "job", {})
+    (tmp_path / "records.csv").write_text("a,b\n1,2\n")
+    tracker.log_artifact(run, tmp_path / "records.csv")
+    capfd.readouterr()
+    got = tracker.download_artifact(run, "records.csv", tmp_path / "out")
+    assert got.read_text() == "a,b\n1,2\n"
+    assert "Downloading artifacts" not in capfd.readouterr().err  # a sweep reads one such file per run
+
+
 def test_sweeps_whose_process_died_are_closed_as_killed(tmp_path):
     import os
     import socket

@@ -182,7 +182,10 @@ class Tracker:
         return [a.path for a in self.call(self._client.list_artifacts, run_id, path)]
 
     def download_artifact(self, run_id: str, path: str, dst: str | Path) -> Path:
-        """Download a run's artifact ``path`` into the folder ``dst``; the local file."""
+        """Download a run's artifact ``path`` into the folder ``dst``; the local file. Without MLflow's progress bar
+        (``MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR``, unless set): a table reads one small file per run, whose bars
+        were most of a sweep's closing output."""
+        os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
         return Path(self.call(self._client.download_artifacts, run_id, path, str(dst)))
 
     def finished_run(self, experiment_id: str, chash: str) -> Run | None:
