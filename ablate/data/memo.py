@@ -9,8 +9,8 @@ those of a job without it (tests/data/test_memo.py compares them).
 
 It is off where a frame changes between epochs or cannot be shared: a split with augmentation (a new view of the
 frame every epoch), and inside a loader worker process (``data.num_workers`` > 0: each worker would keep its own
-copy of every frame it met). Its size is bounded: frames beyond ``max_bytes`` are read from disk each time, as
-without it. The data module lets them go once its fit ends
+copy of every frame it met). Its size is bounded: frames beyond ``max_bytes``, or beyond what the machine has to
+spare (:data:`RESERVE_SHARE`), are read from disk each time, as without it. The data module lets them go once its fit ends
 (:meth:`ablate.data.datamodule.KittiDataModule.teardown`): a process that fits several times (a job's experts, then
 its fused network) holds one fit's frames at a time.
 """
@@ -19,7 +19,21 @@ from __future__ import annotations
 
 from typing import Any
 
+import psutil
 import torch
+
+#: What the memo leaves the machine: it keeps no frame that would bring the memory available to all processes below
+#: this share of the total, or below RESERVE_MIN bytes, whichever is more. Parallel jobs each keep their own frames
+#: (2 jobs of BiFNet Table IV at the cpu scale about 1.5 GiB each); on a small machine the later frames are read from
+#: disk instead of the jobs running out of memory.
+RESERVE_SHARE = 0.2
+RESERVE_MIN = 2 * 2**30
+
+
+def spare_bytes() -> float:
+    """Bytes the machine has available beyond the reserve (negative when short)."""
+    memory = psutil.virtual_memory()
+    return memory.available - max(RESERVE_SHARE * memory.total, RESERVE_MIN)
 
 
 def tensor_bytes(tree: Any) -> int:
@@ -68,9 +82,10 @@ class FrameMemo:
         self.nbytes = 0
 
     def put(self, index: int, sample: dict[str, Any]) -> dict[str, Any]:
-        """Keep a copy of ``sample`` for ``index`` while it fits; returns ``sample`` itself."""
+        """Keep a copy of ``sample`` for ``index`` while it fits within :attr:`max_bytes` and the machine's spare
+        memory (:func:`spare_bytes`); returns ``sample`` itself."""
         size = tensor_bytes(sample)
-        if index not in self.samples and self.nbytes + size <= self.max_bytes:
+        if index not in self.samples and self.nbytes + size <= self.max_bytes and size < spare_bytes():
             self.samples[index] = copied(sample)
             self.nbytes += size
         return sample

@@ -9,6 +9,7 @@ import torch
 
 from ablate.config import compose
 from ablate.data import dataset as dataset_module
+from ablate.data import memo as memo_module
 from ablate.data.datamodule import KittiDataModule
 from ablate.data.memo import FrameMemo, tensor_bytes
 from ablate.store.identity import config_hash
@@ -77,6 +78,16 @@ def test_the_memo_keeps_frames_up_to_its_bound_and_reads_the_rest_each_time(data
             ds[i]
     assert list(ds.memo.samples) == [0] and ds.memo.nbytes == one <= ds.memo.max_bytes
     assert ds.memo.hits == 1 and ds.memo.misses == 5
+
+
+def test_the_memo_keeps_no_frame_the_machine_has_no_memory_to_spare_for(data_dir, monkeypatch):
+    ds = module(data_dir, 1).datasets["train"]
+    one = tensor_bytes(ds[0])
+    monkeypatch.setattr(memo_module, "spare_bytes", lambda: 1.5 * one)  # room for one more frame on this machine
+    ds[1]
+    monkeypatch.setattr(memo_module, "spare_bytes", lambda: 0.5 * one)  # then none
+    ds[2]
+    assert sorted(ds.memo.samples) == [0, 1]
 
 
 def test_the_frames_a_fit_kept_are_let_go_when_it_ends(data_dir):
