@@ -10,9 +10,9 @@ those of a job without it (tests/data/test_memo.py compares them).
 It is off where a frame changes between epochs or cannot be shared: a split with augmentation (a new view of the
 frame every epoch), and inside a loader worker process (``data.num_workers`` > 0: each worker would keep its own
 copy of every frame it met). Its size is bounded: frames beyond ``max_bytes``, or beyond what the machine has to
-spare (:data:`RESERVE_SHARE`), are read from disk each time, as without it. The data module lets them go once its fit ends
-(:meth:`ablate.data.datamodule.KittiDataModule.teardown`): a process that fits several times (a job's experts, then
-its fused network) holds one fit's frames at a time.
+spare (:data:`RESERVE_SHARE`), are read from disk each time, as without it. The data module lets them go once its
+fit ends (:meth:`ablate.data.datamodule.KittiDataModule.teardown`): a process that fits several times (a job's
+experts, then its fused network) holds one fit's frames at a time.
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ from typing import Any
 
 import psutil
 import torch
+
+from ablate.data.trees import tree_map, tree_tensors
 
 #: What the memo leaves the machine: it keeps no frame that would bring the memory available to all processes below
 #: this share of the total, or below RESERVE_MIN bytes, whichever is more. Parallel jobs each keep their own frames
@@ -37,25 +39,13 @@ def spare_bytes() -> float:
 
 
 def tensor_bytes(tree: Any) -> int:
-    """Bytes held by the tensors of nested dicts and lists (other values count nothing)."""
-    if torch.is_tensor(tree):
-        return tree.numel() * tree.element_size()
-    if isinstance(tree, dict):
-        return sum(tensor_bytes(v) for v in tree.values())
-    if isinstance(tree, (list, tuple)):
-        return sum(tensor_bytes(v) for v in tree)
-    return 0
+    """Bytes held by the tensors of a sample (:mod:`ablate.data.trees`)."""
+    return sum(t.numel() * t.element_size() for t in tree_tensors(tree))
 
 
 def copied(tree: Any) -> Any:
-    """Nested dicts and lists with every tensor cloned (the other values are immutable: names, numbers)."""
-    if torch.is_tensor(tree):
-        return tree.clone()
-    if isinstance(tree, dict):
-        return {k: copied(v) for k, v in tree.items()}
-    if isinstance(tree, list):
-        return [copied(v) for v in tree]
-    return tree
+    """A sample with every tensor cloned (its other values are immutable: names, numbers)."""
+    return tree_map(torch.clone, tree)
 
 
 class FrameMemo:

@@ -18,7 +18,7 @@ computes each frame's expert features once and reuses them (:class:`FeatureCache
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, cast
 
@@ -26,6 +26,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from ablate.data.trees import tree_map, tree_tensors
 from ablate.jobs.spec import apply_draws, checkpoint_dir
 from ablate.store import KIND_EXPERT, Tracker, config_hash, file_lock
 
@@ -213,21 +214,21 @@ class FeatureCache:
         if missing:
             sub = batch if len(missing) == len(frames) else {m: batch[m][missing] for m in model.modalities}
             fresh = model.frozen_features(sub)
-            size = sum(t[0].numel() for t in _leaves(fresh)) * self.dtype.itemsize  # one frame's features
+            size = sum(t[0].numel() for t in tree_tensors(fresh)) * self.dtype.itemsize  # one frame's features
             if self.device is None:
                 self.device = self._place(next(model.parameters()).device, size)
             if self.off:
                 return fresh
             for j, i in enumerate(missing):
                 if self.nbytes + size <= self.max_bytes:
-                    self.frames[frames[i]] = _map(
+                    self.frames[frames[i]] = tree_map(
                         lambda t: t[j].to(device=self.device, dtype=self.dtype, copy=True), fresh
                     )
                     self.nbytes += size
             if len(missing) == len(frames):
                 return fresh
         per_frame = {i: self.frames[f] for i, f in enumerate(frames) if i not in missing}
-        per_frame.update({i: _map(lambda t: t[j], fresh) for j, i in enumerate(missing)})
+        per_frame.update({i: tree_map(lambda t: t[j], fresh) for j, i in enumerate(missing)})
         return _stack([per_frame[i] for i in range(len(frames))], next(model.parameters()).device)
 
     def _place(self, device: torch.device, size: int) -> torch.device:
@@ -261,24 +262,6 @@ class FeatureCache:
 
 #: The share of a GPU's free memory (at the first training batch) that the frozen experts' features may take there.
 GPU_CACHE_SHARE = 0.5
-
-
-def _map(fn: Callable[[torch.Tensor], torch.Tensor], tree: Any) -> Any:
-    """``fn`` applied to every tensor of nested dicts and lists."""
-    if torch.is_tensor(tree):
-        return fn(tree)
-    if isinstance(tree, dict):
-        return {k: _map(fn, v) for k, v in tree.items()}
-    return [_map(fn, v) for v in tree]
-
-
-def _leaves(tree: Any) -> Iterator[torch.Tensor]:
-    """The tensors of nested dicts and lists."""
-    if torch.is_tensor(tree):
-        yield tree
-        return
-    for value in tree.values() if isinstance(tree, dict) else tree:
-        yield from _leaves(value)
 
 
 def _stack(trees: list[Any], device: torch.device) -> Any:
