@@ -133,24 +133,52 @@ def test_a_tuned_tables_sweep_counts_its_trials_apart_from_its_raced_jobs(tmp_pa
     assert line.endswith("ETA 6.0 min (30 s per tuning trial, 60 s per trained job as planned, 2 at a time)")
 
 
+def planned(**modalities: int | tuple[int, float]) -> dict:
+    """The sweep's record of the experts its jobs will train (:func:`experts_planned`): ``modality=count`` or
+    ``modality=(count, the plan's seconds of one)``."""
+    each = {m: {"planned": n} if isinstance(n, int) else {"planned": n[0], "seconds": n[1]} for m, n in modalities.items()}
+    return {"planned": sum(e["planned"] for e in each.values()), "modalities": each}
+
+
 def test_the_experts_a_look_trains_first_are_timed_apart_from_its_jobs():
     """A look of raced jobs on experts: its first jobs train the experts within them (10 min each here), the rest
     only their fusion network (about 5 min). The ETA once took every job at the first ones' mean."""
     records = [
-        {"status": "FINISHED", "seconds": 900, "kind": "job", "row": "smoe_fpn", "experts": [600.0], "stage1": 610.0},
+        {"status": "FINISHED", "seconds": 900, "kind": "job", "row": "smoe_fpn", "experts": {"rgb": 600.0}, "stage1": 610.0},
         {"status": "FINISHED", "seconds": 300, "kind": "job", "row": "smoe_late"},
     ]
-    line = summary(records, 8, parallel=2, experts={"planned": 4, "seconds": 500.0})
+    line = summary(records, 8, parallel=2, experts=planned(rgb=4))
     # 3 experts to go at the trained one's 600 s, then 6 jobs at (290 + 300) / 2 s, on 2 workers: 1790 s
     assert line == (
         "Sweep progress: 2/8 jobs finished, 6 to go, ETA 29.8 min "
         "(3 expert(s) to train at 10.0 min, 4.9 min per trained job, 2 at a time)"
     )
     # every expert trained: the jobs alone (3 rounds of 295 s), not at the 600 s mean of the first two
-    assert " ETA 14.8 min (4.9 min per trained job, " in summary(records, 8, 2, experts={"planned": 1})
+    assert " ETA 14.8 min (4.9 min per trained job, " in summary(records, 8, 2, experts=planned(rgb=1))
     # no expert trained yet: the plan's 1000 s, scaled as the jobs came out against theirs (300 s of 600)
-    line = summary(records[1:], 8, 2, estimates={"job": 600.0}, experts={"planned": 2, "seconds": 1000.0})
+    line = summary(records[1:], 8, 2, estimates={"job": 600.0}, experts=planned(rgb=(2, 1000.0)))
     assert "(2 expert(s) to train at 8.3 min as planned, 5.0 min per trained job, 2 at a time)" in line
+
+
+def test_each_expert_to_go_is_timed_at_its_own_modalitys_not_at_the_other_modalitys():
+    """BiFNet's camera expert takes about 4 min, its BEV expert about 1.2. The ETA once timed the BEV experts to go
+    at the trained camera experts' mean: 25 min at `make run`'s first job's end for a look that took 15."""
+    records = [
+        {"status": "FINISHED", "seconds": 330, "kind": "job", "row": "dst", "experts": {"rgb": 260.0}, "stage1": 270},
+        {"status": "FINISHED", "seconds": 60, "kind": "job", "row": "dst"},
+    ]
+    experts = planned(rgb=(3, 200.0), bev=(3, 60.0))
+    # 2 camera experts at the trained one's 260 s; 3 BEV ones at the plan's 60 s, scaled as the camera expert came
+    # out against its plan (260 / 200): 78 s each
+    line = summary(records, 6, parallel=1, experts=experts)
+    assert "(5 expert(s) to train at 78 s to 4.3 min, " in line
+    assert line.startswith("Sweep progress: 2/6 jobs finished, 4 to go, ETA 16.6 min ")  # 2 x 260 + 3 x 78 + 4 x 60 s
+    # once a BEV expert has trained: the other two at its own seconds
+    records[1].update(experts={"bev": 90.0}, stage1=95.0, seconds=155.0)
+    assert "(4 expert(s) to train at 1.5 min to 4.3 min, " in summary(records, 6, parallel=1, experts=experts)
+    # nothing trained, nothing estimated: no time for the experts, the jobs alone
+    plain = [{"status": "FINISHED", "seconds": 60, "kind": "job", "row": "dst"}]
+    assert "expert" not in summary(plain, 6, parallel=1, experts=planned(rgb=1))
 
 
 def test_raced_jobs_to_go_are_timed_at_their_own_rows_not_at_the_first_rows_to_end(tmp_path):
@@ -159,7 +187,7 @@ def test_raced_jobs_to_go_are_timed_at_their_own_rows_not_at_the_first_rows_to_e
     every expert scaled from them, at about 35 s: 22 min where 105 were due."""
     start(tmp_path, planned_jobs(sweep_config("experiment=chinet_table2", "scale=smoke")))
     estimated(tmp_path, {"job": 149.0}, {"smoe_rgb": [3, 21.0], "smoe_fpn": [3, 240.0]})
-    experts_planned(tmp_path, 2, 960.0)
+    experts_planned(tmp_path, {"rgb": 1, "ddm_jet": 1}, {"rgb": 960.0, "ddm_jet": 960.0})
     replan(tmp_path, 6)
     for _ in range(3):
         line = finished(tmp_path, "FINISHED", 35.0, 2, "job", "smoe_rgb")
@@ -167,20 +195,23 @@ def test_raced_jobs_to_go_are_timed_at_their_own_rows_not_at_the_first_rows_to_e
     assert line.endswith(
         "ETA 40.0 min (2 expert(s) to train at 26.7 min as planned, trained jobs at their rows' 6.7 min, 2 at a time)"
     )
-    # an FPN job has trained an expert: the other at its 1000 s, beside the two jobs to go at the row's own 300 s
-    line = finished(tmp_path, "FINISHED", 1300.0, 2, "job", "smoe_fpn", None, [1000.0], 1000.0)
+# an FPN job has trained the camera expert in 1000 s: the depth expert at its plan's 960 s scaled as the camera's
+    # came out against its own (1000 / 960), beside the two jobs to go at the row's own 300 s
+    line = finished(tmp_path, "FINISHED", 1300.0, 2, "job", "smoe_fpn", None, {"rgb": 1000.0}, 1000.0)
     assert line.endswith(
-        "ETA 16.7 min (1 expert(s) to train at 16.7 min, trained jobs at their rows' 5.0 min, 2 at a time)"
+        "ETA 16.7 min (1 expert(s) to train at 16.7 min as planned, trained jobs at their rows' 5.0 min, 2 at a time)"
     )
 
 
 def test_each_look_adds_its_experts_and_each_job_records_its_stage_one(tmp_path):
     assert start(tmp_path, planned_jobs(sweep_config("experiment=chinet_table2", "scale=smoke"))) == 3
-    experts_planned(tmp_path, 2, 480.0)  # the first look's, from the sweep's plan
-    experts_planned(tmp_path, 1)  # a later look's new seed
-    assert state.read(tmp_path)["progress"]["experts"] == {"planned": 3, "seconds": 480.0}
-    line = finished(tmp_path, "FINISHED", 700.0, 2, "job", "chinet", None, [400.0, 200.0], 620.0)
-    # 1 expert to go at the two trained ones' 300 s, beside the 2 jobs to go at 700 - 620 s each: 300 s
-    assert line.endswith("ETA 5.0 min (1 expert(s) to train at 5.0 min, 80 s per trained job, 2 at a time)")
+    experts_planned(tmp_path, {"rgb": 1, "depth": 1}, {"rgb": 480.0})  # the first look's, from the sweep's plan
+    experts_planned(tmp_path, {"rgb": 1})  # a later look's new seed
+    assert state.read(tmp_path)["progress"]["experts"] == {
+        "planned": 3, "modalities": {"rgb": {"planned": 2, "seconds": 480.0}, "depth": {"planned": 1}}
+    }  # fmt: skip
+    line = finished(tmp_path, "FINISHED", 700.0, 2, "job", "chinet", None, {"rgb": 400.0, "depth": 200.0}, 620.0)
+    # 1 camera expert to go at the trained one's 400 s, beside the 2 jobs to go at 700 - 620 s each: 400 s
+    assert line.endswith("ETA 6.7 min (1 expert(s) to train at 6.7 min, 80 s per trained job, 2 at a time)")
     (record,) = state.read(tmp_path)["ended"]
-    assert (record["experts"], record["stage1"]) == ([400.0, 200.0], 620.0)
+    assert (record["experts"], record["stage1"]) == ({"rgb": 400.0, "depth": 200.0}, 620.0)

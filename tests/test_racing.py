@@ -215,10 +215,11 @@ class ExpertLauncher(TimedLauncher):
         out = FakeLauncher.launch(self, job_overrides, initial_job_idx)
         total = 0.0
         for row, seed in self.batches[-1]:
-            experts = [] if seed in self.seeds else [self.expert_min * 60] * 2
+            experts = {} if seed in self.seeds else {"rgb": self.expert_min * 60, "depth": self.expert_min * 60}
             self.seeds.add(seed)
-            seconds = self.minutes[row] * 60 + sum(experts)
-            progress.finished(self.sweep_dir, "FINISHED", seconds, 2, "job", row, None, experts, sum(experts))
+            stage1 = sum(experts.values())
+            seconds = self.minutes[row] * 60 + stage1
+            progress.finished(self.sweep_dir, "FINISHED", seconds, 2, "job", row, None, experts, stage1)
             total += seconds
         self.clock[0] = before + total / 2
         return out
@@ -232,14 +233,18 @@ def test_a_look_counts_the_experts_its_new_seeds_train(tmp_path, monkeypatch, ca
     monkeypatch.setattr(impl.time, "monotonic", lambda: clock[0])
     means = {"chinet": 99.0, "unet": 90.0, "fusenet": 90.2}
     launcher = ExpertLauncher(lambda r, s: means[r] + noise(r, s, 0.5), clock, tmp_path / "sweep", 2.0, 10.0)
-    monkeypatch.setattr(impl.RacingSweeperImpl, "_look_experts", lambda self, batch: 2 * len({b[-1] for b in batch}))
+
+    def look_experts(self, batch: list[list[str]]) -> dict[str, int]:  # each new seed's two experts
+        return dict.fromkeys(("rgb", "depth"), len({b[-1] for b in batch}))
+
+    monkeypatch.setattr(impl.RacingSweeperImpl, "_look_experts", look_experts)
     sweeper, _ = sweeper_for(tmp_path, monkeypatch, None, "scale.race.budget_min=60", launcher=launcher)
     with caplog.at_level("INFO", logger=impl.__name__):
         sweeper.sweep([])
     assert len(launcher.batches) == 1
     assert "before look 2 (39.0 min spent, about 24.0 more needed)" in caplog.text
-    assert progress.look_seconds(tmp_path / "sweep", 4, 0, 2) == 4 * 60  # no new seed: the jobs alone, 2 min each
-    assert progress.look_seconds(tmp_path / "none", 4, 4, 2) is None  # no job has trained: nothing to go by
+    assert progress.look_seconds(tmp_path / "sweep", 4, {}, 2) == 4 * 60  # no new seed: the jobs alone, 2 min each
+    assert progress.look_seconds(tmp_path / "none", 4, {"rgb": 2}, 2) is None  # no job has trained: nothing to go by
 
 
 def test_the_time_a_race_spent_before_is_its_other_sweeps_spans_of_the_runs_it_uses() -> None:

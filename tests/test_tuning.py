@@ -328,7 +328,8 @@ def test_a_smoke_table_on_experts_tunes_its_experts_then_stage_2_on_validation_a
     assert sweep["progress"]["experts"]["planned"] == 2
     raced = [r for r in recorded if r["kind"] == "job"]
     assert sorted(len(r.get("experts", [])) for r in raced) in ([0, 2], [1, 1]), raced
-    assert all(sum(r["experts"]) <= r["stage1"] < r["seconds"] for r in raced if r.get("experts")), raced
+    assert sorted(m for r in raced for m in r.get("experts", {})) == ["bev", "rgb"], raced  # by modality
+    assert all(sum(r["experts"].values()) <= r["stage1"] < r["seconds"] for r in raced if r.get("experts")), raced
     launches = sweep["progress"]["launches"]
     assert {kind: sorted(rows) for kind, rows in launches.items()} == {
         "expert trial": ["expert bev", "expert rgb"],

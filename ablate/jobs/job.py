@@ -111,7 +111,7 @@ def prepare_experts(
         start = time.monotonic()
         outcome = run(JobSpec.of(ecfg, spec.context, kind, row))
         if outcome.status == "FINISHED" and spent is not None:
-            spent.trained.append(time.monotonic() - start)
+            spent.trained[str(ecfg.stage.modality)] = time.monotonic() - start
         return outcome
 
     try:

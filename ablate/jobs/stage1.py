@@ -2,7 +2,7 @@
 :func:`ablate.jobs.job.prepare_experts`), for the sweep's progress ETA (:mod:`ablate.sweep.progress`).
 
 A raced job that trains an expert takes the expert's training too; the jobs after it, whose experts are trained, do
-not. The progress line times the two apart: each expert trained at the trained experts' mean, each job at its own
+not. The progress line times the two apart: each expert trained at the trained experts' mean of its modality, each job at its own
 time less its stage 1. The job returns its record with its status (:class:`Ended`, Hydra's ``JobReturn`` carries it
 to the sweep's callback and, pickled, back from a launcher's worker): nothing of a job outlives it in its process.
 """
@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 
 @dataclass
 class StageOne:
-    """A job's stage 1: the seconds of each expert it trained, and its seconds in stage 1 in all (training, waiting
-    for an expert another job trains, copying or loading a trained one)."""
+    """A job's stage 1: the seconds of each expert it trained, by modality, and its seconds in stage 1 in all
+    (training, waiting for an expert another job trains, copying or loading a trained one)."""
 
-    trained: list[float] = field(default_factory=list)
+    trained: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
 
 

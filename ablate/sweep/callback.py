@@ -41,7 +41,7 @@ class SweepCallback(Callback):
             # what the job spent on its experts, returned with its status (ablate.jobs.stage1)
             ran = status.stage1 if isinstance(status, stage1.Ended) else stage1.StageOne()
             line = progress.finished(
-                sdir, str(status), seconds, progress.workers(config), kind, row, trial, list(ran.trained), ran.seconds
+                sdir, str(status), seconds, progress.workers(config), kind, row, trial, dict(ran.trained), ran.seconds
             )
             log.info(line)
         except Exception as err:  # any error of the sweep's bookkeeping: the job's own outcome stands as it ended

@@ -13,9 +13,9 @@ other job and expert is estimated from the recipe's steps (epochs x training bat
 step time measured here, now (:func:`ablate.jobs.steptime.step_times`): one row key (the job's overrides but the
 seed; an expert's modality) at a time, until ``plan.measure_s`` seconds have gone by (the first of each kind whatever
 the time: the first measurement generates the dataset where it is missing, which the first job would do); a job or
-expert not measured by then is timed at the mean step times of those measured of its kind: a single-modal network
-trained alone (an expert, an expert's tuning trial), or a fusion network (whose first epoch runs its frozen experts
-and the later ones read their cached features).
+expert not measured by then is timed at the mean step times of those measured of its kind (:func:`measured_as`): a
+single-modal network of one modality trained alone (an expert, an expert's tuning trial), or a fusion network (whose
+first epoch runs its frozen experts and the later ones read their cached features).
 
 The wall time schedules the items on the sweep's workers in order, as its launcher does, each on the worker free
 first, and each of a tuning phase's launches (trial k of every row) after the one before has ended: the experts
@@ -126,23 +126,30 @@ def estimate(
     """Set each item's :attr:`Item.seconds` and :attr:`Item.how` (see the module)."""
     start = clock()
     times: dict[str, StepTimes] = {}
-    kinds: dict[str, bool] = {}  # measured key -> whether it trains a single-modal network alone
+    kinds: dict[str, str] = {}  # measured key -> what it was measured as (measured_as)
     for item in plan:
         if item.done:
             item.seconds, item.how = 0.0, "done"
             continue
-        first = trains_alone(item) not in kinds.values()
+        first = measured_as(item) not in kinds.values()
         if item.key not in times and measure_s > 0 and (first or clock() - start < measure_s):
             try:
-                times[item.key], kinds[item.key] = measure(item.config), trains_alone(item)
+                times[item.key], kinds[item.key] = measure(item.config), measured_as(item)
             except Exception as err:  # an estimate is a convenience: the job will say what is wrong
                 log.warning("Could not time the steps of %s for the sweep's plan: %s", item.name, err)
         if item.key in times:
             item.seconds, item.how = seconds(item.config, times[item.key]), "measured"
     for item in (i for i in plan if i.seconds is None):  # the rest: at the mean step times of their kind's measured
-        mates = [times[key] for key, alone in kinds.items() if alone == trains_alone(item)]
+        mates = [times[key] for key, kind in kinds.items() if kind == measured_as(item)]
+        mates = mates or [times[key] for key, kind in kinds.items() if kind.startswith("alone") == trains_alone(item)]
         if mates:
             item.seconds, item.how = seconds(item.config, StepTimes.mean(mates)), "as the measured"
+
+
+def measured_as(item: Item) -> str:
+    """What ``item``'s steps are timed as: ``alone <modality>`` for a single-modal network trained alone
+    (:func:`trains_alone`; a camera expert's step can take three times a BEV one's), else ``fused``."""
+    return f"alone {item.config.stage.get('modality', '')}" if trains_alone(item) else "fused"
 
 
 def trains_alone(item: Item) -> bool:
@@ -191,12 +198,17 @@ def wall_seconds(plan: list[Item], parallel: int) -> float | None:
     return max(free)
 
 
-def expert_seconds(plan: list[Item]) -> tuple[int, float | None]:
-    """How many experts the plan's jobs will train within them, and their mean estimated seconds (None: not
-    estimated; for the progress lines' ETA, :mod:`ablate.sweep.progress`)."""
-    experts = [i for i in plan if i.kind == "expert" and not i.done]
-    timed = [float(i.seconds) for i in experts if i.seconds is not None]
-    return len(experts), (sum(timed) / len(timed) if timed else None)
+def expert_seconds(plan: list[Item]) -> tuple[dict[str, int], dict[str, float]]:
+    """How many experts of each modality the plan's jobs will train within them, and each modality's mean estimated
+    seconds where estimated (for the progress lines' ETA, :mod:`ablate.sweep.progress`)."""
+    count: dict[str, int] = {}
+    timed: dict[str, list[float]] = {}
+    for item in (i for i in plan if i.kind == "expert" and not i.done):
+        modality = str(item.config.stage.modality)
+        count[modality] = count.get(modality, 0) + 1
+        if item.seconds is not None:
+            timed.setdefault(modality, []).append(float(item.seconds))
+    return count, {m: sum(s) / len(s) for m, s in timed.items()}
 
 
 def row_jobs(plan: list[Item]) -> dict[str, list[float]]:

@@ -20,9 +20,11 @@ each trial at its own row's mean where that row has finished one, and the raced 
 
 A raced job on experts (SMoE §4.3) trains whichever of them is missing first, within the job
 (:mod:`ablate.jobs.stage1`), so the first jobs of a look take an expert's training more than the rest. The sweep
-records how many experts its looks will train and the plan's estimate of one (``experts``); every job records the
-experts it trained and its seconds in stage 1. The ETA times each job to go at the jobs' mean less their stage 1, and
-each expert to go, before them, at the trained experts' mean (else its estimate, scaled as a kind's).
+records how many experts of each modality its looks will train and the plan's estimate of one of each (``experts``);
+every job records the seconds of each expert it trained, by modality, and its seconds in stage 1. The ETA times each
+job to go at the jobs' mean less their stage 1, and each expert to go, before them, at the trained experts' mean of its
+modality (a camera expert can take three times a BEV one), else at its estimate scaled as the trained experts of the
+other modalities came out against theirs, else as a kind's.
 """
 
 from __future__ import annotations
@@ -92,17 +94,43 @@ def replan(sweep_dir: Path, planned: int) -> None:
     _progress(sweep_dir, {"planned": planned})
 
 
-def experts_planned(sweep_dir: Path, count: int, seconds: float | None = None) -> None:
-    """Add ``count`` experts to those the sweep's jobs will train within them (a race's first look, then each later
-    look's), with the plan's estimated ``seconds`` of one where it has them."""
+def experts_planned(sweep_dir: Path, count: Mapping[str, int], seconds: Mapping[str, float] | None = None) -> None:
+    """Add ``count`` experts of each modality to those the sweep's jobs will train within them (a race's first look,
+    then each later look's), with the plan's estimated ``seconds`` of one of each modality where it has them."""
 
     def add(now: dict[str, Any]) -> None:
         known = now.setdefault("progress", {}).setdefault("experts", {})
-        known["planned"] = int(known.get("planned", 0)) + count
-        if seconds:
-            known["seconds"] = round(seconds, 3)
+        each = _modalities(known)
+        for modality, n in count.items():
+            each.setdefault(modality, {"planned": 0})["planned"] += int(n)
+        for modality, sec in (seconds or {}).items():
+            if sec:
+                each.setdefault(modality, {"planned": 0})["seconds"] = round(float(sec), 3)
+        known.clear()
+        known.update(planned=sum(e["planned"] for e in each.values()), modalities=each)
 
     state.change(sweep_dir, add)
+
+
+def _modalities(experts: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+    """The planned experts of each modality, ``{modality: {"planned": n, "seconds": s}}``, from the sweep's record of
+    them (one written before experts were counted by modality: all under ``""``)."""
+    if "modalities" in experts:
+        return {m: dict(e) for m, e in experts["modalities"].items()}
+    if not experts.get("planned"):
+        return {}
+    old = {"planned": int(experts["planned"])}
+    return {"": {**old, "seconds": float(experts["seconds"])} if experts.get("seconds") else old}
+
+
+def _trained(records: list[dict]) -> list[tuple[str, float]]:
+    """The experts the finished jobs trained: (modality, seconds) each (a record of a list: modality ``""``)."""
+    out: list[tuple[str, float]] = []
+    for r in records:
+        experts = r.get("experts") or {}
+        pairs = experts.items() if isinstance(experts, Mapping) else (("", s) for s in experts)
+        out += [(str(m), float(s)) for m, s in pairs]
+    return out
 
 
 def estimated(sweep_dir: Path, seconds: Mapping[str, float], rows: Mapping[str, Sequence[float]] | None = None) -> None:
@@ -121,16 +149,16 @@ def finished(
     kind: str = "job",
     row: str = "",
     trial: int | None = None,
-    experts: Sequence[float] = (),
+    experts: Mapping[str, float] | None = None,
     stage1: float = 0.0,
 ) -> str:
     """Record one job's end (``status``: FINISHED, SKIPPED, FAILED; its wall ``seconds``; its ``kind``,
     :func:`job_kind`; its ``row`` and ``trial``, :func:`job_row`, :func:`job_trial`; the seconds of each of the
-    ``experts`` it trained and its seconds in ``stage1`` in all, :mod:`ablate.jobs.stage1`) and return the sweep's
-    progress line."""
+    ``experts`` it trained, by modality, and its seconds in ``stage1`` in all, :mod:`ablate.jobs.stage1`) and return
+    the sweep's progress line."""
     record: dict[str, Any] = {"status": status, "seconds": round(seconds, 3), "kind": kind, "row": row, "trial": trial}
     if stage1:
-        record.update(experts=[round(e, 3) for e in experts], stage1=round(stage1, 3))
+        record.update(experts={m: round(e, 3) for m, e in (experts or {}).items()}, stage1=round(stage1, 3))
 
     def add(now: dict[str, Any]) -> dict[str, Any]:
         now.setdefault("ended", []).append(record)
@@ -163,8 +191,8 @@ def summary(
 ) -> str:
     """The progress line for the finished jobs' ``records`` of ``planned``, ``parallel`` jobs at a time (``kinds``:
     the planned count of each kind but ``job``; ``estimates``: the plan's seconds per job of each kind; ``launches``:
-    the rows of each tuned kind's launches; ``experts``: the experts the jobs will train, ``planned``, and the plan's
-    ``seconds`` of one; ``rows``: the plan's raced jobs of each row and their estimated seconds). The ETA takes each
+    the rows of each tuned kind's launches; ``experts``: the experts the jobs will train, as
+    :func:`experts_planned` records them; ``rows``: the plan's raced jobs of each row and their estimated seconds). The ETA takes each
     kind's trained jobs' mean duration less their stage 1 for its jobs to go (a skipped job costs nothing, but which
     of the rest will be skipped is not known; a kind without a trained job: see the module), scheduled on the
     workers in launch order, a tuning trial at its row's mean, a raced job at its row's where the plan names its
@@ -185,7 +213,9 @@ def summary(
     raced = _raced(records, to_go.get("job", 0), per, estimates or {}, rows or {}) if "job" in per else []
     said = ", ".join(f"{_minutes(per[k][0])} per {KINDS[k]}{per[k][1]}" for k in KINDS if to_go.get(k) and k != "job")
     if expert is not None:
-        said += (", " if said else "") + f"{expert[0]} expert(s) to train at {_minutes(expert[1])}{expert[2]}"
+        low, high = _minutes(min(expert[0])), _minutes(max(expert[0]))
+        at = low + (f" to {high}" if high != low else "")
+        said += (", " if said else "") + f"{len(expert[0])} expert(s) to train at {at}{expert[1]}"
     if to_go.get("job") and rows:
         low, high = _minutes(min(raced)), _minutes(max(raced))
         said += (
@@ -205,14 +235,14 @@ def _wall(
     kinds: Mapping[str, int],
     launches: Mapping[str, list[str]],
     workers: int,
-    expert: tuple[int, float, str] | None = None,
+    expert: tuple[list[float], str] | None = None,
     raced: Sequence[float] = (),
 ) -> float:
     """The wall time of the jobs to go, kind after kind in launch order. A tuned kind whose launches are known
     (``launches``: its rows; ``kinds``: its planned count, the rows times the trials) runs trial k of its rows to go
     as one launch after another, each trial at its row's trained trials' mean (else its kind's); where the records
     do not account for its jobs to go (records without their rows), its jobs are packed as the raced jobs are; the
-    ``expert`` s to go (their count and seconds each) go before the raced jobs, each of those at its ``raced``
+    ``expert`` s to go (the seconds of each) go before the raced jobs, each of those at its ``raced``
     seconds where given."""
     total = 0.0
     for kind in KINDS:
@@ -223,7 +253,7 @@ def _wall(
         trials = kinds.get(kind, 0) // len(rows) if rows else 0
         rounds = [[row for row in rows if (k, row) not in ended] for k in range(trials)]
         if kind == "job" or sum(map(len, rounds)) != n:
-            first = [expert[1]] * expert[0] if kind == "job" and expert is not None else []
+            first = list(expert[0]) if kind == "job" and expert is not None else []
             jobs = list(raced) if kind == "job" and len(raced) == n else [per[kind][0]] * n
             total += schedule([*first, *jobs], workers)
             continue
@@ -311,29 +341,49 @@ def _own(record: Mapping) -> float:
 
 def _expert(
     records: list[dict],
-    experts: Mapping[str, float],
+    experts: Mapping[str, Any],
     estimates: Mapping[str, float],
     rows: Mapping[str, Sequence[float]] | None = None,
-) -> tuple[int, float, str] | None:
-    """The experts to go (planned less trained), their seconds each and how they were had: the trained experts'
-    mean (""), else the plan's estimate scaled as :func:`_per_job` scales a kind's (" as planned"); None where none
-    is to go or nothing times one."""
-    trained = [float(s) for r in records for s in r.get("experts", ())]
-    left = int(experts.get("planned", 0)) - len(trained)
-    if left <= 0:
-        return None
-    if trained:
-        return left, sum(trained) / len(trained), ""
-    scale = _scale(records, estimates, rows)
-    guess = (1.0 if scale is None else scale) * float(experts.get("seconds", 0.0))
-    return (left, guess, " as planned") if guess > 0 else None
+) -> tuple[list[float], str] | None:
+    """The seconds of each expert to go (each modality's planned less trained, ``experts`` as
+    :func:`experts_planned` records them) and how they were had: the trained experts' mean of its modality (""),
+    else the plan's estimate of it scaled by the trained experts' seconds over their modalities' estimates, else
+    scaled as :func:`_per_job` scales a kind's, else the trained experts' mean (" as planned" where no modality to
+    go has trained one); None where none is to go or nothing times one."""
+    trained, planned = _trained(records), _modalities(experts)
+    own: dict[str, list[float]] = {}
+    for modality, sec in trained:
+        own.setdefault(modality, []).append(sec)
+    timed = [(m, s) for m, s in trained if planned.get(m, {}).get("seconds")]
+    scale = (
+        sum(s for _, s in timed) / sum(float(planned[m]["seconds"]) for m, _ in timed)
+        if timed
+        else _scale(records, estimates, rows)
+    )
+    everything = [s for _, s in trained]
+    seconds: list[float] = []
+    planned_only = True  # every expert to go timed from the plan's estimates
+    for modality, each in planned.items():
+        left = int(each.get("planned", 0)) - len(own.get(modality, ()))
+        if left <= 0:
+            continue
+        if modality in own:
+            sec, planned_only = sum(own[modality]) / len(own[modality]), False
+        elif each.get("seconds"):
+            sec = (1.0 if scale is None else scale) * float(each["seconds"])
+        elif everything:
+            sec, planned_only = sum(everything) / len(everything), False
+        else:
+            continue
+        seconds += [sec] * left if sec > 0 else []
+    return (seconds, " as planned" if planned_only else "") if seconds else None
 
 
-def look_seconds(sweep_dir: Path, jobs: int, experts: int, parallel: int) -> float | None:
-    """The wall time of a race's next look of ``jobs`` raced jobs that train ``experts`` experts within them (SMoE
-    §4.3: the new seeds' experts, :mod:`ablate.jobs.stage1`), ``parallel`` at a time, timed as the ETA times the jobs
-    to go (:func:`summary`): each expert at the trained experts' mean (else the plan's estimate, scaled), before
-    the jobs, each at the trained jobs' mean less their stage 1. None where no job of the sweep has trained yet. The
+def look_seconds(sweep_dir: Path, jobs: int, experts: Mapping[str, int], parallel: int) -> float | None:
+    """The wall time of a race's next look of ``jobs`` raced jobs that train ``experts`` experts of each modality
+    within them (SMoE §4.3: the new seeds' experts, :mod:`ablate.jobs.stage1`), ``parallel`` at a time, timed as the
+    ETA times the jobs to go (:func:`summary`): each expert at the trained experts' mean of its modality (else the
+    plan's estimate, scaled), before the jobs, each at the trained jobs' mean less their stage 1. None where no job of the sweep has trained yet. The
     racing sweeper weighs a look's cost with it, beside its rows' costs (``hydra_plugins/ablate_racing_sweeper``):
     a look that races fewer rows than the first trains as many experts per seed."""
     now = state.read(sweep_dir)
@@ -342,10 +392,14 @@ def look_seconds(sweep_dir: Path, jobs: int, experts: int, parallel: int) -> flo
     per = _per_job([r for r in records if r.get("kind", "job") == "job"], {})
     if "job" not in per:
         return None
-    trained = sum(len(r.get("experts", ())) for r in records)
-    known = planned.get("experts", {})
-    expert = _expert(records, {"planned": trained + experts, "seconds": known.get("seconds", 0.0)}, estimates, rows)
-    first = [expert[1]] * expert[0] if expert is not None else []
+    trained = Counter(m for m, _ in _trained(records))
+    known = _modalities(planned.get("experts", {}))
+    look = {
+        m: {"planned": trained[m] + int(experts.get(m, 0)), **({"seconds": e["seconds"]} if "seconds" in e else {})}
+        for m, e in {**{m: {} for m in experts}, **known}.items()
+    }
+    expert = _expert(records, {"modalities": look}, estimates, rows)
+    first = list(expert[0]) if expert is not None else []
     return schedule([*first, *[per["job"][0]] * jobs], parallel)
 
 

@@ -154,7 +154,7 @@ class RacingSweeperImpl:
         self._tune(race_, plan)
         while not race_.state.over:
             look, n, batch, rows = race_.next_look()
-            experts = self._look_experts(batch) if look > 1 else 0  # the first look's are in the sweep's plan
+            experts = self._look_experts(batch) if look > 1 else {}  # the first look's are in the sweep's plan
             if race_.over_budget(look, rows, self._look_seconds(sdir, len(batch), experts, workers)):
                 break
             racing = ", ".join(race_.state.racing)
@@ -180,24 +180,24 @@ class RacingSweeperImpl:
         return race_.returns
 
     @staticmethod
-    def _look_seconds(sdir: Path, jobs: int, experts: int, workers: int) -> float | None:
+    def _look_seconds(sdir: Path, jobs: int, experts: dict[str, int], workers: int) -> float | None:
         try:
             return progress.look_seconds(sdir, jobs, experts, workers)
         except (OSError, ValueError, KeyError) as err:  # a state file that cannot be read: the rows' costs alone
             log.warning("Could not time the look from the sweep's progress: %s", err)
             return None
 
-    def _look_experts(self, batch: list[list[str]]) -> int:
-        """The experts a later look's jobs will train first (its new seeds'), for the look's estimate and the
-        sweep's ETA (:mod:`ablate.sweep.progress`); 0 where they cannot be counted."""
+    def _look_experts(self, batch: list[list[str]]) -> dict[str, int]:
+        """The experts of each modality a later look's jobs will train first (its new seeds'), for the look's
+        estimate and the sweep's ETA (:mod:`ablate.sweep.progress`); none where they cannot be counted."""
         assert self.config is not None
         try:
-            from ablate.sweep.plan import items  # torch: the experts' configs and hashes
+            from ablate.sweep.plan import expert_seconds, items  # torch: the experts' configs and hashes
 
-            return sum(i.kind == "expert" and not i.done for i in items(self.config, jobs=batch))
+            return expert_seconds(items(self.config, jobs=batch))[0]
         except Exception as err:  # composes the look's configs: whatever fails, its jobs will say it
             log.warning("Could not count the experts of the look: %s", err)
-            return 0
+            return {}
 
     def _tune(self, race_: Race, plan: SweepPlan) -> None:
         """The tuning phase where the table has one (``table.tune``, :mod:`ablate.sweep.tuning`): the experts' trials
