@@ -136,7 +136,9 @@ def test_a_tuned_tables_sweep_counts_its_trials_apart_from_its_raced_jobs(tmp_pa
 def planned(**modalities: int | tuple[int, float]) -> dict:
     """The sweep's record of the experts its jobs will train (:func:`experts_planned`): ``modality=count`` or
     ``modality=(count, the plan's seconds of one)``."""
-    each = {m: {"planned": n} if isinstance(n, int) else {"planned": n[0], "seconds": n[1]} for m, n in modalities.items()}
+    each = {
+        m: {"planned": n} if isinstance(n, int) else {"planned": n[0], "seconds": n[1]} for m, n in modalities.items()
+    }
     return {"planned": sum(e["planned"] for e in each.values()), "modalities": each}
 
 
@@ -144,7 +146,14 @@ def test_the_experts_a_look_trains_first_are_timed_apart_from_its_jobs():
     """A look of raced jobs on experts: its first jobs train the experts within them (10 min each here), the rest
     only their fusion network (about 5 min). The ETA once took every job at the first ones' mean."""
     records = [
-        {"status": "FINISHED", "seconds": 900, "kind": "job", "row": "smoe_fpn", "experts": {"rgb": 600.0}, "stage1": 610.0},
+        {
+            "status": "FINISHED",
+            "seconds": 900,
+            "kind": "job",
+            "row": "smoe_fpn",
+            "experts": {"rgb": 600.0},
+            "stage1": 610.0,
+        },
         {"status": "FINISHED", "seconds": 300, "kind": "job", "row": "smoe_late"},
     ]
     line = summary(records, 8, parallel=2, experts=planned(rgb=4))
@@ -181,6 +190,14 @@ def test_each_expert_to_go_is_timed_at_its_own_modalitys_not_at_the_other_modali
     assert "expert" not in summary(plain, 6, parallel=1, experts=planned(rgb=1))
 
 
+def test_a_sweep_recorded_before_experts_had_modalities_resumes_with_its_eta():
+    """A sweep folder written before experts were counted by modality: experts a list of seconds per job, the
+    planned ones a count and one estimate. Resumed, its ETA reads them as one modality."""
+    records = [{"status": "FINISHED", "seconds": 900, "kind": "job", "row": "fpn", "experts": [600.0], "stage1": 610}]
+    line = summary(records, 4, parallel=1, experts={"planned": 3, "seconds": 500.0})
+    assert "(2 expert(s) to train at 10.0 min, " in line  # at the trained one's 600 s
+
+
 def test_raced_jobs_to_go_are_timed_at_their_own_rows_not_at_the_first_rows_to_end(tmp_path):
     """SMoE Table 1's follow-up: its single-modal rows only test a trained expert (about 35 s a job), its fused rows
     train for minutes. Its first jobs to end were the single-modal ones, and the ETA once took every job to go, and
@@ -195,7 +212,7 @@ def test_raced_jobs_to_go_are_timed_at_their_own_rows_not_at_the_first_rows_to_e
     assert line.endswith(
         "ETA 40.0 min (2 expert(s) to train at 26.7 min as planned, trained jobs at their rows' 6.7 min, 2 at a time)"
     )
-# an FPN job has trained the camera expert in 1000 s: the depth expert at its plan's 960 s scaled as the camera's
+    # an FPN job has trained the camera expert in 1000 s: the depth expert at its plan's 960 s scaled as the camera's
     # came out against its own (1000 / 960), beside the two jobs to go at the row's own 300 s
     line = finished(tmp_path, "FINISHED", 1300.0, 2, "job", "smoe_fpn", None, {"rgb": 1000.0}, 1000.0)
     assert line.endswith(

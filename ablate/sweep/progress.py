@@ -119,7 +119,7 @@ def _modalities(experts: Mapping[str, Any]) -> dict[str, dict[str, float]]:
         return {m: dict(e) for m, e in experts["modalities"].items()}
     if not experts.get("planned"):
         return {}
-    old = {"planned": int(experts["planned"])}
+    old: dict[str, float] = {"planned": int(experts["planned"])}
     return {"": {**old, "seconds": float(experts["seconds"])} if experts.get("seconds") else old}
 
 
