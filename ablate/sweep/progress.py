@@ -191,9 +191,9 @@ def summary(
 ) -> str:
     """The progress line for the finished jobs' ``records`` of ``planned``, ``parallel`` jobs at a time (``kinds``:
     the planned count of each kind but ``job``; ``estimates``: the plan's seconds per job of each kind; ``launches``:
-    the rows of each tuned kind's launches; ``experts``: the experts the jobs will train, as
-    :func:`experts_planned` records them; ``rows``: the plan's raced jobs of each row and their estimated seconds). The ETA takes each
-    kind's trained jobs' mean duration less their stage 1 for its jobs to go (a skipped job costs nothing, but which
+    the rows of each tuned kind's launches; ``experts``: the experts the jobs will train, as :func:`experts_planned`
+    records them; ``rows``: the plan's raced jobs of each row and their estimated seconds). The ETA takes each kind's
+    trained jobs' mean duration less their stage 1 for its jobs to go (a skipped job costs nothing, but which
     of the rest will be skipped is not known; a kind without a trained job: see the module), scheduled on the
     workers in launch order, a tuning trial at its row's mean, a raced job at its row's where the plan names its
     rows (:func:`_raced`), the experts to go before the raced jobs (:func:`_wall`)."""
@@ -383,9 +383,10 @@ def look_seconds(sweep_dir: Path, jobs: int, experts: Mapping[str, int], paralle
     """The wall time of a race's next look of ``jobs`` raced jobs that train ``experts`` experts of each modality
     within them (SMoE §4.3: the new seeds' experts, :mod:`ablate.jobs.stage1`), ``parallel`` at a time, timed as the
     ETA times the jobs to go (:func:`summary`): each expert at the trained experts' mean of its modality (else the
-    plan's estimate, scaled), before the jobs, each at the trained jobs' mean less their stage 1. None where no job of the sweep has trained yet. The
-    racing sweeper weighs a look's cost with it, beside its rows' costs (``hydra_plugins/ablate_racing_sweeper``):
-    a look that races fewer rows than the first trains as many experts per seed."""
+    plan's estimate, scaled), before the jobs, each at the trained jobs' mean less their stage 1. None where no job of
+    the sweep has trained yet. The racing sweeper weighs a look's cost with it, beside its rows' costs
+    (``hydra_plugins/ablate_racing_sweeper``): a look that races fewer rows than the first trains as many experts per
+    seed."""
     now = state.read(sweep_dir)
     records, planned = now.get("ended", []), now.get("progress", {})
     estimates, rows = planned.get("estimates", {}), planned.get("rows", {})
