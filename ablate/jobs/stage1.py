@@ -2,9 +2,10 @@
 :func:`ablate.jobs.job.prepare_experts`), for the sweep's progress ETA (:mod:`ablate.sweep.progress`).
 
 A raced job that trains an expert takes the expert's training too; the jobs after it, whose experts are trained, do
-not. The progress line times the two apart: each expert trained at the trained experts' mean of its modality, each job at its own
-time less its stage 1. The job returns its record with its status (:class:`Ended`, Hydra's ``JobReturn`` carries it
-to the sweep's callback and, pickled, back from a launcher's worker): nothing of a job outlives it in its process.
+not. The progress line times the two apart: each expert trained at the trained experts' mean of its modality, each
+job at its own time less its stage 1. The job returns its record with its status (:class:`Ended`, Hydra's
+``JobReturn`` carries it to the sweep's callback and, pickled, back from a launcher's worker): nothing of a job
+outlives it in its process.
 """
 
 from __future__ import annotations

@@ -394,11 +394,10 @@ def look_seconds(sweep_dir: Path, jobs: int, experts: Mapping[str, int], paralle
     if "job" not in per:
         return None
     trained = Counter(m for m, _ in _trained(records))
-    known = _modalities(planned.get("experts", {}))
-    look = {
-        m: {"planned": trained[m] + int(experts.get(m, 0)), **({"seconds": e["seconds"]} if "seconds" in e else {})}
-        for m, e in {**{m: {} for m in experts}, **known}.items()
-    }
+    # the experts trained so far, then the look's: each modality's planned estimate kept
+    look = {m: {**e, "planned": trained[m]} for m, e in _modalities(planned.get("experts", {})).items()}
+    for modality, n in experts.items():
+        look.setdefault(modality, {"planned": trained[modality]})["planned"] += int(n)
     expert = _expert(records, {"modalities": look}, estimates, rows)
     first = list(expert[0]) if expert is not None else []
     return schedule([*first, *[per["job"][0]] * jobs], parallel)
