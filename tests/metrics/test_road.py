@@ -359,3 +359,44 @@ def test_bev_centres_orientation():
     assert x.shape == z.shape == (800, 400)
     assert (x[0, 0], z[0, 0]) == pytest.approx((-9.975, 45.975))  # far left at row 0, column 0
     assert (x[-1, -1], z[-1, -1]) == pytest.approx((9.975, 6.025))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_levels_are_the_threshold_search_at_every_threshold_and_its_neighbours(dtype):
+    """:func:`levels` finds the count of thresholds k/255 a probability reaches without searching: at each
+    threshold and the 64 floats on either side of it, 0, 1 and random values, placed at every offset of a long
+    tensor (vectorised loops and their tails alike), it equals ``torch.bucketize(p, arange(256) / 255,
+    right=True)``, what the counts were defined by."""
+    from ablate.metrics.road import levels
+
+    thresholds = torch.arange(256, dtype=dtype) / 255
+    as_int = torch.int32 if dtype == torch.float32 else torch.int64
+    steps = torch.arange(-64, 65, dtype=as_int)
+    near = (thresholds.view(as_int)[:, None] + steps).view(dtype).flatten()  # below 0: negative floats, clamped
+    edges = torch.cat([near.nan_to_num(0.0).clamp(0, 1), torch.tensor([0.0, 1.0], dtype=dtype)])
+    gen = torch.Generator().manual_seed(0)
+    for offset in range(17):  # each value at every position modulo the widest vector, and in a tail
+        p = torch.cat(
+            [torch.rand(offset, generator=gen, dtype=dtype), edges, torch.rand(1000, generator=gen, dtype=dtype)]
+        )
+        assert torch.equal(levels(p), torch.bucketize(p, thresholds, right=True)), offset
+    assert levels(torch.tensor([0.0, 1.0], dtype=dtype)).tolist() == [1, 256]
+
+
+def test_the_metric_counts_the_same_from_the_frames_histograms():
+    """``update(histograms=...)`` (what the road task passes, keeping each test frame's histograms) counts exactly
+    what ``update(preds, target, valid)`` counts for the same frames."""
+    from ablate.metrics.road import frame_histograms
+
+    gen = torch.Generator().manual_seed(2)
+    shape = (3, 800, 400)
+    target = torch.rand(shape, generator=gen) < 0.3
+    preds = (0.3 * target + 0.7 * torch.rand(shape, generator=gen)).clamp(0, 1)
+    valid = torch.rand(shape, generator=gen) < 0.9
+    direct, counted = RoadMaxF(), RoadMaxF()
+    direct.update(preds, target, valid)
+    counted.update(histograms=frame_histograms(preds, target, valid))
+    for name in ("tp", "fp", "fn"):
+        assert torch.equal(getattr(direct, name), getattr(counted, name)), name
+    with pytest.raises(ValueError, match="not both"):
+        counted.update(preds, target, histograms=frame_histograms(preds, target, valid))

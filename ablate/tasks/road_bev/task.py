@@ -86,9 +86,10 @@ class RoadTask(FusionTask):
         kept = []
         for branch, prob in self.probabilities(outputs, batch).items():
             warped = self.warp.camera(prob, calibs)[0] if branch == "cam" else self.warp.lidar(prob, calibs)
-            metrics[branch].update(warped.clamp(0, 1), target > 0.5, valid)
+            counts = frame_histograms(warped.clamp(0, 1), target > 0.5, valid)  # per frame: the metric's counts
+            metrics[branch].update(histograms=counts)
             if stage == "test" and "frame" in batch:
-                kept.append(frame_histograms(warped.clamp(0, 1), target > 0.5, valid))
+                kept.append(counts)
         if kept:  # per frame, each branch's histograms in BRANCHES' order: the counts its MaxF resamples from
             self.keep_frame_counts(list(batch["frame"]), torch.cat(kept, dim=1))
         self.log(f"{stage}/loss", self.criterion(outputs, batch)["loss"], batch_size=len(calibs))
