@@ -99,7 +99,9 @@ def test_a_trial_index_takes_as_long_as_its_slowest_row_before_the_race_begins()
     # half a launch done: its other row still runs alone
     more = [*records, {"status": "FINISHED", "seconds": 480, "kind": "trial", "row": "chinet", "trial": 1}]
     line = summary(more, 18, parallel=2, kinds=trials, estimates=estimates, launches=launches)
-    assert " ETA 63.2 min " in line  # 300 + 4 x 480 + 3 x 525 (the trials took 1260 s of 1200 planned)
+    # 300 + 4 x 480 + 3 x 520: the trials took 1260 s of 1200 planned (1.05), a raced job 1.05 x 400 s of its 500
+    # planned, the 100 s beyond the trials' size at the plan's pace
+    assert " ETA 63.0 min " in line
     # a progress file without rows (an older sweep's) packs the trials as before
     bare = [{k: v for k, v in r.items() if k not in ("row", "trial")} for r in records]
     line = summary(bare, 18, parallel=2, kinds=trials, estimates=estimates, launches=launches)
@@ -208,9 +210,11 @@ def test_raced_jobs_to_go_are_timed_at_their_own_rows_not_at_the_first_rows_to_e
     replan(tmp_path, 6)
     for _ in range(3):
         line = finished(tmp_path, "FINISHED", 35.0, 2, "job", "smoe_rgb")
-    # scaled by 105 s against the rows' 63: the experts at 1600 s each, then the FPN's 3 jobs at 400 s: 2400 s
+    # 35 s against the row's 21 planned: a job's first 21 s of estimate at that ratio (35 s), the rest at the
+    # plan's pace: the experts at 974 s each, then the FPN's 3 jobs at 254 s: 1482 s (scaled by the ratio alone,
+    # 2400 s: the test-only row's fixed costs counted as if they grew with a job's steps)
     assert line.endswith(
-        "ETA 40.0 min (2 expert(s) to train at 26.7 min as planned, trained jobs at their rows' 6.7 min, 2 at a time)"
+        "ETA 24.7 min (2 expert(s) to train at 16.2 min as planned, trained jobs at their rows' 4.2 min, 2 at a time)"
     )
     # an FPN job has trained the camera expert in 1000 s: the depth expert at its plan's 960 s scaled as the camera's
     # came out against its own (1000 / 960), beside the two jobs to go at the row's own 300 s
@@ -232,3 +236,19 @@ def test_each_look_adds_its_experts_and_each_job_records_its_stage_one(tmp_path)
     assert line.endswith("ETA 6.7 min (1 expert(s) to train at 6.7 min, 80 s per trained job, 2 at a time)")
     (record,) = state.read(tmp_path)["ended"]
     assert (record["experts"], record["stage1"]) == ({"rgb": 400.0, "depth": 200.0}, 620.0)
+
+
+def test_a_rows_fixed_costs_do_not_scale_a_larger_rows_estimate():
+    """`make run` (BiFNet Table IV): its single-modal rows only test their expert, 9 s of steps planned and 17 s
+    taken, mostly a job's fixed costs (its start, its checkpoint, the test's data), which the plan does not time.
+    Their ratio (1.9) once scaled the fused rows' 108 s to 204 s where they took 140: up to their size a job to go
+    takes their ratio, beyond it the plan's pace. Faster than planned, every size takes the ratio."""
+    rows = {"bifnet_image": [3, 9.0], "bifnet_dst_sum": [3, 108.0]}
+    ended = [{"status": "FINISHED", "seconds": 17.0, "kind": "job", "row": "bifnet_image"}]
+    line = summary(ended, 6, parallel=1, estimates={"job": 60.0}, rows=rows)
+    # 2 image jobs at their own 17 s, 3 fused ones at 1.9 x 9 + 99 = 116 s
+    assert line.endswith("ETA 6.4 min (trained jobs at their rows' 17 s to 1.9 min, 1 at a time)"), line
+    fast = [{**ended[0], "seconds": 4.5}]
+    assert summary(fast, 6, parallel=1, estimates={"job": 60.0}, rows=rows).endswith(
+        "(trained jobs at their rows' 4 s to 54 s, 1 at a time)"
+    )  # half the plan: 54 s each
