@@ -48,7 +48,7 @@ def test_the_budget_stops_the_phase_only_between_trial_indices(caplog: pytest.Lo
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("Tuning trial")]
     assert lines == [
         "Tuning trial 0 of 10 for 3 row(s)",
-        "Tuning trial 1 of 10 for 3 row(s); 0.4 min spent, ETA 3.8 min (0.4 min a trial index)",
+        "Tuning trial 1 of 10 for 3 row(s); 0.4 min spent, tuning ETA 3.8 min (0.4 min a trial index)",
     ]
 
 

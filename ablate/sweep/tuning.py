@@ -224,12 +224,14 @@ def run_halving(
 
 
 def _eta(k: int, trials: int, elapsed: float) -> str:
-    """The phase's progress before trial ``k``: the minutes spent, and an ETA taking the mean trial index so far for
-    each one to go (this one included); nothing before the first has ended."""
+    """The phase's progress before trial ``k``: the minutes spent, and the phase's own ETA (the sweep's progress line
+    gives the whole sweep's), taking the mean trial index so far for each one to go (this one included); nothing
+    before the first has ended."""
     if not k:
         return ""
     per = elapsed / k
-    return f"; {elapsed / 60:.1f} min spent, ETA {per * (trials - k) / 60:.1f} min ({per / 60:.1f} min a trial index)"
+    left = per * (trials - k) / 60
+    return f"; {elapsed / 60:.1f} min spent, tuning ETA {left:.1f} min ({per / 60:.1f} min a trial index)"
 
 
 def choose(objectives: Mapping[str, Mapping[int, float]], trials: int, higher_is_better: bool = True) -> dict[str, int]:
