@@ -51,7 +51,8 @@ def main() -> None:
     assert torch.equal(frame_histograms(preds, target, valid), searched(preds, target, valid))
 
     def now() -> None:  # validation and test alike (ablate.tasks.road_bev.task.RoadTask._eval_step)
-        RoadMaxF().update(histograms=frame_histograms(preds, target, valid))
+        metric = RoadMaxF()
+        metric.update(histograms=metric.histograms(preds, target, valid))
 
     def before(test: bool) -> None:
         RoadMaxF().update(histograms=searched(preds, target, valid))  # the metric's own pass, as it was

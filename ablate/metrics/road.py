@@ -170,7 +170,7 @@ def levels(preds: Tensor) -> Tensor:
     if not (low >= 0 and high <= 1):
         raise ValueError(
             f"RoadMaxF.update: preds must be probabilities in [0, 1], got values in "
-            f"[{p.min().item():.4g}, {p.max().item():.4g}] (logits?)"
+            f"[{low.item():.4g}, {high.item():.4g}] (logits?)"
         )
     top = NUM_THRESHOLDS - 1
     guess = (p * top).floor_().clamp_(0, top)  # the last threshold p reaches, give or take one
@@ -275,14 +275,26 @@ class RoadMaxF(Metric):
         (H,W), (B,H,W) or (B,1,H,W). With ``calib`` (one, or one per frame) they are image_2 perspective images
         and are warped into the BEV grid; without it they must already be on the grid (``self.shape``).
 
-        Or the frames' level histograms alone (``histograms``: :func:`frame_histograms` of BEV frames, (B, 2 x
-        257), or their sum): the same counts, for a caller that keeps the histograms per frame as well."""
+        Or the frames' level histograms alone (``histograms``: :meth:`histograms` or :func:`frame_histograms` of BEV
+        frames, (B, 2 x 257), or their sum): the same counts, for a caller that keeps them per frame as well."""
         if histograms is not None:
             if preds is not None or target is not None:
                 raise ValueError("RoadMaxF.update: pass preds and target, or histograms, not both")
             return self._add(histograms)
         if preds is None or target is None:
             raise ValueError("RoadMaxF.update: preds and target are needed (or histograms)")
+        self._add(self.histograms(preds, target, valid, calib))
+
+    def histograms(
+        self,
+        preds: Tensor,
+        target: Tensor,
+        valid: Tensor | None = None,
+        calib: Calibration | Sequence[Calibration] | None = None,
+    ) -> Tensor:
+        """(B, 2 x 257) int64, on the CPU: per frame, the level histograms :meth:`update` adds for these inputs (the
+        same inputs, checked alike), for a caller that keeps them per frame and adds them with
+        ``update(histograms=...)``."""
         preds, target = _frames(preds, "preds"), _frames(target, "target").to(preds.device)
         valid = torch.ones_like(target, dtype=torch.bool) if valid is None else _frames(valid, "valid").bool()
         if not preds.shape == target.shape == valid.shape:
@@ -301,7 +313,7 @@ class RoadMaxF(Metric):
                 f"RoadMaxF.update: BEV inputs must be {self.shape} (rows z, columns x), got "
                 f"{tuple(preds.shape[1:])}; pass calib for image_2 perspective inputs"
             )
-        self._add(level_histograms(level, target, valid))
+        return level_histograms(level, target, valid)
 
     def _add(self, histograms: Tensor) -> None:
         """Add the per-threshold counts of frames given as level histograms ((B, 2 x 257) or summed, (514,))."""

@@ -400,3 +400,9 @@ def test_the_metric_counts_the_same_from_the_frames_histograms():
         assert torch.equal(getattr(direct, name), getattr(counted, name)), name
     with pytest.raises(ValueError, match="not both"):
         counted.update(preds, target, histograms=frame_histograms(preds, target, valid))
+    # the metric's own per-frame histograms (what the task keeps) are those counts, its inputs checked as update's
+    assert torch.equal(direct.histograms(preds, target, valid), frame_histograms(preds, target, valid))
+    with pytest.raises(ValueError, match=r"BEV inputs must be \(800, 400\)"):
+        direct.histograms(preds[:, :400], target[:, :400], valid[:, :400])
+    with pytest.raises(ValueError, match="0/1 or bool"):
+        direct.histograms(preds, target * 2.0, valid)

@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from ablate.fusion.geometry import BevGrid
-from ablate.metrics.road import RoadMaxF, frame_histograms
+from ablate.metrics.road import RoadMaxF
 from ablate.tasks.base import FusionTask
 from ablate.tasks.road_bev.evaluate import MetricBev
 from ablate.tasks.road_bev.figures import draw_gains, draw_roads
@@ -86,7 +86,7 @@ class RoadTask(FusionTask):
         kept = []
         for branch, prob in self.probabilities(outputs, batch).items():
             warped = self.warp.camera(prob, calibs)[0] if branch == "cam" else self.warp.lidar(prob, calibs)
-            counts = frame_histograms(warped.clamp(0, 1), target > 0.5, valid)  # per frame: the metric's counts
+            counts = metrics[branch].histograms(warped.clamp(0, 1), target > 0.5, valid)  # per frame, checked as update
             metrics[branch].update(histograms=counts)
             if stage == "test" and "frame" in batch:
                 kept.append(counts)
