@@ -23,6 +23,7 @@ order ``index``), and AP over a set of frames follows from the rows of those fra
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Sequence
 
 import numpy as np
@@ -87,18 +88,31 @@ def coco_ap(rows: dict[str, np.ndarray], keep: np.ndarray | None = None) -> floa
     return float(valid.mean()) if valid.size else -1.0
 
 
+def threshold_positions(count: int, n_gt: int) -> np.ndarray:
+    """eval.cpp ``getThresholds``' choice among ``count`` TP scores sorted from the highest: the positions whose
+    recalls best approximate 0, 1/40, ..., 1. It reads the positions, never the scores, and its choice at a position
+    short of the last does not depend on ``count``: one pass per ``n_gt`` serves every count (:data:`_CHOSEN`), which
+    makes AP over many draws of the frames cheap (:func:`kitti_ap_drawn`)."""
+    if count <= 0:
+        return np.zeros(0, np.int64)
+    chosen, done, current = _CHOSEN.get(n_gt, ([], 0, 0.0))
+    for i in range(done, count - 1):
+        left, right = (i + 1) / n_gt, (i + 2) / n_gt
+        if right - current < current - left:
+            continue
+        chosen.append(i)
+        current += 1.0 / (N_SAMPLE_PTS - 1.0)
+    _CHOSEN[n_gt] = (chosen, max(done, count - 1), current)
+    return np.array([*chosen[: bisect.bisect_left(chosen, count - 1)], count - 1], np.int64)  # the last: always
+
+
+#: n_gt -> (the positions chosen short of the last, how many positions were decided, getThresholds' ``current``).
+_CHOSEN: dict[int, tuple[list[int], int, float]] = {}
+
+
 def kitti_thresholds(scores: np.ndarray, n_gt: int) -> np.ndarray:
     """eval.cpp ``getThresholds``: the TP scores whose recalls best approximate 0, 1/40, ..., 1."""
-    v, out, current = np.sort(scores)[::-1], [], 0.0
-    for i in range(len(v)):
-        last = i == len(v) - 1
-        left = (i + 1) / n_gt
-        right = left if last else (i + 2) / n_gt
-        if right - current < current - left and not last:
-            continue
-        out.append(v[i])
-        current += 1.0 / (N_SAMPLE_PTS - 1.0)
-    return np.array(out)
+    return np.sort(scores)[::-1][threshold_positions(len(scores), n_gt)]
 
 
 def kitti_precision(
@@ -106,15 +120,29 @@ def kitti_precision(
 ) -> np.ndarray:
     """The devkit's interpolated precision at its 41 points from the TP scores of the threshold pass, the counted
     ground truths and the frames' cut rows (score ``cut``, TP and FP increments ``d_tp``, ``d_fp``)."""
-    t = kitti_thresholds(tp_scores, n_gt)
     order = np.argsort(-cut, kind="mergesort")
-    s, ctp, cfp = cut[order], np.cumsum(d_tp[order]), np.cumsum(d_fp[order])
+    return precision_at(kitti_thresholds(tp_scores, n_gt), cut[order], np.cumsum(d_tp[order]), np.cumsum(d_fp[order]))
+
+
+def precision_at(t: np.ndarray, s: np.ndarray, ctp: np.ndarray, cfp: np.ndarray) -> np.ndarray:
+    """The interpolated precision at the 41 points from the thresholds ``t`` and the cut rows sorted from the highest
+    score ``s`` with their cumulative TP and FP counts ``ctp``, ``cfp``."""
     reach = np.searchsorted(-s, -t, side="right")  # the cut rows with score >= t
     tp = np.where(reach > 0, ctp[np.maximum(reach - 1, 0)] if len(s) else 0, 0).astype(float)
     fp = np.where(reach > 0, cfp[np.maximum(reach - 1, 0)] if len(s) else 0, 0).astype(float)
+    return interpolated(tp, fp)
+
+
+def interpolated(tp: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """The devkit's precision at its 41 points from the TP and FP counts at each threshold, made monotone."""
     precision = np.zeros(N_SAMPLE_PTS)
-    precision[: len(t)] = np.divide(tp, tp + fp, out=np.zeros_like(tp), where=tp + fp > 0)
+    precision[: len(tp)] = np.divide(tp, tp + fp, out=np.zeros_like(tp), where=tp + fp > 0)
     return np.maximum.accumulate(precision[::-1])[::-1]
+
+
+def ap_of(precision: np.ndarray, points: int) -> float:
+    """AP in percent from the 41 points' precision: the devkit's 11 points (every fourth) or its 40 (all but 0)."""
+    return float(100 * precision[::4].sum() / 11 if points == 11 else 100 * precision[1:].sum() / 40)
 
 
 def kitti_ap(
@@ -132,7 +160,40 @@ def kitti_ap(
     precision = kitti_precision(
         rows["score"][sel & (rows["kind"] == "tp")], n_gt, rows["score"][cut], rows["a"][cut], rows["b"][cut]
     )
-    return float(100 * precision[::4].sum() / 11 if points == 11 else 100 * precision[1:].sum() / 40)
+    return ap_of(precision, points)
+
+
+def kitti_ap_drawn(
+    rows: dict[str, np.ndarray], cls: str, level: int, frame: np.ndarray, drawn: np.ndarray, points: int = 11
+) -> np.ndarray:
+    """:func:`kitti_ap` over many draws of the frames at once: ``frame`` [rows] is each row's frame (a column of
+    ``drawn``), ``drawn`` [draws, frames] how many times a draw holds each frame; [draws] values, -1 where a draw has
+    no counted ground truth. Each equals :func:`kitti_ap` of the drawn frames' rows, each repeated as often as its
+    frame is drawn: the counted ground truths are a sum over the frames; the thresholds depend only on how many TP
+    scores lie at or above each (:func:`threshold_positions`) and are TP scores, so each frame's TP and FP counts at
+    every TP score, counted once, give every draw's by one product. The counts are integers, exact in floats: the same
+    values whatever the order of tied scores or of the sums."""
+    sel = (rows["cls"] == cls) & (rows["level"] == level)
+    f, kind, score, a, b = frame[sel], rows["kind"][sel], rows["score"][sel], rows["a"][sel], rows["b"][sel]
+    gt, tp, cut = kind == "gt", kind == "tp", kind == "cut"
+    counts, n_frames = drawn.astype(float), drawn.shape[1]
+    n_gt = counts @ np.bincount(f[gt], weights=a[gt], minlength=n_frames)
+    by_tp = np.argsort(-score[tp], kind="mergesort")
+    v = score[tp][by_tp]  # the TP scores from the highest
+    reps = np.cumsum(counts[:, f[tp][by_tp]], axis=1)  # per draw, how many TP scores lie at or above each
+    levels = np.unique(v)[::-1]  # each TP score once, from the highest: the thresholds any draw can have
+    rank = np.searchsorted(-levels, -score[cut], side="left")  # a cut row counts at every threshold from this one
+    at = np.zeros((2, len(levels) + 1, n_frames))
+    np.add.at(at, (0, rank, f[cut]), a[cut])
+    np.add.at(at, (1, rank, f[cut]), b[cut])
+    tp_at, fp_at = (counts @ np.cumsum(x[:-1], axis=0).T for x in at)  # [draws, thresholds]
+    of_v = np.searchsorted(-levels, -v, side="left")
+    out = np.full(len(counts), -1.0)
+    for d in np.flatnonzero(n_gt > 0):
+        count = int(reps[d, -1]) if len(v) else 0
+        k = of_v[np.searchsorted(reps[d], threshold_positions(count, int(n_gt[d])), side="right")]
+        out[d] = ap_of(interpolated(tp_at[d, k], fp_at[d, k]), points)
+    return out
 
 
 COLUMNS = ("index", "kind", "cls", "level", "score", "a", "b")

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ablate.metrics.accumulate import COLUMNS, as_arrays, coco_ap, kitti_ap
+from ablate.metrics.accumulate import COLUMNS, as_arrays, coco_ap, kitti_ap, kitti_ap_drawn
 from ablate.store import FRAME_COUNTS, FRAME_DETECTIONS, Tracker
 from ablate.tables.records import RUNS_DIR
 from ablate.tables.seal import write_csv
@@ -173,9 +173,10 @@ def _box_ap(rows: dict[str, np.ndarray], keep: np.ndarray | None = None) -> floa
 
 
 #: Each AP metric whose runs keep their detections per test frame: the metric over any set of frames from them.
+BOX_AP = tuple(f"{c}_{lv}" for c in ("car", "pedestrian", "cyclist") for lv in ("easy", "moderate", "hard"))
 FROM_DETECTIONS: dict[str, Callable[[dict[str, np.ndarray], np.ndarray | None], float]] = {
     "map": _mask_ap,
-    **{f"{c}_{lv}": _box_ap for c in ("car", "pedestrian", "cyclist") for lv in ("easy", "moderate", "hard")},
+    **dict.fromkeys(BOX_AP, _box_ap),
 }
 
 
@@ -251,14 +252,20 @@ def frame_draws(count: int, draws: int = AP_DRAWS, seed: int = AP_DRAWS_SEED) ->
 def ap_resampled(rows: pd.DataFrame, metric: str, frames: list[str], draws: np.ndarray) -> np.ndarray:
     """``metric`` of one run's rows over each draw of ``frames`` ([draws] values): a frame drawn k times counts k
     times (its rows repeated, in image order), a frame the run lacks adds nothing; NaN where a draw holds no ground
-    truth that counts."""
+    truth that counts. A box AP takes every draw at once from the rows' counts (:func:`ablate.metrics.accumulate.
+    kitti_ap_drawn`); a mask AP repeats each draw's rows."""
     arrays = as_arrays({c: rows[c].to_numpy() for c in COLUMNS})
-    where = pd.Series(np.arange(len(rows))).groupby(rows["frame"].astype(str).to_numpy()).indices
-    none = np.zeros(0, np.int64)
-    positions = [np.asarray(where.get(f, none), np.int64) for f in frames]
+    frame = pd.Index(frames).get_indexer(rows["frame"].astype(str).to_numpy())  # -1: a frame no draw holds
+    drawn = np.zeros((len(draws), len(frames) + 1), np.int64)  # the last column: -1's, never drawn
+    np.add.at(drawn, (np.arange(len(draws))[:, None], draws), 1)
+    if metric in BOX_AP and len(rows):
+        ap = kitti_ap_drawn(arrays, str(arrays["cls"][0]), int(arrays["level"][0]), frame, drawn, 11)
+        return np.where(ap >= 0, ap, np.nan)
     compute = FROM_DETECTIONS[metric]
     out = np.empty(len(draws))
-    for i, draw in enumerate(draws):
-        idx = np.sort(np.concatenate([positions[j] for j in draw]))
+    for i, per_frame in enumerate(drawn):
+        idx = np.repeat(
+            np.arange(len(rows)), per_frame[frame]
+        )  # the rows of the draw's frames, each as often, in row order
         out[i] = compute({c: v[idx] for c, v in arrays.items()}, None)
     return out

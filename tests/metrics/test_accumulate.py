@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from ablate.data.dataset import CLASSES
-from ablate.metrics.accumulate import as_arrays, bits, coco_ap, kitti_ap, unbits
+from ablate.metrics.accumulate import as_arrays, bits, coco_ap, kitti_ap, kitti_ap_drawn, unbits
 from ablate.metrics.coco import MaskAP
 from ablate.metrics.kitti import LEVELS, KittiAP
 from tests.metrics.test_kitti import image, random_frames
@@ -111,3 +111,25 @@ def test_kitti_ap_from_the_frames_equals_the_devkit_conformant_evaluator(seed: i
                 assert kitti_ap(rows, cls, k, points, keep=keep) == pytest.approx(part[i], abs=1e-9)
             inner += 0 < whole[1] < 100
     assert inner >= 5
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_kitti_ap_over_draws_of_the_frames_equals_it_on_the_drawn_frames_rows_repeated(seed: int) -> None:
+    # the frames' bootstrap (ablate.tables.twolevel) takes 1000 draws at once from weights: every draw must give the
+    # AP of its frames' rows repeated as often as drawn, to the bit (the same records, the same verdicts)
+    frames = random_frames(seed, on_thresholds=0.2 if seed == 5 else 0.0)
+    metric = kitti_metric(frames)
+    draws = np.random.default_rng(seed).integers(0, len(frames), size=(40, len(frames)))
+    draws[0] = 0  # one frame drawn every time: its few thresholds
+    per_frame = np.stack([np.bincount(d, minlength=len(frames)) for d in draws])
+    compared = 0
+    for cls in CLASSES:
+        for k in range(len(LEVELS)):
+            rows = as_arrays(metric.frame_rows(cls, k))
+            for points in (11, 40):
+                drawn = kitti_ap_drawn(rows, cls, k, rows["index"], per_frame, points)
+                for d, times in enumerate(per_frame):
+                    idx = np.repeat(np.arange(len(rows["index"])), times[rows["index"]])
+                    assert drawn[d] == kitti_ap({c: v[idx] for c, v in rows.items()}, cls, k, points)
+                    compared += 0 < drawn[d] < 100
+    assert compared >= 100
