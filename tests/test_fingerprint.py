@@ -17,6 +17,7 @@ import ablate.jobs.fingerprint
 import ablate.tasks.semantic
 from ablate.config import compose
 from ablate.jobs.fingerprint import COMPONENTS, compute, decode, differs, encode
+from ablate.store.fingerprint import kernel_family
 from ablate.tables.provenance import ROOT, provenance
 
 
@@ -177,6 +178,29 @@ def test_a_run_recorded_on_avx512_is_compared_across_kernels_where_today_runs_ot
     monkeypatch.setattr("ablate.hardware.kernels", lambda: "AVX512")
     lines = provenance(one, recompute=lambda cfg: moved, config=lambda run_id: None)
     assert any("**Numbers may have moved** for row chinet" in line and "loss differs" in line for line in lines)
+
+
+def test_the_same_instruction_set_on_another_cpu_is_other_kernels_and_the_same_cpu_is_not(chinet, monkeypatch):
+    # ATen's AVX-512 kernels on an Intel Xeon model 106 and on the AMD EPYC model 17 of the records: oneDNN and the
+    # BLAS block and dispatch by the CPU, and BiFNet's image row's loss moved 6.7e-4 there (ablate.store.fingerprint)
+    from ablate.hardware import Cpu
+
+    _, fingerprint = chinet
+    one = runs(encode(fingerprint)).assign(
+        cpu_isa="avx2 avx512f avx512_bf16", cpu_kernels="AVX512", made_cpu="AMD EPYC (family 25, model 17)"
+    )
+    moved = {**fingerprint, "loss": [v * (1 + 7e-4) for v in fingerprint["loss"]]}
+    monkeypatch.setattr("ablate.hardware.kernels", lambda: "AVX512")
+    for chip, flagged in (("Intel(R) Xeon(R) Processor @ 2.80GHz (family 6, model 106)", False),
+                          ("AMD EPYC 9R14 (family 25, model 17)", True)):  # fmt: skip
+        monkeypatch.setattr("ablate.hardware.cpu", lambda chip=chip: Cpu(chip, frozenset({"avx2", "avx512f"})))
+        lines = provenance(one, recompute=lambda cfg: moved, config=lambda run_id: None)
+        assert any("Numbers may have moved" in line and "loss differs" in line for line in lines) == flagged, chip
+    changed = {**fingerprint, "model": [v * 1.01 for v in fingerprint["model"]]}  # on any CPU: a change
+    lines = provenance(one, recompute=lambda cfg: changed, config=lambda run_id: None)
+    assert any("**Numbers may have moved** for row chinet" in line and "model differs" in line for line in lines)
+    assert kernel_family("AVX512", cpu="AMD EPYC (family 25, model 17)") == "AVX512 on AMD family 25 model 17"
+    assert kernel_family("", "avx2", "AMD EPYC") == "AVX2"  # a name without its family and model: the ISA alone
 
 
 def test_how_a_blanked_sensors_trunk_trains_is_in_the_fingerprint_and_an_older_record_is_flagged():

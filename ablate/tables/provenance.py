@@ -31,7 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from ablate.metrics import EVALUATORS
 from ablate.store import Tracker
-from ablate.store.fingerprint import decode, differs, kernel_family
+from ablate.store.fingerprint import cpu_chip, decode, differs, kernel_family
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -168,13 +168,16 @@ def fingerprint_check(
 
 def across_kernels(run: pd.Series) -> bool:
     """Whether a recorded run's fingerprint came from other kernels than today's (:func:`ablate.store.fingerprint.
-    kernel_family`): then only the components that rounding does not move are compared."""
-    recorded = kernel_family(str(run.get("cpu_kernels") or ""), str(run.get("cpu_isa") or ""))
+    kernel_family`: another instruction set's, or the same one's on another CPU): then only the components that
+    rounding does not move are compared. A record that does not name its CPU's family and model is compared by its
+    instruction set alone."""
+    made = str(run.get("made_cpu") or "")
+    recorded = kernel_family(str(run.get("cpu_kernels") or ""), str(run.get("cpu_isa") or ""), made)
     if not recorded:
         return False
-    from ablate.hardware import kernels  # imports torch: only where a fingerprint is recomputed
+    from ablate.hardware import cpu, kernels  # imports torch: only where a fingerprint is recomputed
 
-    return recorded != kernel_family(kernels())
+    return recorded != kernel_family(kernels(), cpu=cpu().model if cpu_chip(made) else "")
 
 
 def provenance(
