@@ -19,6 +19,11 @@ from ablate.options import OptionError, check
 # without it, so the warning tells a user nothing. Set here, before Hydra composes, in the launching process and in
 # every submitit job (which imports this module to find its task function).
 warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/(ray|submitit_local)' is validated against ConfigStore")
+# A parallel sweep's loky worker whose memory grew by more than 300 MB over its jobs (loky's _MAX_MEMORY_LEAK_SIZE;
+# BiFNet's expert feature cache alone is 406 MiB) retires after its job has returned, and loky starts another in its
+# place for the next job, warning in the sweep's process that "a worker stopped" and naming a memory leak: nothing is
+# lost or rerun (seen in `make run`). A worker that dies in a job fails that job through loky's own error instead.
+warnings.filterwarnings("ignore", message="A worker stopped while some jobs were given to the executor")
 
 
 #: The configs, by absolute path: `python -m ablate` and the `ablate` console script (where Hydra would otherwise look
