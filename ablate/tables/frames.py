@@ -261,11 +261,9 @@ def ap_resampled(rows: pd.DataFrame, metric: str, frames: list[str], draws: np.n
     if metric in BOX_AP and len(rows):
         ap = kitti_ap_drawn(arrays, str(arrays["cls"][0]), int(arrays["level"][0]), frame, drawn, 11)
         return np.where(ap >= 0, ap, np.nan)
-    compute = FROM_DETECTIONS[metric]
+    compute, positions = FROM_DETECTIONS[metric], np.arange(len(rows))
     out = np.empty(len(draws))
     for i, per_frame in enumerate(drawn):
-        idx = np.repeat(
-            np.arange(len(rows)), per_frame[frame]
-        )  # the rows of the draw's frames, each as often, in row order
+        idx = np.repeat(positions, per_frame[frame])  # the rows of the draw's frames, each as often, in row order
         out[i] = compute({c: v[idx] for c, v in arrays.items()}, None)
     return out
