@@ -33,7 +33,7 @@ class OptionError(ValidationError):
 @dataclass(frozen=True)
 class Kind:
     """One kind of value an option accepts. ``type``: bool, int, number, str, dir (an existing directory, relative
-    to the launch directory), mapping, list, or ints / numbers / strs (a list of those); empty: only ``values``.
+    to the launch directory), place (a directory, or a path where one can be made), mapping, list, or ints / numbers / strs (a list of those); empty: only ``values``.
     ``low`` / ``high`` bound a number, or each number of a list (``strict``: the bounds themselves excluded);
     ``values``: the only values taken (each item's, for strs); ``pattern`` (regex) and ``says`` (how a message
     names it): a string's form; ``size``, ``order`` (``<`` increasing strictly, ``<=`` never decreasing) and
@@ -174,7 +174,7 @@ RULES: dict[str, Rule] = {
         note="KITTI's, relative to the launch directory",
         needed=(REAL_DATA, "data=kitti reads real KITTI from a path: give data.root=/path/to/kitti/object"),
     ),
-    "data.data_dir": Rule((NAME,)),
+    "data.data_dir": Rule((Kind("place"),), note="where the generated data are kept, relative to the launch directory"),
     "data.batch_size": Rule((POSITIVE_INT,)),
     "data.num_workers": Rule((WHOLE,)),
     "data.memo_gb": Rule((NON_NEGATIVE,), note="GiB a split keeps in memory between epochs; 0: off"),
@@ -352,8 +352,8 @@ def _takes(kind: Kind, value: Any, launch: Path) -> bool:
             return False
         above = kind.low is None or (value > kind.low if kind.strict else value >= kind.low)
         return above and (kind.high is None or (value < kind.high if kind.strict else value <= kind.high))
-    if kind.type in ("str", "dir") and (
-        not isinstance(value, str) or (kind.filled or kind.type == "dir") and not value
+    if kind.type in ("str", "dir", "place") and (
+        not isinstance(value, str) or (kind.filled or kind.type in ("dir", "place")) and not value
     ):
         return False
     if kind.type == "str":
@@ -362,6 +362,9 @@ def _takes(kind: Kind, value: Any, launch: Path) -> bool:
         )
     if kind.type == "dir":
         return (launch / Path(value).expanduser()).is_dir()
+    if kind.type == "place":  # a link to nothing, or a file, stops the folder being made there
+        path = launch / Path(value).expanduser()
+        return path.is_dir() or not (path.exists() or path.is_symlink())
     return isinstance(value, bool if kind.type == "bool" else dict) and (bool(value) or not kind.filled)
 
 
@@ -397,7 +400,12 @@ def phrase(kind: Kind, alone: bool = True) -> str:
         items = strs if kind.type == "strs" else _bounded(kind, kind.type[:-1].replace("int", "integer"), True)
         form = ("non-empty " if kind.filled else "") + "list of " + (f"{kind.size} " if kind.size else "")
         return f"a {form}{items}" + {"<": ", increasing strictly", "<=": ", never decreasing"}.get(kind.order, "")
-    words = {"bool": "true or false" if alone else "true, false", "dir": "an existing directory", "list": "a list"}
+    words = {
+        "bool": "true or false" if alone else "true, false",
+        "dir": "an existing directory",
+        "place": "a directory, or a path where one can be made (not a file, not a link to nothing)",
+        "list": "a list",
+    }
     return words.get(kind.type, ("a non-empty " if kind.filled else "a ") + kind.type.replace("str", "string"))
 
 

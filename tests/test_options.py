@@ -41,6 +41,7 @@ TYPES = {
     "number": {int, float},
     "str": {str},
     "dir": {str},
+    "place": {str},
     "mapping": {dict},
     "list": {list},
     "ints": {list},
@@ -63,10 +64,12 @@ VALUES = {
 
 @pytest.fixture(scope="module")
 def launch(tmp_path_factory) -> Path:
-    """A launch directory, with a folder a ``data.root`` may name and a file it may not."""
+    """A launch directory, with a folder a ``data.root`` may name, a file it may not, and a link to nothing, where
+    ``data.data_dir`` cannot make its folder."""
     folder = tmp_path_factory.mktemp("launch")
     (folder / "kitti").mkdir()
     (folder / "a_file").write_text("not a folder")
+    (folder / "a_link").symlink_to(folder / "gone")
     return folder
 
 
@@ -162,6 +165,8 @@ def good_value(kind: Kind, launch: Path) -> st.SearchStrategy:
         )
     if kind.type == "dir":
         return st.sampled_from([str(launch / "kitti"), "kitti", "."])
+    if kind.type == "place":
+        return st.sampled_from([str(launch / "kitti"), "kitti", "missing", str(launch / "missing" / "data")])
     if kind.type == "mapping":
         return st.just(dict(SPACE)) if kind.filled else st.just({})
     if kind.type in ("bool", "list"):
@@ -187,6 +192,8 @@ def out_of_range(rule: Rule, launch: Path) -> st.SearchStrategy:
         return unmatched | (st.just("") if kind.filled else st.nothing())
     if kind.type == "dir":
         return st.sampled_from([str(launch / "a_file"), "a_file", str(launch / "missing"), ""])
+    if kind.type == "place":
+        return st.sampled_from([str(launch / "a_file"), "a_file", "a_link", str(launch / "a_link"), ""])
     if kind.type in ("ints", "numbers", "strs"):
         good = good_value(kind, launch).filter(bool)
         bad_item = (
@@ -395,6 +402,18 @@ def test_python_m_ablate_with_a_file_for_data_root_is_one_line_and_no_run(tmp_pa
     ]
     client = MlflowClient(store)
     assert client.search_runs([e.experiment_id for e in client.search_experiments()]) == []
+
+
+def test_a_data_folder_left_as_a_link_to_nothing_is_one_line_naming_it(tmp_path):
+    """A ``data`` link whose folder was removed (a store moved, a disk unmounted) is refused by name before any run,
+    not met as a FileExistsError when the first job makes its dataset; a link to a folder is taken."""
+    (tmp_path / "data").symlink_to(tmp_path / "elsewhere")
+    with pytest.raises(OptionError) as refused:
+        check(compose([]), tmp_path)
+    assert str(refused.value) == f"data.data_dir: 'data' must be {options.accepts(RULES['data.data_dir'])}"
+    assert "not a link to nothing" in str(refused.value)
+    (tmp_path / "elsewhere").mkdir()
+    check(compose([]), tmp_path)
 
 
 def test_a_config_composed_again_is_the_same_and_a_callers_change_stays_its_own() -> None:
