@@ -167,6 +167,9 @@ RULES: dict[str, Rule] = {
     "rung": Rule((Kind("number", low=0, high=1, strict=True),), null="the full budget", note="set by the sweeper"),
     "table.tuned_from": Rule((Kind("str", values=("published",)),), null="the recipe, or the table's tuning phase"),
     "table.kernels_sd": Rule((NON_NEGATIVE,), null="not measured"),
+    "table.kernels_run": Rule((MAPPING,), null="not measured", keys=("sd", "seeds")),
+    "table.kernels_run.sd": Rule((NON_NEGATIVE,), note="a rerun's shift on other numerics, root mean square"),
+    "table.kernels_run.seeds": Rule((POSITIVE_INT,), note="the seeds whose reruns measured it"),
     "table.untuned": Rule((TEXT,), null="the table tunes, or says nothing"),
     "data.root": Rule(
         (Kind("dir"),),

@@ -10,7 +10,12 @@ and prints, per seed, the published value, the rerun's and the shift; per row, t
 records and the shifts' root mean square; and, per pair of rows, the same for their paired difference, the figure a
 verdict reads. The JSON keeps every number. The CPU and the kernels are printed first. ``store=DIR`` keeps one
 store for every rerun, so that each seed's experts train once for all the rows that start from them (seeds inner,
-rows outer: list the fused rows first).
+rows outer: list the fused rows first). Last, every rerun's shift pooled (root mean square, the rows' seeds
+together) and the seeds it came from: a table's ``kernels_run`` (docs/verdicts.md), which ``make run``'s comparison and ``--reproduce`` add to
+the prediction interval of a run made with other numerics. ``from=FILE`` prints the same from a JSON it wrote,
+rerunning nothing::
+
+    python bench/kernel_spread.py from=bench/measured/kernel_spread_bifnet_table4.json
 """
 
 from __future__ import annotations
@@ -33,9 +38,15 @@ KERNELS = {
 
 
 def main(argv: list[str]) -> int:
-    own = ("rows", "seeds", "kernels", "out", "store")
+    own = ("rows", "seeds", "kernels", "out", "store", "from")
     opts = dict(a.split("=", 1) for a in argv if "=" in a and a.split("=", 1)[0] in own)
     rest = [a for a in argv if a.split("=", 1)[0] not in own]
+    if "from" in opts:
+        kept = json.loads(Path(opts["from"]).read_text())
+        print(f"CPU: {kept['cpu']} ({kept['isa']}); kernels={kept['kernels']}; table {kept['table']} ({opts['from']})")
+        runs = {r: {int(s): (v["published"], v["rerun"]) for s, v in by.items()} for r, by in kept["runs"].items()}
+        summarise(kept["metric"], runs, kept["seeds_sd"])
+        return 0
     kernels = opts.get("kernels", "avx2")
     os.environ.update(KERNELS[kernels])  # the reruns are subprocesses: they inherit it
 
@@ -64,18 +75,7 @@ def main(argv: list[str]) -> int:
                 f"shift {outcome.value - (outcome.recorded or math.nan):+.4f} ({time.monotonic() - start:.0f} s)",
                 flush=True,
             )
-    print(f"{table.primary}: per row, the seeds' sd in the records against the kernels' shift (root mean square)")
-    for row in rows:
-        shifts = np.array([new - old for old, new in found[row].values()])
-        print(f"  {row}: seeds' sd {spread[row]:.4f}, kernels' shift rms {np.sqrt(np.mean(shifts**2)):.4f}")
-    pairs = [(a, b) for i, a in enumerate(rows) for b in rows[i + 1 :]]
-    for a, b in pairs:
-        old = np.array([found[a][s][0] - found[b][s][0] for s in seeds])
-        new = np.array([found[a][s][1] - found[b][s][1] for s in seeds])
-        print(
-            f"  {a} - {b}: published {old.mean():+.4f} (paired sd {old.std(ddof=1):.4f}), rerun {new.mean():+.4f} "
-            f"(paired sd {new.std(ddof=1):.4f}); the difference's shift rms {np.sqrt(np.mean((new - old) ** 2)):.4f}"
-        )
+    summarise(str(table.primary), found, spread)
     if "out" in opts:
         payload = {
             "cpu": machine.model,
@@ -88,6 +88,32 @@ def main(argv: list[str]) -> int:
         }
         Path(opts["out"]).write_text(json.dumps(payload, indent=1) + "\n")
     return 0
+
+
+def summarise(metric: str, found: dict[str, dict[int, tuple[float, float]]], spread: dict[str, float]) -> None:
+    """Per row, the seeds' sd against the shifts' root mean square; per pair of rows, their paired difference's;
+    then every rerun's shift pooled, the figure a table's ``kernels_run`` holds."""
+    rows = list(found)
+    print(f"{metric}: per row, the seeds' sd in the records against the kernels' shift (root mean square)")
+    for row in rows:
+        shifts = np.array([new - old for old, new in found[row].values()])
+        print(f"  {row}: seeds' sd {spread[row]:.4f}, kernels' shift rms {np.sqrt(np.mean(shifts**2)):.4f}")
+    for i, a in enumerate(rows):
+        for b in rows[i + 1 :]:
+            seeds = sorted(set(found[a]) & set(found[b]))
+            old = np.array([found[a][s][0] - found[b][s][0] for s in seeds])
+            new = np.array([found[a][s][1] - found[b][s][1] for s in seeds])
+            print(
+                f"  {a} - {b}: published {old.mean():+.4f} (paired sd {old.std(ddof=1):.4f}), rerun "
+                f"{new.mean():+.4f} (paired sd {new.std(ddof=1):.4f}); the difference's shift rms "
+                f"{np.sqrt(np.mean((new - old) ** 2)):.4f}"
+            )
+    every = np.array([new - old for row in rows for old, new in found[row].values()])
+    rms, seeds = float(np.sqrt(np.mean(every**2))), len({s for row in rows for s in found[row]})
+    print(
+        f"every rerun: shift rms {rms:.4f} over {len(every)} reruns of {seeds} seeds (a seed's rows share its experts "
+        f"and move together: table.kernels_run: {{sd: {rms:.3f}, seeds: {seeds}}})"
+    )
 
 
 if __name__ == "__main__":

@@ -113,3 +113,12 @@ def test_your_seeds_are_placed_in_the_published_rows_prediction_interval() -> No
     line = compare(ours.assign(made_gpu="NVIDIA H200"), theirs, table).splitlines()[-1]
     assert "GPU: none -> NVIDIA H200" in line, line
     assert "GPU" not in compare(ours.assign(made_gpu=""), theirs, table).splitlines()[-1]
+    # a table that measured how far other numerics move a run (table.kernels_run): yours on another ISA are placed
+    # in the interval with that shift's variance added; yours on the published numerics in the interval without it
+    measured = OmegaConf.merge(table, {"kernels_run": {"sd": 3.0, "seeds": 3}})
+    header, *_, line = compare(ours, theirs, measured).splitlines()
+    assert "Published 95 % PI for a new seed, with other numerics' sd 3 (3 seeds)" in header, header
+    assert line.startswith("| U-Net | 97.25 (2) | 95.00 (3) | [85.92, 104.08] | 2 of 2 |"), line
+    same = ours.assign(cpu_isa="avx512f")
+    header, *_, line = compare(same, theirs, measured).splitlines()
+    assert "other numerics" not in header and "| [90.03, 99.97] | 2 of 2 | none |" in line, line

@@ -75,6 +75,22 @@ def test_the_prediction_interval_is_wider_than_the_mean_by_sqrt_1_plus_1_over_n(
     assert np.isnan(prediction_interval([97.0])[0])
 
 
+def test_other_numerics_widen_the_prediction_interval_by_the_shift_measured_and_never_narrow_it():
+    """A run made with other numerics than the recorded ones (another CPU's kernels, another thread count) also
+    moves by their rounding: ``table.kernels_run``'s sd is added to the new value's variance, with Welch and
+    Satterthwaite's degrees of freedom."""
+    values = [96.87, 97.11, 97.0]
+    plain = prediction_interval(values)
+    lo, hi = prediction_interval(values, (0.254, 3))
+    # s² (1 + 1/n) = 0.01923, sd² = 0.06452: 4.46 degrees of freedom, t = 2.667, half 2.667 · 0.2894 = 0.772
+    assert (hi - lo) / 2 == pytest.approx(0.7718, abs=1e-3) and (lo + hi) / 2 == pytest.approx(np.mean(values))
+    assert lo < plain[0] and hi > plain[1]
+    assert prediction_interval(values, (0.0, 3)) == pytest.approx(plain)
+    # a small shift measured on more seeds than the row has: t's degrees of freedom grow past n - 1 and would
+    # narrow the interval (half 4.21 < 4.97); it keeps the interval without the shift instead
+    assert prediction_interval([94.0, 95.0, 96.0], (0.5, 3)) == pytest.approx(prediction_interval([94.0, 95.0, 96.0]))
+
+
 def test_a_tuned_row_is_rerun_on_the_config_it_was_tuned_to() -> None:
     import json
 

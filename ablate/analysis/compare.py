@@ -9,7 +9,10 @@ config: compared by its hash (the same config whatever route set its values: ``m
 published config, ``table.tuned_from=published``), else by the tuned config (a published row raced on the config a
 tuning phase chose for it, :mod:`ablate.sweep.tuning`, beside a row raced on the recipe). Results follow the
 instruction set's kernels and the thread count (a reduction adds in another order), so a machine of another ISA is
-expected to give other numbers for the same seed, inside the interval rather than equal to it.
+expected to give other numbers for the same seed, inside the interval rather than equal to it. Training amplifies
+that rounding until a seed moves as far as another seed does, or further (docs/verdicts.md): where your runs'
+numerics differ from the published ones' and the table measured how far that moves a run (``table.kernels_run``),
+the interval adds it (:func:`ablate.tables.columns.kernels_run`), and its column says so.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.tables.collect import under_condition
+from ablate.tables.columns import kernels_run
 from ablate.tables.records import numerics_differ, read_records, records_path
 from ablate.tables.significance import prediction_interval
 from ablate.tables.tuning import config_text
@@ -31,9 +35,11 @@ def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> s
     published prediction interval, and the numerics or tuned config that differ."""
     key = str(table.primary)
     mine, published = under_condition(mine, table), under_condition(published, table)
+    rounding = kernels_run(table) if numerics_differ(published, mine) else None
+    widened = f", with other numerics' sd {rounding[0]:g} ({rounding[1]} seeds)" if rounding else ""
     lines = [
-        "| Row | Yours (mean, n) | Published (mean, n) | Published 95 % PI for a new seed | Your seeds inside | "
-        "Numerics that differ; config |",
+        f"| Row | Yours (mean, n) | Published (mean, n) | Published 95 % PI for a new seed{widened} | "
+        "Your seeds inside | Numerics that differ; config |",
         "|:--|--:|--:|:--|--:|:--|",
     ]
     for spec in table.rows:
@@ -41,7 +47,7 @@ def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> s
         a, b = mine[mine["row"] == row], published[published["row"] == row]
         if not len(a) or not len(b) or key not in a or key not in b:
             continue
-        lo, hi = prediction_interval(b[key])
+        lo, hi = prediction_interval(b[key], rounding)
         if np.isnan(lo):  # one published seed: no interval
             interval, inside = "— (needs 2 published seeds)", "—"
         else:

@@ -6,7 +6,8 @@ being the same files), and says:
 
 * whether the new value lies inside the row's 95 % *prediction interval for a new seed*, ``mean ± t(0.975, n-1) ·
   s · sqrt(1 + 1/n)`` over the recorded seeds (:func:`ablate.tables.significance.prediction_interval`): the range a
-  single new run should fall in, wider than the CI of the mean;
+  single new run should fall in, wider than the CI of the mean; where the rerun's numerics differ from the recorded
+  runs' and the table measured how far other numerics move a run (``table.kernels_run``), wider by that too;
 * how far it is from the recorded run of the same seed;
 * where this machine, the precision or the thread count differ from the recorded runs' own: the numerics are a
   source of variation of their own (Bouthillier et al. 2021).
@@ -39,6 +40,7 @@ from ablate.jobs.spec import apply_draws
 from ablate.store import Tracker, split_tuned_key
 from ablate.tables import collect, published, table_spec
 from ablate.tables.collect import under_condition
+from ablate.tables.columns import kernels_run
 from ablate.tables.records import numerics_differ, read_records
 from ablate.tables.significance import prediction_interval
 
@@ -55,6 +57,7 @@ class Reproduction:
     differences: list[str]  # the numerics that differ from the recorded runs'
     tuned: list[str] = field(default_factory=list)  # the overrides that put the rerun on the row's tuned config
     resumed: str = ""  # the step the recorded run resumed from a checkpoint at ("" uninterrupted, "?" not recorded)
+    rounding: tuple[float, int] | None = None  # other numerics' sd and seeds, where the interval adds them
 
     @property
     def inside(self) -> bool:
@@ -70,9 +73,14 @@ class Reproduction:
         if np.isnan(lo):
             verdict = f"no prediction interval: the row has {n} recorded seed(s), it needs 2"
         else:
+            other = (
+                f", widened by other numerics' sd {self.rounding[0]:g} (over {self.rounding[1]} seeds, table.kernels_run)"
+                if self.rounding
+                else ""
+            )
             verdict = (
                 f"{'inside' if self.inside else 'OUTSIDE'} the row's 95 % prediction interval for a new seed "
-                f"[{lo:.2f}, {hi:.2f}] (mean {np.mean(self.values):.2f} over {n} recorded seeds)"
+                f"[{lo:.2f}, {hi:.2f}] (mean {np.mean(self.values):.2f} over {n} recorded seeds{other})"
             )
         out = [head, verdict]
         if self.tuned:
@@ -201,6 +209,8 @@ def reproduce(cfg: DictConfig, overrides: list[str], keep: Path | None = None) -
         if not len(new):
             raise RuntimeError(f"the rerun of {row} seed {seed} recorded no FINISHED run")
     values = list(by_seed.values())
+    differences = numerics_differ(mine, new.iloc[:1])
+    rounding = kernels_run(table) if differences else None
     return Reproduction(
         row,
         seed,
@@ -208,10 +218,11 @@ def reproduce(cfg: DictConfig, overrides: list[str], keep: Path | None = None) -
         float(new[table.primary].iloc[0]),
         by_seed.get(seed),
         values,
-        prediction_interval(values),
-        numerics_differ(mine, new.iloc[:1]),
+        prediction_interval(values, rounding),
+        differences,
         tuned,
         recorded_resume(mine, seed),
+        rounding,
     )
 
 

@@ -150,6 +150,21 @@ def kernels_sd(table: DictConfig) -> float:
     return float(value)
 
 
+def kernels_run(table: DictConfig) -> tuple[float, int] | None:
+    """How far other numerics move one run of a seed, where the table measured it (``table.kernels_run``: ``sd``,
+    the root mean square of its reruns' shifts from their records over ``seeds`` seeds, ``bench/kernel_spread.py``):
+    the term a prediction interval for a run made on another CPU adds, with a degree of freedom per seed (the rows
+    of a seed share its experts and move together; :func:`ablate.tables.significance.prediction_interval`); None
+    where it did not."""
+    value = table.get("kernels_run")
+    if value is None:
+        return None
+    sd, seeds = value.get("sd"), value.get("seeds")
+    if not isinstance(sd, int | float) or isinstance(sd, bool) or sd < 0 or not isinstance(seeds, int) or seeds < 1:
+        raise ValueError(f"table.kernels_run: {value!r} must hold sd >= 0 and seeds >= 1 (or be null: not measured)")
+    return float(sd), int(seeds)
+
+
 def table_frames(runs: pd.DataFrame, table: DictConfig) -> FramesVariance | None:
     """The test frames' variance of a table's primary metric, from the counts per frame its runs kept
     (``runs.attrs["frames"]``, put there by the table's writer: :mod:`ablate.tables.kept`;

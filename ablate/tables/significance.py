@@ -86,14 +86,29 @@ def mean_ci(values: Iterable[float] | pd.Series) -> Interval:
     return Interval(float(x.mean() - half), float(x.mean() + half), "t")
 
 
-def prediction_interval(values: Iterable[float] | pd.Series) -> tuple[float, float]:
+def prediction_interval(
+    values: Iterable[float] | pd.Series, kernels: tuple[float, int] | None = None
+) -> tuple[float, float]:
     """The 95 % prediction interval of one new value from the distribution ``values`` were drawn from:
-    ``mean ± t(0.975, n-1) · s · sqrt(1 + 1/n)`` (normal values, unknown variance); NaN bounds below two values."""
+    ``mean ± t(0.975, n-1) · s · sqrt(1 + 1/n)`` (normal values, unknown variance); NaN bounds below two values.
+
+    ``kernels``: ``(sd, seeds)``, how far other numerics (another CPU's kernels, another thread count) move a run of
+    the same seed, a root mean square over the reruns of ``seeds`` seeds (``table.kernels_run``,
+    ``bench/kernel_spread.py``), for a new value made with other numerics than ``values``: its variance is added,
+    ``s² (1 + 1/n) + sd²``, and t's degrees of freedom are Welch and Satterthwaite's for the sum (Satterthwaite
+    1946), ``n - 1`` for the seeds' variance and ``seeds`` for the shift's; never narrower than without it (those
+    degrees of freedom can exceed ``n - 1``, and t shrink more than the variance grows)."""
     x = np.asarray(pd.Series(values, dtype=float).dropna(), dtype=float)
     n = len(x)
     if n < 2:
         return np.nan, np.nan
-    half = stats.t.ppf(1 - (1 - LEVEL) / 2, n - 1) * x.std(ddof=1) * np.sqrt(1 + 1 / n)
+    seeds = x.var(ddof=1) * (1 + 1 / n)
+    sd, measured = kernels if kernels is not None else (0.0, 1)
+    rounding = float(sd) ** 2
+    total = seeds + rounding
+    dof = total**2 / (seeds**2 / (n - 1) + rounding**2 / max(int(measured), 1)) if total > 0 else n - 1
+    q = 1 - (1 - LEVEL) / 2
+    half = max(stats.t.ppf(q, dof) * np.sqrt(total), stats.t.ppf(q, n - 1) * np.sqrt(seeds))
     return float(x.mean() - half), float(x.mean() + half)
 
 
