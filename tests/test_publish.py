@@ -79,7 +79,7 @@ def test_publish_true_writes_the_records_and_the_table_under_results(tmp_path: P
 def test_your_seeds_are_placed_in_the_published_rows_prediction_interval() -> None:
     from omegaconf import OmegaConf
 
-    from ablate.analysis.compare import compare
+    from ablate.analysis.compare import UNMEASURED, compare
 
     table = OmegaConf.create({"primary": "det_rate", "rows": [{"row": "unet", "name": "U-Net"}]})
     shared = {"row": "unet", "made_cpu": "AMD EPYC", "made_precision": "32-true", "made_threads": "1"}
@@ -87,38 +87,46 @@ def test_your_seeds_are_placed_in_the_published_rows_prediction_interval() -> No
 
     ours = pd.DataFrame([{**shared, "cpu_isa": "avx2", "det_rate": v} for v in (95.0, 99.5)])
     theirs = pd.DataFrame([{**shared, "cpu_isa": "avx512f", "det_rate": v} for v in (94.0, 95.0, 96.0)])
-    line = compare(ours, theirs, table).splitlines()[-1]
+    text = compare(ours, theirs, table)
+    line = [row for row in text.splitlines() if row.startswith("| U-Net")][-1]
+    # the table did not measure how far other numerics move a run: said under it
+    assert text.splitlines()[-1] == UNMEASURED
     # published: mean 95, s = 1, n = 3: 95 ± 4.30 · 1 · sqrt(4/3) = [90.03, 99.97]
     assert line.startswith("| U-Net | 97.25 (2) | 95.00 (3) | [90.03, 99.97] | 2 of 2 |"), line
     assert "ISA: avx512f -> avx2" in line and "CPU" not in line and "tuned config" not in line
     # a published row raced on its tuned config, yours on the recipe: said, with the published values
     tuned = '{"task.optimizer.lr": 0.0008727, "task.optimizer.weight_decay": null}'
-    line = compare(ours, theirs.assign(tuned_config=tuned), table).splitlines()[-1]
+    line = last_row(compare(ours, theirs.assign(tuned_config=tuned), table))
     assert line.endswith("; tuned config: lr=0.0008727, weight_decay=default -> the recipe |"), line
     # the same values given on the command line: the config hashes per seed are the published ones
     hashed = {"seed": [0, 1], "config_hash": ["a0", "a1"]}
     mine = ours.assign(**hashed)
     line = compare(mine, theirs.assign(tuned_config=tuned, seed=[0, 1, 2], config_hash=["a0", "a1", "a2"]), table)
-    assert line.splitlines()[-1].endswith("; same config |") and "tuned config" not in line
+    assert last_row(line).endswith("; same config |") and "tuned config" not in line
     line = compare(mine.assign(config_hash=["b0", "b1"]), theirs.assign(seed=[0, 1, 2], config_hash="a"), table)
-    assert line.splitlines()[-1].endswith(
-        "; another config (its hash differs from the published one's at the same seed) |"
-    )
+    assert last_row(line).endswith("; another config (its hash differs from the published one's at the same seed) |")
     # yours at scale=smoke on the published tuned config (it records only what it set beyond the recipe): the scale
     # is named, not a tuned config it did not differ in
     smoke = mine.assign(config_hash=["b0", "b1"], scale="smoke", tuned_config="")
     line = compare(smoke, theirs.assign(tuned_config=tuned, seed=[0, 1, 2], config_hash="a", scale="cpu"), table)
-    assert line.splitlines()[-1].endswith("; another scale: cpu -> smoke |") and "recipe" not in line, line
+    assert last_row(line).endswith("; another scale: cpu -> smoke |") and "recipe" not in line, line
     # yours trained on a GPU, the published rows on the CPU (records from before the column name none)
-    line = compare(ours.assign(made_gpu="NVIDIA H200"), theirs, table).splitlines()[-1]
+    line = last_row(compare(ours.assign(made_gpu="NVIDIA H200"), theirs, table))
     assert "GPU: none -> NVIDIA H200" in line, line
-    assert "GPU" not in compare(ours.assign(made_gpu=""), theirs, table).splitlines()[-1]
+    assert "GPU" not in last_row(compare(ours.assign(made_gpu=""), theirs, table))
     # a table that measured how far other numerics move a run (table.kernels_run): yours on another ISA are placed
     # in the interval with that shift's variance added; yours on the published numerics in the interval without it
     measured = OmegaConf.merge(table, {"kernels_run": {"sd": 3.0, "seeds": 3}})
     header, *_, line = compare(ours, theirs, measured).splitlines()
     assert "Published 95 % PI for a new seed, with other numerics' sd 3 (3 seeds)" in header, header
+    assert UNMEASURED not in compare(ours, theirs, measured)
     assert line.startswith("| U-Net | 97.25 (2) | 95.00 (3) | [85.92, 104.08] | 2 of 2 |"), line
     same = ours.assign(cpu_isa="avx512f")
     header, *_, line = compare(same, theirs, measured).splitlines()
     assert "other numerics" not in header and "| [90.03, 99.97] | 2 of 2 | none |" in line, line
+    assert UNMEASURED not in compare(same, theirs, table)
+
+
+def last_row(text: str) -> str:
+    """The last row of a markdown table in ``text``."""
+    return [line for line in text.splitlines() if line.startswith("|")][-1]

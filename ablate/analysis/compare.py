@@ -35,7 +35,8 @@ def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> s
     published prediction interval, and the numerics or tuned config that differ."""
     key = str(table.primary)
     mine, published = under_condition(mine, table), under_condition(published, table)
-    rounding = kernels_run(table) if numerics_differ(published, mine) else None
+    differ = bool(numerics_differ(published, mine))
+    rounding = kernels_run(table) if differ else None
     widened = f", with other numerics' sd {rounding[0]:g} ({rounding[1]} seeds)" if rounding else ""
     lines = [
         f"| Row | Yours (mean, n) | Published (mean, n) | Published 95 % PI for a new seed{widened} | "
@@ -56,7 +57,17 @@ def compare(mine: pd.DataFrame, published: pd.DataFrame, table: DictConfig) -> s
             f"| {spec.get('name', row)} | {a[key].mean():.2f} ({len(a)}) | {b[key].mean():.2f} ({len(b)}) | "
             f"{interval} | {inside} | {differing(a, b) or 'none'} |"
         )
+    if differ and rounding is None:
+        lines += ["", UNMEASURED]
     return "\n".join(lines) + "\n"
+
+
+#: Under a comparison whose numerics differ where the table did not measure what that does to a run.
+UNMEASURED = (
+    "Your numerics differ from the published runs' (last column), and this table has not measured how far that "
+    "moves a run (`table.kernels_run`, `bench/kernel_spread.py`): the interval is another seed's on the published "
+    "numerics, and a seed of yours outside it may be the numerics' doing."
+)
 
 
 def differing(mine: pd.DataFrame, published: pd.DataFrame) -> str:

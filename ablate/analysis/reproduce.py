@@ -94,6 +94,11 @@ class Reproduction:
         out += [f"differs from the recorded runs: {d}" for d in self.differences] or [
             "same CPU, precision and threads as the recorded runs"
         ]
+        if self.differences and not self.rounding and not np.isnan(lo):
+            out.append(
+                "the table has not measured how far other numerics move a run (table.kernels_run, "
+                "bench/kernel_spread.py): the interval is another seed's on the recorded numerics"
+            )
         return out
 
 
