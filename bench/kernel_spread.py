@@ -12,10 +12,14 @@ verdict reads. The JSON keeps every number. The CPU and the kernels are printed 
 store for every rerun, so that each seed's experts train once for all the rows that start from them (seeds inner,
 rows outer: list the fused rows first). Last, every rerun's shift pooled (root mean square, the rows' seeds
 together) and the seeds it came from: a table's ``kernels_run`` (docs/verdicts.md), which ``make run``'s comparison and ``--reproduce`` add to
-the prediction interval of a run made with other numerics. ``from=FILE`` prints the same from a JSON it wrote,
-rerunning nothing::
+the prediction interval of a run made with other numerics. ``from=FILE[,FILE...]`` prints the same from JSONs it
+wrote, rerunning nothing, and pools several (each another draw of the kernels)::
 
-    python bench/kernel_spread.py from=bench/measured/kernel_spread_bifnet_table4.json
+    python bench/kernel_spread.py from=bench/measured/kernel_spread_bifnet_table4.json,bench/measured/kernel_spread_bifnet_table4_xeon106.json
+
+``kernel_spread_bifnet_table4_xeon106.json`` holds ``make run``'s runs on an Intel Xeon family 6 model 106 (its own
+kernels, the published config hashes): another CPU's real shift beside the AVX2 kernels held on the CPU that made
+the records.
 """
 
 from __future__ import annotations
@@ -42,10 +46,22 @@ def main(argv: list[str]) -> int:
     opts = dict(a.split("=", 1) for a in argv if "=" in a and a.split("=", 1)[0] in own)
     rest = [a for a in argv if a.split("=", 1)[0] not in own]
     if "from" in opts:
-        kept = json.loads(Path(opts["from"]).read_text())
-        print(f"CPU: {kept['cpu']} ({kept['isa']}); kernels={kept['kernels']}; table {kept['table']} ({opts['from']})")
-        runs = {r: {int(s): (v["published"], v["rerun"]) for s, v in by.items()} for r, by in kept["runs"].items()}
-        summarise(kept["metric"], runs, kept["seeds_sd"])
+        pairs: list[float] = []
+        shifts: list[float] = []
+        seeds_in_all = 0
+        for name in opts["from"].split(","):
+            kept = json.loads(Path(name).read_text())
+            print(f"CPU: {kept['cpu']} ({kept['isa']}); kernels={kept['kernels']}; table {kept['table']} ({name})")
+            runs = {r: {int(s): (v["published"], v["rerun"]) for s, v in by.items()} for r, by in kept["runs"].items()}
+            paired, every, seeds_here = summarise(kept["metric"], runs, kept["seeds_sd"])
+            pairs, shifts, seeds_in_all = pairs + paired, shifts + every, seeds_in_all + seeds_here
+        if "," in opts["from"]:  # each file's reruns are another draw of the kernels: pooled
+            sd, run = float(np.sqrt(np.mean(np.square(pairs)))), float(np.sqrt(np.mean(np.square(shifts))))
+            print(
+                f"pooled over the files: paired differences' shift rms {sd:.4f} (table.kernels_sd: {sd:.3f}); every "
+                f"rerun's {run:.4f} over {seeds_in_all} seeds (table.kernels_run: {{sd: {run:.3f}, seeds: "
+                f"{seeds_in_all}}})"
+            )
         return 0
     kernels = opts.get("kernels", "avx2")
     os.environ.update(KERNELS[kernels])  # the reruns are subprocesses: they inherit it
@@ -90,9 +106,13 @@ def main(argv: list[str]) -> int:
     return 0
 
 
-def summarise(metric: str, found: dict[str, dict[int, tuple[float, float]]], spread: dict[str, float]) -> None:
-    """Per row, the seeds' sd against the shifts' root mean square; per pair of rows, their paired difference's;
-    then every rerun's shift pooled, the figure a table's ``kernels_run`` holds."""
+def summarise(
+    metric: str, found: dict[str, dict[int, tuple[float, float]]], spread: dict[str, float]
+) -> tuple[list[float], list[float], int]:
+    """Per row, the seeds' sd against the shifts' root mean square; per pair of rows, their paired difference's,
+    then every pair's pooled (a table's ``kernels_sd``); then every rerun's shift pooled (its ``kernels_run``).
+    Returns the pairs' shifts, the reruns' and the number of seeds."""
+    paired: list[float] = []
     rows = list(found)
     print(f"{metric}: per row, the seeds' sd in the records against the kernels' shift (root mean square)")
     for row in rows:
@@ -103,17 +123,22 @@ def summarise(metric: str, found: dict[str, dict[int, tuple[float, float]]], spr
             seeds = sorted(set(found[a]) & set(found[b]))
             old = np.array([found[a][s][0] - found[b][s][0] for s in seeds])
             new = np.array([found[a][s][1] - found[b][s][1] for s in seeds])
+            paired += list(new - old)
             print(
                 f"  {a} - {b}: published {old.mean():+.4f} (paired sd {old.std(ddof=1):.4f}), rerun "
                 f"{new.mean():+.4f} (paired sd {new.std(ddof=1):.4f}); the difference's shift rms "
                 f"{np.sqrt(np.mean((new - old) ** 2)):.4f}"
             )
+    if paired:
+        pooled = float(np.sqrt(np.mean(np.square(paired))))
+        print(f"every pair: the difference's shift rms {pooled:.4f} (table.kernels_sd: {pooled:.3f})")
     every = np.array([new - old for row in rows for old, new in found[row].values()])
     rms, seeds = float(np.sqrt(np.mean(every**2))), len({s for row in rows for s in found[row]})
     print(
         f"every rerun: shift rms {rms:.4f} over {len(every)} reruns of {seeds} seeds (a seed's rows share its experts "
         f"and move together: table.kernels_run: {{sd: {rms:.3f}, seeds: {seeds}}})"
     )
+    return paired, list(every), seeds
 
 
 if __name__ == "__main__":

@@ -74,7 +74,7 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
         if kernels_sd(table):
             lines.append(
                 f"Each seed's paired difference carries another CPU's kernels' variance too (sd {kernels_sd(table):g}, "
-                "measured by rerunning this table's seeds on AVX2 kernels: docs/verdicts.md), added to the seeds'."
+                "measured by rerunning this table's seeds on other kernels: docs/verdicts.md), added to the seeds'."
             )
         ap = verdict_metric(table)[0] in FROM_DETECTIONS  # a conditions table's primary is <condition>/<metric>
         if any(c.frames for c in raced.comparisons.values()):
