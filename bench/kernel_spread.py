@@ -18,8 +18,8 @@ wrote, rerunning nothing, and pools several (each another draw of the kernels)::
     python bench/kernel_spread.py from=bench/measured/kernel_spread_bifnet_table4.json,bench/measured/kernel_spread_bifnet_table4_xeon106.json
 
 ``kernel_spread_bifnet_table4_xeon106.json`` holds ``make run``'s runs on an Intel Xeon family 6 model 106 (its own
-kernels, the published config hashes): another CPU's real shift beside the AVX2 kernels held on the CPU that made
-the records.
+kernels, the published config hashes), ``kernel_spread_bifnet_table5_xeon106.json`` this script's reruns there
+(``kernels=default``): another CPU's real shift beside the AVX2 kernels held on the CPU that made the records.
 """
 
 from __future__ import annotations
