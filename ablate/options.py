@@ -33,11 +33,11 @@ class OptionError(ValidationError):
 @dataclass(frozen=True)
 class Kind:
     """One kind of value an option accepts. ``type``: bool, int, number, str, dir (an existing directory, relative
-    to the launch directory), place (a directory, or a path where one can be made), mapping, list, or ints / numbers / strs (a list of those); empty: only ``values``.
-    ``low`` / ``high`` bound a number, or each number of a list (``strict``: the bounds themselves excluded);
-    ``values``: the only values taken (each item's, for strs); ``pattern`` (regex) and ``says`` (how a message
-    names it): a string's form; ``size``, ``order`` (``<`` increasing strictly, ``<=`` never decreasing) and
-    ``filled`` (not empty): a list's or a string's form."""
+    to the launch directory), place (a directory, or a path where one can be made), mapping, list, or ints / numbers
+    / strs (a list of those); empty: only ``values``. ``low`` / ``high`` bound a number, or each number of a list
+    (``strict``: the bounds themselves excluded); ``values``: the only values taken (each item's, for strs);
+    ``pattern`` (regex) and ``says`` (how a message names it): a string's form; ``size``, ``order`` (``<``
+    increasing strictly, ``<=`` never decreasing) and ``filled`` (not empty): a list's or a string's form."""
 
     type: str = ""
     low: float | None = None

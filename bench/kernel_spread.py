@@ -10,9 +10,10 @@ and prints, per seed, the published value, the rerun's and the shift; per row, t
 records and the shifts' root mean square; and, per pair of rows, the same for their paired difference, the figure a
 verdict reads. The JSON keeps every number. The CPU and the kernels are printed first. ``store=DIR`` keeps one
 store for every rerun, so that each seed's experts train once for all the rows that start from them (seeds inner,
-rows outer: list the fused rows first). Last, every rerun's shift pooled (root mean square, the rows' seeds
-together) and the seeds it came from: a table's ``kernels_run`` (docs/verdicts.md), which ``make run``'s comparison and ``--reproduce`` add to
-the prediction interval of a run made with other numerics. ``from=FILE[,FILE...]`` prints the same from JSONs it
+rows outer: list the fused rows first). Last, every pair's shift pooled (a table's ``kernels_sd``) and every rerun's
+(root mean square, the rows' seeds together) with the seeds it came from: a table's ``kernels_run``
+(docs/verdicts.md), which ``make run``'s comparison and ``--reproduce`` add to the prediction interval of a run made
+with other numerics. ``from=FILE[,FILE...]`` prints the same from JSONs it
 wrote, rerunning nothing, and pools several (each another draw of the kernels)::
 
     python bench/kernel_spread.py from=bench/measured/kernel_spread_bifnet_table4.json,bench/measured/kernel_spread_bifnet_table4_xeon106.json
