@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from ablate.tables.decide import POWER, job_cpu_hours, seeds_to_decide
+from ablate.tables.decide import MOST_FRAMES, POWER, frames_to_decide, job_cpu_hours, seeds_to_decide
 from ablate.tables.verdicts import paired_tests
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
@@ -57,6 +57,34 @@ def test_no_number_of_seeds_decides_what_the_test_set_alone_leaves_open() -> Non
     assert seeds_to_decide(0.2, 0.1, 0.0, 0.2, 0.0167) is None  # on δ
 
 
+@pytest.mark.parametrize(
+    "mean,sd,frames_se,rope",
+    [
+        (-7.2, 3.6, 2.4, 0.61),  # DGFN Table II's camera SSD against DGFN, beyond δ: 100 frames leave it open
+        (0.08, 0.05, 0.12, 0.2),  # equivalent within ±δ (nearer +δ), the test set's term the larger
+        (1.5, 0.6, 0.9, None),  # different, a table without δ
+    ],
+)
+def test_the_estimated_test_frames_decide_about_the_share_they_promise(mean, sd, frames_se, rope) -> None:
+    level, seeds, frames = 0.0083, 8, 100
+    more = frames_to_decide(mean, sd, frames_se, rope, level, seeds, frames)
+    assert more is not None and frames < more <= MOST_FRAMES * frames
+    at = frames_se * np.sqrt(frames / more)  # the frames' standard error at the estimated test split
+    assert decided_share(seeds, mean, sd, at, rope, level) == pytest.approx(POWER, abs=0.06)
+    assert (
+        decided_share(seeds, mean, sd, frames_se * np.sqrt(frames / max(frames, more // 2)), rope, level) < POWER - 0.1
+    )
+
+
+def test_no_number_of_test_frames_decides_what_the_seeds_alone_leave_open() -> None:
+    assert frames_to_decide(2.24, 2.64, 1.46, 1.12, 0.0083, 8, 100) is None  # DGFN Table I: 8 seeds are too few
+    assert frames_to_decide(0.5, 0.4, 0.0, 0.2, 0.0167, 8, 100) is None  # no frames' term to shrink
+    assert frames_to_decide(0.5, 0.4, 0.2, 0.2, 0.0167, 8, 0) is None  # frames not kept
+    assert frames_to_decide(-7.2, 3.6, 2.4, 0.61, 0.0083, 8, 100) == frames_to_decide(
+        7.2, 3.6, 2.4, 0.61, 0.0083, 8, 100
+    )
+
+
 def test_a_jobs_cpu_hours_are_its_wall_time_by_its_threads_and_a_copy_costs_nothing() -> None:
     runs = pd.DataFrame(
         {
@@ -90,3 +118,14 @@ def test_no_line_of_a_published_table_claims_more_than_its_interval_and_p(path: 
         lo, hi = number(found["lo"]), number(found["hi"])
         assert not lo <= 0 <= hi, line
         assert float(found["p"]) < float(found["level"] or 0.05), line
+
+
+@pytest.mark.parametrize("path", sorted(RESULTS.glob("*_table*.csv")), ids=lambda p: p.name)
+def test_a_published_tables_test_frames_to_decide_are_in_its_footer_as_in_its_csv(path: Path) -> None:
+    numbers = pd.read_csv(path)
+    text = path.with_suffix(".md").read_text()
+    said = {int(n) for n in re.findall(r"about (\d+) test frames would decide it", text)}
+    kept = {
+        int(n) for column in ("decide_frames", "top_decide_frames") for n in numbers.get(column, pd.Series()).dropna()
+    }
+    assert said == kept

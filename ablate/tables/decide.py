@@ -20,6 +20,14 @@ None where no n does: ``|Δ|`` sits on δ, or the test set's own standard error 
 test frames would change and more seeds would not. The CPU hours are the jobs the two rows would add (seeds per
 row beyond what each has) times the median CPU time of a job of each row in the table's records (its wall seconds
 times its threads), on the machine that made them.
+
+**More test frames instead.** Where the race's own seeds cannot decide a comparison (no n up to :data:`MOST`, or more
+than its last look's), :func:`frames_to_decide` gives the test frames that would at the last look's seeds: the
+smallest ``F'`` whose ``se = sqrt(s² / n + f² F / F')`` reaches :data:`POWER` at the same level, ``F`` the frames the
+runs were tested on. Reading chosen: the frames' variance falls as ``1 / F'``, as a mean's does over independent
+frames drawn from the same scenes (the delete-one jackknife and the bootstrap over frames both estimate that
+variance at ``F``: :mod:`ablate.tables.twolevel`). A test split is fixed before a race, so this is the figure to size
+the next race's test set by, not a reason to extend this one's.
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ import pandas as pd
 from scipy import stats
 
 from ablate.tables.comparison import Comparison
+from ablate.tables.kept import kept
 from ablate.tables.raceplan import RacePlan
 from ablate.tables.racing import RaceState
 
@@ -39,11 +48,15 @@ from ablate.tables.racing import RaceState
 POWER = 0.8
 #: The most seeds per row an estimate looks at.
 MOST = 1000
+#: The most test frames an estimate looks at, as a multiple of those the runs were tested on.
+MOST_FRAMES = 100
 
 
-def power(n: np.ndarray, mean: float, sd: float, frames_se: float, rope: float | None, level: float) -> np.ndarray:
-    """The chance of deciding at ``n`` seeds (an array) a comparison whose true mean difference is ``mean`` (see the
-    module)."""
+def power(
+    n: np.ndarray, mean: float, sd: float, frames_se: float | np.ndarray, rope: float | None, level: float
+) -> np.ndarray:
+    """The chance of deciding at ``n`` seeds (an array) a comparison whose true mean difference is ``mean``, the test
+    frames' standard error ``frames_se`` (a number, or an array beside ``n``; see the module)."""
     n = np.asarray(n, dtype=float)
     se = np.sqrt(sd * sd / n + frames_se * frames_se)
     df = n - 1
@@ -65,6 +78,32 @@ def seeds_to_decide(mean: float, sd: float, frames_se: float, rope: float | None
     n = np.arange(2, MOST + 1)
     reach = np.nonzero(power(n, mean, sd, frames_se, rope, level) >= POWER)[0]
     return int(n[reach[0]]) if len(reach) else None
+
+
+def frames_to_decide(
+    mean: float, sd: float, frames_se: float, rope: float | None, level: float, seeds: int, frames: int
+) -> int | None:
+    """The fewest test frames (up to :data:`MOST_FRAMES` times ``frames``, those the runs were tested on) at which
+    ``seeds`` seeds per row decide the comparison with :data:`POWER`, the frames' standard error ``frames_se`` scaled
+    by ``sqrt(frames / F')`` (see the module); None where none does, or where the runs kept no test frames' term."""
+    if frames < 2 or seeds < 2 or not frames_se > 0 or any(math.isnan(x) for x in (mean, sd, frames_se)):
+        return None
+    if rope is not None and abs(mean) == rope:
+        return None
+    more = np.arange(frames, MOST_FRAMES * frames + 1)
+    reach = power(np.full(len(more), float(seeds)), mean, sd, frames_se * np.sqrt(frames / more), rope, level)
+    found = np.nonzero(reach >= POWER)[0]
+    return int(more[found[0]]) if len(found) else None
+
+
+def test_frames(runs: pd.DataFrame) -> int:
+    """The test frames a table's runs were tested on: the frames its records keep counts or detections of (0 where
+    they keep none)."""
+    for key in ("frames", "detections"):
+        kept_frames = kept(runs, key)
+        if isinstance(kept_frames, pd.DataFrame) and "frame" in kept_frames and len(kept_frames):
+            return int(kept_frames["frame"].astype(str).nunique())
+    return 0
 
 
 def job_cpu_hours(runs: pd.DataFrame, row: str) -> float:
@@ -89,7 +128,9 @@ def job_cpu_hours(runs: pd.DataFrame, row: str) -> float:
 @dataclass(frozen=True)
 class ToDecide:
     """What deciding a comparison of rows ``a`` and ``b`` would take: seeds per row (None: no number up to
-    :data:`MOST`), the jobs to add and their CPU hours (NaN without job times)."""
+    :data:`MOST`), the jobs to add and their CPU hours (NaN without job times); and, where the race's seeds do not
+    suffice, the test frames that would at its last look's ``at_seeds`` (None: none up to :data:`MOST_FRAMES` times
+    the ``frames_now`` the runs were tested on, or no frames' term)."""
 
     a: str
     b: str
@@ -97,10 +138,29 @@ class ToDecide:
     jobs: int
     cpu_hours: float
     level: float
+    at_seeds: int = 0
+    frames_now: int = 0
+    frames: int | None = None
+
+    def frames_words(self) -> str:
+        """The sentence on test frames, where the race's seeds would not decide and more test frames would."""
+        if self.frames is None:
+            return ""
+        lead = "At" if self.seeds is None else "Or, at"
+        return (
+            f" {lead} {self.at_seeds} seeds per row (the race's last look), about {self.frames} test frames would "
+            f"decide it, against the {self.frames_now} its runs were tested on ({self.frames / self.frames_now:.1f}x; "
+            "the frames' variance taken to fall as 1 / frames): a figure for the next race's test split."
+        )
 
     def words(self, names: dict[str, str], cpu: str) -> str:
         """The footer's line."""
         pair = f"{names.get(self.a, self.a)} vs {names.get(self.b, self.b)}"
+        if self.seeds is None and self.frames is not None:
+            return (
+                f"Deciding {pair} would take more than {MOST} seeds per row at the spread observed: the test set's own "
+                "variance leaves too little room." + self.frames_words()
+            )
         if self.seeds is None:
             return (
                 f"Deciding {pair} would take more than {MOST} seeds per row at the spread observed: the mean difference "
@@ -111,7 +171,7 @@ class ToDecide:
         return (
             f"Deciding {pair} would take about {self.seeds} seeds per row ({self.jobs} more jobs{hours}), for "
             f"{POWER:.0%} power at the spread observed and level {self.level:.4f} (the last look's, over the open "
-            "comparisons; ablate.tables.decide)."
+            "comparisons; ablate.tables.decide)." + self.frames_words()
         )
 
 
@@ -119,13 +179,17 @@ def to_decide(c: Comparison, plan: RacePlan, open_count: int, runs: pd.DataFrame
     """:class:`ToDecide` for the undecided comparison ``c`` of a race on
     ``plan`` with ``open_count`` comparisons open, priced from ``runs``' job times."""
     level = plan.levels()[-1] / max(1, open_count)
-    n = seeds_to_decide(c.delta, math.hypot(c.sd, c.kernels_sd), c.frames_se, plan.rope, level)
+    sd = math.hypot(c.sd, c.kernels_sd)
+    n = seeds_to_decide(c.delta, sd, c.frames_se, plan.rope, level)
+    last = max(plan.looks[-1], c.n)
+    now = test_frames(runs) if c.frames and (n is None or n > last) else 0
+    frames = frames_to_decide(c.delta, sd, c.frames_se, plan.rope, level, last, now) if now else None
     if n is None:
-        return ToDecide(c.a, c.b, None, 0, math.nan, level)
+        return ToDecide(c.a, c.b, None, 0, math.nan, level, last, now, frames)
     have = {r: _seeds(runs, r) for r in (c.a, c.b)}
     more = {r: max(0, n - have[r]) for r in (c.a, c.b)}
     hours = sum(more[r] * job_cpu_hours(runs, r) for r in (c.a, c.b) if more[r])
-    return ToDecide(c.a, c.b, n, sum(more.values()), float(hours), level)
+    return ToDecide(c.a, c.b, n, sum(more.values()), float(hours), level, last, now, frames)
 
 
 def _seeds(runs: pd.DataFrame, row: str) -> int:

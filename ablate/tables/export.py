@@ -8,8 +8,9 @@ runs kept counts per frame) and the race's verdict on that comparison
 (``better``, ``worse``, ``equivalent``, ``different`` or ``undecided``, :mod:`ablate.tables.verdicts`; empty without
 a race), and, where the race left it open, about how many seeds per row and CPU hours deciding it would take
 (``decide_seeds``, ``decide_cpu_hours``: :mod:`ablate.tables.decide`; seeds -1 where no number of seeds would), and
-the table's δ (``rope``); on the top row, its verdict against the second (``top_vs_second``, as the footer says it)
-and what deciding that would take (``top_decide_seeds``, ``top_decide_cpu_hours``); and Kendall's τ between our ranking
+where the race's seeds would not, the test frames that would at its last look (``decide_frames``), and the table's δ
+(``rope``); on the top row, its verdict against the second (``top_vs_second``, as the footer says it) and what
+deciding that would take (``top_decide_seeds``, ``top_decide_cpu_hours``, ``top_decide_frames``); and Kendall's τ between our ranking
 and the paper's with the rows it compares (``kendall_tau``, ``kendall_n``). The results summary reads these. The LaTeX table shows mean ± std
 per metric, the best of each column in bold (pandas' ``Styler``; names and labels escaped), with ``\\toprule``/``\\midrule``/``\\bottomrule``.
 """
@@ -42,7 +43,7 @@ def numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> pd.
     deltas = []
     frames_var = table_frames(runs, table)
     todo = undecided(raced, runs) if raced is not None else {}
-    none = {"decide_seeds": np.nan, "decide_cpu_hours": np.nan}
+    none = decide_columns(None)
     for row in summary["row"]:
         if ref is None or row == ref or not len(runs):
             deltas.append({"delta": np.nan, "delta_lo": np.nan, "delta_hi": np.nan, "p": np.nan, "verdict": ""} | none)
@@ -72,10 +73,13 @@ def numbers(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -> pd.
 
 def decide_columns(todo: ToDecide | None) -> dict[str, float]:
     """The CSV's columns on what deciding a comparison would take (:mod:`ablate.tables.decide`): seeds per row and
-    CPU hours; NaN for a decided comparison, seeds -1 where no number of seeds would decide it."""
+    CPU hours; NaN for a decided comparison, seeds -1 where no number of seeds would decide it; and the test frames
+    that would at the race's last look's seeds, where its seeds would not (NaN where not estimated or none would)."""
     if todo is None:
-        return {"decide_seeds": np.nan, "decide_cpu_hours": np.nan}
-    return {"decide_seeds": -1 if todo.seeds is None else todo.seeds, "decide_cpu_hours": todo.cpu_hours}
+        return {"decide_seeds": np.nan, "decide_cpu_hours": np.nan, "decide_frames": np.nan}
+    frames = np.nan if todo.frames is None else todo.frames
+    seeds = -1 if todo.seeds is None else todo.seeds
+    return {"decide_seeds": seeds, "decide_cpu_hours": todo.cpu_hours, "decide_frames": frames}
 
 
 def latex(summary: pd.DataFrame, table: DictConfig) -> str:

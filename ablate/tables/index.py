@@ -153,6 +153,8 @@ def summarise_numbers(table: DictConfig, numbers: pd.DataFrame) -> Summary:
         todo = (
             "no number of seeds would decide it" if seeds < 0 else f"deciding it: about {seeds:.0f} seeds per row{cost}"
         )
+        frames = float(top["top_decide_frames"].iloc[0]) if "top_decide_frames" in top else np.nan
+        todo += "" if np.isnan(frames) else f"; about {frames:.0f} test frames would at the race's last look"
         headline = f"top row vs second open; {todo}" if headline == "—" else f"{headline}; {todo}"
     tau, n = float(numbers["kendall_tau"].iloc[0]), int(numbers["kendall_n"].iloc[0])
     shown_tau = "—" if np.isnan(tau) else f"{tau:.2f} ({n} rows)"
