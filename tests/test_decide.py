@@ -12,6 +12,7 @@ import pytest
 
 from ablate.tables.decide import MOST_FRAMES, POWER, frames_to_decide, job_cpu_hours, seeds_to_decide
 from ablate.tables.verdicts import paired_tests
+from tests.published import published_tables
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 
@@ -120,10 +121,10 @@ def test_no_line_of_a_published_table_claims_more_than_its_interval_and_p(path: 
         assert float(found["p"]) < float(found["level"] or 0.05), line
 
 
-@pytest.mark.parametrize("path", sorted(RESULTS.glob("*_table*.csv")), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", published_tables(), ids=lambda p: p.stem)
 def test_a_published_tables_test_frames_to_decide_are_in_its_footer_as_in_its_csv(path: Path) -> None:
-    numbers = pd.read_csv(path)
-    text = path.with_suffix(".md").read_text()
+    numbers = pd.read_csv(path.with_suffix(".csv"))
+    text = path.read_text()
     said = {int(n) for n in re.findall(r"about (\d+) test frames would decide it", text)}
     kept = {
         int(n) for column in ("decide_frames", "top_decide_frames") for n in numbers.get(column, pd.Series()).dropna()

@@ -26,8 +26,10 @@ than its last look's), :func:`frames_to_decide` gives the test frames that would
 smallest ``F'`` whose ``se = sqrt(s² / n + f² F / F')`` reaches :data:`POWER` at the same level, ``F`` the frames the
 runs were tested on. Reading chosen: the frames' variance falls as ``1 / F'``, as a mean's does over independent
 frames drawn from the same scenes (the delete-one jackknife and the bootstrap over frames both estimate that
-variance at ``F``: :mod:`ablate.tables.twolevel`). A test split is fixed before a race, so this is the figure to size
-the next race's test set by, not a reason to extend this one's.
+variance at ``F``: :mod:`ablate.tables.twolevel`). Checked on the records (``bench/decide_design.py --scaling``): on
+random halves of the test split the counts tables' term is 1.7-2.1x the whole's, as 1 / frames says; the AP tables'
+1.2-1.9x, so for them the estimate may be too few frames. A test split is fixed before a race, so this is the figure
+to size the next race's test set by, not a reason to extend this one's.
 """
 
 from __future__ import annotations
