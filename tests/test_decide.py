@@ -130,3 +130,18 @@ def test_a_published_tables_test_frames_to_decide_are_in_its_footer_as_in_its_cs
         int(n) for column in ("decide_frames", "top_decide_frames") for n in numbers.get(column, pd.Series()).dropna()
     }
     assert said == kept
+
+
+def test_the_footer_offers_test_frames_where_the_races_seeds_would_not_decide() -> None:
+    from ablate.tables.decide import ToDecide
+
+    names = {"a": "A", "b": "B"}
+    beyond = ToDecide("a", "b", 34, 52, 5.2, 0.0167, at_seeds=8, frames_now=100, frames=617)
+    assert "about 34 seeds per row" in beyond.words(names, "a CPU")
+    assert "Or, at 8 seeds per row (the race's last look), about 617 test frames would decide it" in beyond.words(
+        names, "a CPU"
+    )
+    only = ToDecide("a", "b", None, 0, float("nan"), 0.0167, at_seeds=8, frames_now=100, frames=617)
+    assert "the test set's own variance leaves too little room. At 8 seeds per row" in only.words(names, "a CPU")
+    neither = ToDecide("a", "b", None, 0, float("nan"), 0.0167, at_seeds=8, frames_now=100, frames=None)
+    assert "test frames would decide" not in neither.words(names, "a CPU")
