@@ -305,7 +305,7 @@ def _top_against_second(
         lo, hi = sorted((sign * c.lo, sign * c.hi))
         share = f"{100 * (1 - 2 * c.level):.1f}%"
         verdict = (
-            f"{signed(sign * c.delta)} [{signed(lo)}, {signed(hi)}], the {share} interval ({d.test}, n = {c.n}), "
+            f"{signed(sign * c.delta)} [{signed(lo)}, {signed(hi)}], the unadjusted {share} interval ({d.test}, n = {c.n}), "
             f"p = {c.p:.3g} {c.p_words()} against {c.level:.4f} at look {c.look}: {said} (the race's verdict)"
         )
     else:

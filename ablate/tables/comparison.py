@@ -58,7 +58,7 @@ class Comparison:
         over = "t interval over seeds and test frames" if self.frames else "t interval"
         shown = self.rope is not None or self.frames
         share = f"{100 * (1 - 2 * self.level):.1f}%"
-        interval = f"[{self.lo:+.2f}, {self.hi:+.2f}], the {share} {over}; " if shown else ""
+        interval = f"[{self.lo:+.2f}, {self.hi:+.2f}], the unadjusted {share} {over}; " if shown else ""
         spread = (
             f"seeds' sd {self.sd:.3g}"
             + (f", kernels' sd {self.kernels_sd:.3g}" if self.kernels_sd else "")
