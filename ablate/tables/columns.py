@@ -76,6 +76,8 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
                 f"Each seed's paired difference carries another CPU's kernels' variance too (sd {kernels_sd(table):g}, "
                 "measured by rerunning this table's seeds on other kernels: docs/verdicts.md), added to the seeds'."
             )
+        elif any(c.kind != UNDECIDED and c.n >= 2 for c in raced.comparisons.values()):
+            lines.append(KERNELS_UNMEASURED.format(cpu=machine(runs)))
         ap = verdict_metric(table)[0] in FROM_DETECTIONS  # a conditions table's primary is <condition>/<metric>
         if any(c.frames for c in raced.comparisons.values()):
             lines.append(AP_FRAMES_LINE if ap else FRAMES_LINE)
@@ -137,6 +139,14 @@ def replay(
     return race(
         values, rows, candidates or rows[0], plan.with_rope(table), higher, frames_var=frames_var, kernels_sd=kernels
     )
+
+
+#: The footer's line where a raced table decided a comparison without measuring another CPU's kernels' variance.
+KERNELS_UNMEASURED = (
+    "Another CPU's kernels' variance is not measured for this table (bench/kernel_spread.py, docs/verdicts.md): its "
+    "verdicts hold for the kernels of the CPU its records were made on, {cpu}; on other tables it was as "
+    "large as the seeds' own spread."
+)
 
 
 def kernels_sd(table: DictConfig) -> float:
