@@ -53,11 +53,10 @@ def open_comparisons(name: str, results: Path) -> list[tuple[str, str, float, fl
     found = []
     original = decide.to_decide
 
-    def record(c, plan, open_count, runs):  # type: ignore[no-untyped-def]
-        todo = original(c, plan, open_count, runs)
+    def record(c, plan, open_count, runs, frames_now=0):  # type: ignore[no-untyped-def]
+        todo = original(c, plan, open_count, runs, frames_now)
         sd = math.hypot(c.sd, c.kernels_sd)
-        frames = decide.test_frames(runs) if c.frames else 0
-        found.append((c.a, c.b, c.delta, sd, c.frames_se, plan.rope, todo.level, frames))
+        found.append((c.a, c.b, c.delta, sd, c.frames_se, plan.rope, todo.level, frames_now if c.frames else 0))
         return todo
 
     decide.to_decide = record  # type: ignore[assignment]

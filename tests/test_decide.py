@@ -12,9 +12,7 @@ import pytest
 
 from ablate.tables.decide import MOST_FRAMES, POWER, frames_to_decide, job_cpu_hours, seeds_to_decide
 from ablate.tables.verdicts import paired_tests
-from tests.published import published_tables
-
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+from tests.published import RESULTS, published_tables
 
 
 def decided_share(n: int, mean: float, sd: float, frames_se: float, rope: float | None, level: float) -> float:

@@ -98,7 +98,7 @@ def frames_to_decide(
     return int(more[found[0]]) if len(found) else None
 
 
-def test_frames(runs: pd.DataFrame) -> int:
+def tested_frames(runs: pd.DataFrame) -> int:
     """The test frames a table's runs were tested on: the frames its records keep counts or detections of (0 where
     they keep none)."""
     for key in ("frames", "detections"):
@@ -177,21 +177,22 @@ class ToDecide:
         )
 
 
-def to_decide(c: Comparison, plan: RacePlan, open_count: int, runs: pd.DataFrame) -> ToDecide:
-    """:class:`ToDecide` for the undecided comparison ``c`` of a race on
-    ``plan`` with ``open_count`` comparisons open, priced from ``runs``' job times."""
+def to_decide(c: Comparison, plan: RacePlan, open_count: int, runs: pd.DataFrame, frames_now: int = 0) -> ToDecide:
+    """:class:`ToDecide` for the undecided comparison ``c`` of a race on ``plan`` with ``open_count`` comparisons
+    open, priced from ``runs``' job times; its test frames estimated against the ``frames_now`` its runs were tested
+    on (0: none kept)."""
     level = plan.levels()[-1] / max(1, open_count)
     sd = math.hypot(c.sd, c.kernels_sd)
     n = seeds_to_decide(c.delta, sd, c.frames_se, plan.rope, level)
     last = max(plan.looks[-1], c.n)
-    now = test_frames(runs) if c.frames and (n is None or n > last) else 0
-    frames = frames_to_decide(c.delta, sd, c.frames_se, plan.rope, level, last, now) if now else None
+    short = c.frames and (n is None or n > last)  # the race's seeds would not decide it
+    frames = frames_to_decide(c.delta, sd, c.frames_se, plan.rope, level, last, frames_now) if short else None
     if n is None:
-        return ToDecide(c.a, c.b, None, 0, math.nan, level, last, now, frames)
+        return ToDecide(c.a, c.b, None, 0, math.nan, level, last, frames_now, frames)
     have = {r: _seeds(runs, r) for r in (c.a, c.b)}
     more = {r: max(0, n - have[r]) for r in (c.a, c.b)}
     hours = sum(more[r] * job_cpu_hours(runs, r) for r in (c.a, c.b) if more[r])
-    return ToDecide(c.a, c.b, n, sum(more.values()), float(hours), level, last, now, frames)
+    return ToDecide(c.a, c.b, n, sum(more.values()), float(hours), level, last, frames_now, frames)
 
 
 def _seeds(runs: pd.DataFrame, row: str) -> int:
@@ -201,7 +202,8 @@ def _seeds(runs: pd.DataFrame, row: str) -> int:
 def undecided(raced: RaceState, runs: pd.DataFrame) -> dict[frozenset[str], ToDecide]:
     """:class:`ToDecide` of each comparison a race (:class:`ablate.tables.racing.RaceState`) left open."""
     still = [c for c in raced.undecided() if c.n >= 2]
-    return {frozenset((c.a, c.b)): to_decide(c, raced.plan, len(still), runs) for c in still}
+    now = tested_frames(runs) if any(c.frames for c in still) else 0  # counted once, not per comparison
+    return {frozenset((c.a, c.b)): to_decide(c, raced.plan, len(still), runs, now) for c in still}
 
 
 def machine(runs: pd.DataFrame) -> str:
