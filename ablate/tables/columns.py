@@ -14,6 +14,7 @@ from ablate.tables.cost import table_cost
 from ablate.tables.decide import machine, undecided
 from ablate.tables.frames import AP_DRAWS, FROM_DETECTIONS, verdict_metric
 from ablate.tables.kept import kept
+from ablate.tables.margin import kernels_margin
 from ablate.tables.raceplan import RacePlan
 from ablate.tables.racing import RaceState, race, race_lines, recorded_plan, seed_values
 from ablate.tables.significance import (
@@ -77,7 +78,11 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
                 "measured by rerunning this table's seeds on other kernels: docs/verdicts.md), added to the seeds'."
             )
         elif any(c.kind != UNDECIDED and c.n >= 2 for c in raced.comparisons.values()):
-            lines.append(KERNELS_UNMEASURED.format(cpu=machine(runs)))
+            rows = [str(r) for r in summary["row"] if r in set(runs.get("row", []))]
+            values = seed_values(runs, key)
+            held = kernels_margin(lambda sd: replay(runs, table, rows, values, key, sd) or raced)
+            margin = f" {held.words(names, label)}" if held is not None else ""
+            lines.append(KERNELS_UNMEASURED.format(cpu=machine(runs), margin=margin))
         ap = verdict_metric(table)[0] in FROM_DETECTIONS  # a conditions table's primary is <condition>/<metric>
         if any(c.frames for c in raced.comparisons.values()):
             lines.append(AP_FRAMES_LINE if ap else FRAMES_LINE)
@@ -123,11 +128,17 @@ def replayed_race(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, 
 
 
 def replay(
-    runs: pd.DataFrame, table: DictConfig, rows: list[str], values: dict[str, pd.Series], key: str
+    runs: pd.DataFrame,
+    table: DictConfig,
+    rows: list[str],
+    values: dict[str, pd.Series],
+    key: str,
+    kernels: float | None = None,
 ) -> RaceState | None:
     """The race of ``rows`` on their ``values`` of ``key`` as the table reports it: the plan the runs ran under,
     the table's δ (table.rope) and reference, judged on the seeds and the test frames where the runs kept counts
-    per frame (:func:`ablate.tables.frames.judged`); None without a race plan or rows."""
+    per frame (:func:`ablate.tables.frames.judged`) and with the kernels' sd the table measured (``kernels`` in its
+    place: :mod:`ablate.tables.margin`); None without a race plan or rows."""
     plan = RacePlan.from_config(recorded_plan(runs) or table.get("seeds"))
     if plan is None or not rows:
         return None
@@ -135,7 +146,7 @@ def replay(
     candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
     higher = key not in LOWER_IS_BETTER
     frames_var = table_frames(runs, table) if key == str(table.primary) else None
-    kernels = kernels_sd(table)
+    kernels = kernels_sd(table) if kernels is None else kernels
     return race(
         values, rows, candidates or rows[0], plan.with_rope(table), higher, frames_var=frames_var, kernels_sd=kernels
     )
@@ -144,8 +155,8 @@ def replay(
 #: The footer's line where a raced table decided a comparison without measuring another CPU's kernels' variance.
 KERNELS_UNMEASURED = (
     "Another CPU's kernels' variance is not measured for this table (bench/kernel_spread.py, docs/verdicts.md): its "
-    "verdicts hold for the kernels of the CPU its records were made on, {cpu}; on other tables it was as "
-    "large as the seeds' own spread."
+    "verdicts hold for the kernels of the CPU its records were made on, {cpu}.{margin} On other tables another CPU's "
+    "kernels added about as much as the seeds' own spread."
 )
 
 

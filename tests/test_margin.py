@@ -1,0 +1,70 @@
+"""The kernels' margin of a table that has not measured another CPU's kernels (ablate.tables.margin): the largest
+sd added to each seed's paired difference at which the race still reaches every claim it made."""
+
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from ablate.tables.margin import PRECISION, claims, floor_2, kernels_margin
+from ablate.tables.raceplan import RacePlan
+from ablate.tables.racing import race
+from tests.published import published_tables
+
+
+def seeds(values: list[float]) -> pd.Series:
+    return pd.Series(values, index=range(len(values)), dtype=float)
+
+
+def test_the_margin_is_the_edge_where_the_first_claim_is_lost() -> None:
+    # "far" is far worse than the reference, "near" just beyond δ, "same" equivalent: the near claim goes first
+    rng = np.random.default_rng(7)
+    ref = 50 + rng.normal(0, 0.3, 8)
+    values = {
+        "ref": seeds(list(ref)),
+        "far": seeds(list(ref - 10 + rng.normal(0, 0.3, 8))),
+        "near": seeds(list(ref - 1.6 + rng.normal(0, 0.3, 8))),
+        "same": seeds(list(ref + rng.normal(0, 0.05, 8))),
+    }
+    plan = RacePlan((3, 5, 8), rope=1.0)
+
+    def at(sd: float):
+        return race(values, list(values), "ref", plan, kernels_sd=sd)
+
+    made = claims(at(0.0))
+    assert len(made) == 3
+    margin = kernels_margin(at)
+    assert margin is not None and 0 < margin.sd < math.inf
+    assert claims(at(margin.sd)) == made  # every claim holds at the margin
+    beyond = claims(at(margin.sd * (1 + 2 * PRECISION)))
+    assert beyond != made and "far" not in {margin.a, margin.b}  # and just beyond it the weaker one is lost
+    assert {margin.a, margin.b} in ({"near", "ref"}, {"same", "ref"})
+    assert all(frozenset({"far", "ref"}) in c for c in [made, beyond])
+
+
+def test_a_table_without_claims_has_no_margin_and_an_unbeatable_claim_is_unbounded() -> None:
+    noise = seeds([0.1, -0.2, 0.15, 0.0, -0.1, 0.05, 0.2, -0.15])
+    plan = RacePlan((3, 5, 8), rope=0.01)
+    assert kernels_margin(lambda sd: race({"a": noise, "b": noise * 2}, ["a", "b"], "b", plan, kernels_sd=sd)) is None
+    exact = {"a": seeds([1.0, 2.0, 3.0]), "b": seeds([1.0, 2.0, 3.0])}  # no plan with δ: identical rows, no claim
+    assert kernels_margin(lambda sd: race(exact, ["a", "b"], "b", RacePlan((3,)), kernels_sd=sd)) is None
+
+
+def test_a_margin_is_shown_rounded_down() -> None:
+    assert floor_2(0.5678) == pytest.approx(0.56) and floor_2(12.99) == 12 and floor_2(0.0999) == pytest.approx(0.099)
+
+
+def test_a_table_without_its_kernels_measured_says_how_much_its_claims_bear() -> None:
+    """Each published table whose footer says its kernels are not measured gives the margin, in the metric's units,
+    and the comparison that binds it."""
+    unmeasured = [p for p in published_tables() if "kernels' variance is not measured" in p.read_text()]
+    assert unmeasured  # ChiNet III and V at least
+    for path in unmeasured:
+        said = re.search(
+            r"Every claim would still hold with .* an sd of up to ([0-9.]+) .*? vs .*? changes first", path.read_text()
+        )
+        assert said is not None and float(said.group(1)) > 0, path.name
