@@ -47,16 +47,19 @@ from ablate.tables.spec import table_spec
 from ablate.tables.twolevel import frames_variance
 
 
-def open_comparisons(name: str, results: Path) -> list[tuple[str, str, float, float, float, float | None, float, int]]:
-    """(a, b, Δ, sd, frames' se, δ, level, test frames) of each comparison ``name``'s race left open, as its footer
-    prices them."""
+def open_comparisons(
+    name: str, results: Path
+) -> list[tuple[str, str, float, float, float, float | None, float, int, float]]:
+    """(a, b, Δ, sd, frames' se, δ, level, test frames, another CPU's shared shift) of each comparison ``name``'s
+    race left open, as its footer prices them."""
     found = []
     original = decide.to_decide
 
     def record(c, plan, open_count, runs, frames_now=0):  # type: ignore[no-untyped-def]
         todo = original(c, plan, open_count, runs, frames_now)
         sd = math.hypot(c.sd, c.kernels_sd)
-        found.append((c.a, c.b, c.delta, sd, c.frames_se, plan.rope, todo.level, frames_now if c.frames else 0))
+        frames = frames_now if c.frames else 0
+        found.append((c.a, c.b, c.delta, sd, c.frames_se, plan.rope, todo.level, frames, c.kernels_cpu))
         return todo
 
     decide.to_decide = record  # type: ignore[assignment]
@@ -105,15 +108,16 @@ def main() -> None:
             if not found:
                 continue
             print(f"\n{name}")
-            for a, b, mean, sd, frames_se, rope, level, frames in found:
+            for a, b, mean, sd, frames_se, rope, level, frames, shared in found:
                 head = f"  {a} vs {b}: Δ {mean:+.2f}, seeds' sd {sd:.3g}, frames' se {frames_se:.3g}"
+                head += f", shared kernels' sd {shared:.3g}" if shared else ""
                 if not frames:
-                    seeds = decide.seeds_to_decide(mean, sd, frames_se, rope, level)
+                    seeds = decide.seeds_to_decide(mean, sd, math.hypot(frames_se, shared), rope, level)
                     print(f"{head}; no test frames kept: {seeds or f'{decide.MOST}+'} seeds")
                     continue
                 cells = []
                 for k in times:
-                    seeds = decide.seeds_to_decide(mean, sd, frames_se / math.sqrt(k), rope, level)
+                    seeds = decide.seeds_to_decide(mean, sd, math.hypot(frames_se / math.sqrt(k), shared), rope, level)
                     cells.append(f"{k:g}x ({k * frames:.0f}): {seeds or f'{decide.MOST}+'}")
                 print(f"{head} at {frames} frames; seeds per row at " + ", ".join(cells))
                 if args.scaling:

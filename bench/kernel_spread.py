@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ablate.tables.margin import shift_parts
+
 #: kernels=NAME -> the environment that holds torch's and oneDNN's kernels to it.
 KERNELS = {
     "avx2": {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2"},
@@ -47,7 +49,7 @@ def main(argv: list[str]) -> int:
     opts = dict(a.split("=", 1) for a in argv if "=" in a and a.split("=", 1)[0] in own)
     rest = [a for a in argv if a.split("=", 1)[0] not in own]
     if "from" in opts:
-        pairs: list[float] = []
+        pairs: list[np.ndarray] = []
         shifts: list[float] = []
         seeds_in_all = 0
         for name in opts["from"].split(","):
@@ -57,11 +59,11 @@ def main(argv: list[str]) -> int:
             paired, every, seeds_here = summarise(kept["metric"], runs, kept["seeds_sd"])
             pairs, shifts, seeds_in_all = pairs + paired, shifts + every, seeds_in_all + seeds_here
         if "," in opts["from"]:  # each file's reruns are another draw of the kernels: pooled
-            sd, run = float(np.sqrt(np.mean(np.square(pairs)))), float(np.sqrt(np.mean(np.square(shifts))))
+            (sd, cpu), run = shift_parts(pairs), float(np.sqrt(np.mean(np.square(shifts))))
             print(
-                f"pooled over the files: paired differences' shift rms {sd:.4f} (table.kernels_sd: {sd:.3f}); every "
-                f"rerun's {run:.4f} over {seeds_in_all} seeds (table.kernels_run: {{sd: {run:.3f}, seeds: "
-                f"{seeds_in_all}}})"
+                f"pooled over the files: paired differences' shift, per seed {sd:.4f} and shared {cpu:.4f} "
+                f"(table.kernels_sd: {sd:.3f}, table.kernels_cpu: {cpu:.3f}); every rerun's {run:.4f} over "
+                f"{seeds_in_all} seeds (table.kernels_run: {{sd: {run:.3f}, seeds: {seeds_in_all}}})"
             )
         return 0
     kernels = opts.get("kernels", "avx2")
@@ -109,11 +111,12 @@ def main(argv: list[str]) -> int:
 
 def summarise(
     metric: str, found: dict[str, dict[int, tuple[float, float]]], spread: dict[str, float]
-) -> tuple[list[float], list[float], int]:
+) -> tuple[list[np.ndarray], list[float], int]:
     """Per row, the seeds' sd against the shifts' root mean square; per pair of rows, their paired difference's,
-    then every pair's pooled (a table's ``kernels_sd``); then every rerun's shift pooled (its ``kernels_run``).
-    Returns the pairs' shifts, the reruns' and the number of seeds."""
-    paired: list[float] = []
+    then every pair's pooled and split into the seeds' own part and the part they share (a table's ``kernels_sd``
+    and ``kernels_cpu``: :func:`ablate.tables.margin.shift_parts`); then every rerun's shift pooled (its
+    ``kernels_run``). Returns each pair's shifts, the reruns' and the number of seeds."""
+    paired: list[np.ndarray] = []
     rows = list(found)
     print(f"{metric}: per row, the seeds' sd in the records against the kernels' shift (root mean square)")
     for row in rows:
@@ -124,15 +127,19 @@ def summarise(
             seeds = sorted(set(found[a]) & set(found[b]))
             old = np.array([found[a][s][0] - found[b][s][0] for s in seeds])
             new = np.array([found[a][s][1] - found[b][s][1] for s in seeds])
-            paired += list(new - old)
+            paired.append(new - old)
             print(
                 f"  {a} - {b}: published {old.mean():+.4f} (paired sd {old.std(ddof=1):.4f}), rerun "
                 f"{new.mean():+.4f} (paired sd {new.std(ddof=1):.4f}); the difference's shift rms "
                 f"{np.sqrt(np.mean((new - old) ** 2)):.4f}"
             )
     if paired:
-        pooled = float(np.sqrt(np.mean(np.square(paired))))
-        print(f"every pair: the difference's shift rms {pooled:.4f} (table.kernels_sd: {pooled:.3f})")
+        pooled = float(np.sqrt(np.mean(np.square(np.concatenate(paired)))))
+        sd, cpu = shift_parts(paired)
+        print(
+            f"every pair: the difference's shift rms {pooled:.4f}; per seed {sd:.4f}, shared by the seeds {cpu:.4f} "
+            f"(table.kernels_sd: {sd:.3f}, table.kernels_cpu: {cpu:.3f})"
+        )
     every = np.array([new - old for row in rows for old, new in found[row].values()])
     rms, seeds = float(np.sqrt(np.mean(every**2))), len({s for row in rows for s in found[row]})
     print(

@@ -48,6 +48,7 @@ class Comparison:
     sd: float = math.nan  # the seeds' standard deviation of the paired differences
     frames_se: float = 0.0  # the test frames' standard error of the mean difference (0: the seeds alone)
     kernels_sd: float = 0.0  # the sd another CPU's kernels add to each seed's difference (table.kernels_sd)
+    kernels_cpu: float = 0.0  # the sd of the shift another CPU gives every seed's difference alike (table.kernels_cpu)
 
     def verdict(self) -> str:
         """The verdict in words, where it was reached, with the figures."""
@@ -62,6 +63,7 @@ class Comparison:
         spread = (
             f"seeds' sd {self.sd:.3g}"
             + (f", kernels' sd {self.kernels_sd:.3g}" if self.kernels_sd else "")
+            + (f", another CPU's shift sd {self.kernels_cpu:.3g}" if self.kernels_cpu else "")
             + (f", frames' se {self.frames_se:.3g}" if self.frames else "")
         )
         return (

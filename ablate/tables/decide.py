@@ -83,17 +83,26 @@ def seeds_to_decide(mean: float, sd: float, frames_se: float, rope: float | None
 
 
 def frames_to_decide(
-    mean: float, sd: float, frames_se: float, rope: float | None, level: float, seeds: int, frames: int
+    mean: float,
+    sd: float,
+    frames_se: float,
+    rope: float | None,
+    level: float,
+    seeds: int,
+    frames: int,
+    shared: float = 0.0,
 ) -> int | None:
     """The fewest test frames (up to :data:`MOST_FRAMES` times ``frames``, those the runs were tested on) at which
     ``seeds`` seeds per row decide the comparison with :data:`POWER`, the frames' standard error ``frames_se`` scaled
-    by ``sqrt(frames / F')`` (see the module); None where none does, or where the runs kept no test frames' term."""
+    by ``sqrt(frames / F')`` (see the module) beside the ``shared`` shift another CPU gives every seed, which more
+    frames keep; None where none does, or where the runs kept no test frames' term."""
     if frames < 2 or seeds < 2 or not frames_se > 0 or any(math.isnan(x) for x in (mean, sd, frames_se)):
         return None
     if rope is not None and abs(mean) == rope:
         return None
     more = np.arange(frames, MOST_FRAMES * frames + 1)
-    reach = power(np.full(len(more), float(seeds)), mean, sd, frames_se * np.sqrt(frames / more), rope, level)
+    fixed = np.sqrt(frames_se**2 * frames / more + shared**2)
+    reach = power(np.full(len(more), float(seeds)), mean, sd, fixed, rope, level)
     found = np.nonzero(reach >= POWER)[0]
     return int(more[found[0]]) if len(found) else None
 
@@ -143,6 +152,7 @@ class ToDecide:
     at_seeds: int = 0
     frames_now: int = 0
     frames: int | None = None
+    shared: bool = False  # the table measured a shift another CPU gives every seed alike (more seeds keep it)
 
     def frames_words(self) -> str:
         """The sentence on test frames, where the race's seeds would not decide and more test frames would."""
@@ -155,19 +165,22 @@ class ToDecide:
             "the frames' variance taken to fall as 1 / frames): a figure for the next race's test split."
         )
 
+    def shared_words(self) -> str:
+        return ", with the shift another CPU gives every seed alike," if self.shared else ""
+
     def words(self, names: dict[str, str], cpu: str) -> str:
         """The footer's line."""
         pair = f"{names.get(self.a, self.a)} vs {names.get(self.b, self.b)}"
         if self.seeds is None and self.frames is not None:
             return (
                 f"Deciding {pair} would take more than {MOST} seeds per row at the spread observed: the test set's own "
-                "variance leaves too little room." + self.frames_words()
+                f"variance{self.shared_words()} leaves too little room." + self.frames_words()
             )
         if self.seeds is None:
             return (
                 f"Deciding {pair} would take more than {MOST} seeds per row at the spread observed: the mean difference "
-                "sits on ±δ, or the test set's own variance leaves too little room (more test frames would help, "
-                "more seeds would not)."
+                f"sits on ±δ, or the test set's own variance{self.shared_words()} leaves too little room (more test "
+                "frames would help, more seeds would not)."
             )
         hours = "" if math.isnan(self.cpu_hours) else f", about {self.cpu_hours:.1f} CPU hours on {cpu}"
         return (
@@ -182,17 +195,19 @@ def to_decide(c: Comparison, plan: RacePlan, open_count: int, runs: pd.DataFrame
     open, priced from ``runs``' job times; its test frames estimated against the ``frames_now`` its runs were tested
     on (0: none kept)."""
     level = plan.levels()[-1] / max(1, open_count)
-    sd = math.hypot(c.sd, c.kernels_sd)
-    n = seeds_to_decide(c.delta, sd, c.frames_se, plan.rope, level)
+    sd, shared = math.hypot(c.sd, c.kernels_sd), c.kernels_cpu > 0
+    n = seeds_to_decide(c.delta, sd, math.hypot(c.frames_se, c.kernels_cpu), plan.rope, level)
     last = max(plan.looks[-1], c.n)
     short = c.frames and (n is None or n > last)  # the race's seeds would not decide it
-    frames = frames_to_decide(c.delta, sd, c.frames_se, plan.rope, level, last, frames_now) if short else None
+    frames = (
+        frames_to_decide(c.delta, sd, c.frames_se, plan.rope, level, last, frames_now, c.kernels_cpu) if short else None
+    )
     if n is None:
-        return ToDecide(c.a, c.b, None, 0, math.nan, level, last, frames_now, frames)
+        return ToDecide(c.a, c.b, None, 0, math.nan, level, last, frames_now, frames, shared)
     have = {r: _seeds(runs, r) for r in (c.a, c.b)}
     more = {r: max(0, n - have[r]) for r in (c.a, c.b)}
     hours = sum(more[r] * job_cpu_hours(runs, r) for r in (c.a, c.b) if more[r])
-    return ToDecide(c.a, c.b, n, sum(more.values()), float(hours), level, last, frames_now, frames)
+    return ToDecide(c.a, c.b, n, sum(more.values()), float(hours), level, last, frames_now, frames, shared)
 
 
 def _seeds(runs: pd.DataFrame, row: str) -> int:

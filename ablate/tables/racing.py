@@ -93,6 +93,7 @@ def race(
     stop_after: int | None = None,
     frames_var: FramesVariance | None = None,
     kernels_sd: float = 0.0,
+    kernels_cpu: float = 0.0,
 ) -> RaceState:
     """Replay the race of ``rows`` on ``values``: per row, the primary metric indexed by integer seed.
     ``reference`` is a row, or a list of rows of which the best so far is the reference at each look (the table's
@@ -100,7 +101,8 @@ def race(
     was not run: the race stops before it), at most ``stop_after`` looks. Returns the state after the last look
     evaluated, with the rows that need seeds at the next one. ``frames_var`` adds the test frames' variance to each
     comparison's (:mod:`ablate.tables.twolevel`); without it the tests read the seeds alone. ``kernels_sd`` adds the
-    variance another CPU's kernels add to each seed (``table.kernels_sd``)."""
+    variance another CPU's kernels add to each seed (``table.kernels_sd``), ``kernels_cpu`` that of the shift they give
+    every seed alike (``table.kernels_cpu``)."""
     state = RaceState(plan, racing=list(rows))
     last = len(plan.looks) if stop_after is None else min(stop_after, len(plan.looks))
     levels = plan.levels()
@@ -121,7 +123,7 @@ def race(
         for key in [k for k in state.comparisons if k not in current]:
             del state.comparisons[key]  # an earlier top vs second (or reference) that no longer is one
         to_test = [pair for pair in pairs if not decided(state, *pair[:2])]
-        _look(state, to_test, seen, k, levels[k], frames_var, kernels_sd)
+        _look(state, to_test, seen, k, levels[k], frames_var, kernels_sd, kernels_cpu)
         state.looks_done = k + 1
         open_pairs = state.undecided()
         state.racing = [r for r in rows if any(r in (c.a, c.b) for c in open_pairs)]
@@ -136,6 +138,7 @@ def _look(
     level: float,
     frames_var: FramesVariance | None = None,
     kernels_sd: float = 0.0,
+    kernels_cpu: float = 0.0,
 ) -> None:
     """Test the open comparisons ``pairs`` at look ``k`` (0-based) at ``level``, each kind of claim corrected over
     them (:func:`ablate.tables.verdicts.rejected`), and record each one's verdict: a claim of practical size (beyond
@@ -148,7 +151,7 @@ def _look(
         frames_var(a, b, seeds) if frames_var is not None and len(seeds) >= 2 else 0.0
         for (a, b, _), (seeds, _) in zip(pairs, shared)
     ]
-    tests = [paired_tests(d, plan.rope, v, kernels_sd) for d, v in zip(diffs, extra)]
+    tests = [paired_tests(d, plan.rope, v, kernels_sd, kernels_cpu) for d, v in zip(diffs, extra)]
     family = {kind: adjusted([getattr(t, kind) for t in tests], plan.multiplicity) for kind in CLAIM_TESTS.values()}
     claims = {kind: [not math.isnan(q) and q <= level for q in ps] for kind, ps in family.items()}
     for i, (a, b, why) in enumerate(pairs):
@@ -182,6 +185,7 @@ def _look(
             tests[i].sd,
             tests[i].frames_se,
             tests[i].kernels_sd,
+            tests[i].kernels_cpu,
         )
 
 

@@ -113,20 +113,24 @@ def prediction_interval(
 
 
 def difference(
-    row: pd.Series, ref: pd.Series, frames_var: Callable[[list[int]], float] | None = None, kernels_sd: float = 0.0
+    row: pd.Series,
+    ref: pd.Series,
+    frames_var: Callable[[list[int]], float] | None = None,
+    kernels_sd: float = 0.0,
+    kernels_cpu: float = 0.0,
 ) -> Difference:
     """``row`` minus ``ref`` (values indexed by seed): mean difference, its 95 % CI and the test's p-value.
 
     Paired over the shared seeds when there are at least two (``frames_var(seeds)``: the test frames' variance of
     their mean difference, :mod:`ablate.tables.twolevel`; ``kernels_sd``: another CPU's kernels' per seed, where the
-    table measured it); unpaired (Welch) otherwise."""
+    table measured it, and ``kernels_cpu`` the shift it gives every seed alike); unpaired (Welch) otherwise."""
     row, ref = pd.Series(row, dtype=float).dropna(), pd.Series(ref, dtype=float).dropna()
     shared = row.index.intersection(ref.index)
     if len(shared) >= 2:
         shared = sorted(shared, key=lambda s: (float(s), str(s)))  # by seed: the same figures in any record order
         d = (row[shared] - ref[shared]).to_numpy()
         extra = frames_var([int(float(s)) for s in shared]) if frames_var is not None else 0.0
-        t = paired_tests(d, None, extra, kernels_sd)
+        t = paired_tests(d, None, extra, kernels_sd, kernels_cpu)
         level = (1 - LEVEL) / 2
         lo, hi = t.interval(level) if t.se > 0 else (t.mean, t.mean)
         return Difference(

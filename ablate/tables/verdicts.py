@@ -78,6 +78,7 @@ class PairedTests:
     sd: float = math.nan
     frames_se: float = 0.0
     kernels_sd: float = 0.0
+    kernels_cpu: float = 0.0
 
     def interval(self, level: float) -> tuple[float, float]:
         """The (1 - 2 ``level``) interval of the mean difference: what TOST at ``level`` reads."""
@@ -88,7 +89,11 @@ class PairedTests:
 
 
 def paired_tests(
-    d: Sequence[float] | np.ndarray, rope: float | None, frames_var: float = 0.0, kernels_sd: float = 0.0
+    d: Sequence[float] | np.ndarray,
+    rope: float | None,
+    frames_var: float = 0.0,
+    kernels_sd: float = 0.0,
+    kernels_cpu: float = 0.0,
 ) -> PairedTests:
     """The tests of :class:`PairedTests` on the paired differences ``d``: Student's t on n - 1 degrees of freedom.
 
@@ -98,22 +103,29 @@ def paired_tests(
     the seeds' own t interval and equals it where the frames add nothing. A difference without spread at either
     level is exact: each test rejects (p = 0) or not (p = 1) by its value. ``kernels_sd``: the standard deviation
     another CPU's kernels add to each seed's paired difference, where the table measured it (``table.kernels_sd``,
-    :mod:`ablate.tables.twolevel`): added to the seeds' variance, ``sqrt((s_d^2 + kernels_sd^2) / n + frames_var)``."""
+    :mod:`ablate.tables.twolevel`): added to the seeds' variance; ``kernels_cpu``: the standard deviation of the shift
+    another CPU gives every seed's paired difference alike (``table.kernels_cpu``), which more seeds do not average
+    away: ``sqrt((s_d^2 + kernels_sd^2) / n + kernels_cpu^2 + frames_var)`` (:mod:`ablate.tables.margin`)."""
     d = np.asarray(d, dtype=float)
     n = len(d)
     if n < 2:
         mean = float(d.mean()) if n else math.nan
         return PairedTests(n, mean, math.nan, math.nan, math.nan, math.nan)
     mean, sd = float(d.mean()), float(d.std(ddof=1))
-    frames_var, kernels_sd = max(0.0, float(frames_var)), float(kernels_sd or 0.0)
-    se = math.sqrt((sd * sd + kernels_sd * kernels_sd) / n + frames_var)
+    frames_var, kernels_sd, kernels_cpu = (
+        max(0.0, float(frames_var)),
+        float(kernels_sd or 0.0),
+        float(kernels_cpu or 0.0),
+    )
+    se = math.sqrt((sd * sd + kernels_sd * kernels_sd) / n + kernels_cpu * kernels_cpu + frames_var)
     if se == 0:
         exact = PairedTests(n, mean, 0.0, 0.0 if mean else 1.0, math.nan, math.nan, 0.0)
         if rope is None:
             return exact
         beyond = 0.0 if abs(mean) > rope else 1.0
         return PairedTests(n, mean, 0.0, exact.p_diff, beyond, 0.0 if abs(mean) < rope else 1.0, 0.0)
-    return replace(t_tests(n, mean, se, rope, sd, math.sqrt(frames_var)), kernels_sd=kernels_sd)
+    tests = t_tests(n, mean, se, rope, sd, math.sqrt(frames_var))
+    return replace(tests, kernels_sd=kernels_sd, kernels_cpu=kernels_cpu)
 
 
 def t_tests(
