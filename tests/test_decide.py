@@ -143,3 +143,19 @@ def test_the_footer_offers_test_frames_where_the_races_seeds_would_not_decide() 
     assert "the test set's own variance leaves too little room. At 8 seeds per row" in only.words(names, "a CPU")
     neither = ToDecide("a", "b", None, 0, float("nan"), 0.0167, at_seeds=8, frames_now=100, frames=None)
     assert "test frames would decide" not in neither.words(names, "a CPU")
+
+
+def test_a_shift_every_seed_shares_caps_what_seeds_and_frames_can_decide() -> None:
+    """Another CPU's shared shift stays whatever the seeds and the test frames: a difference within reach of seeds
+    alone is out of reach once that shift is as large as its distance from δ."""
+    from ablate.tables.comparison import Comparison
+    from ablate.tables.decide import to_decide
+    from ablate.tables.raceplan import RacePlan
+
+    assert seeds_to_decide(1.0, 0.3, 0.0, 0.5, 0.0167) is not None
+    assert seeds_to_decide(1.0, 0.3, 0.5, 0.5, 0.0167) is None  # the shared 0.5 never shrinks
+    assert frames_to_decide(1.0, 0.3, 0.3, 0.5, 0.0167, 8, 100) is not None
+    assert frames_to_decide(1.0, 0.3, 0.3, 0.5, 0.0167, 8, 100, shared=0.5) is None
+    c = Comparison("a", "b", "reference", 3, 8, 1.0, 0.5, 0.0167, True, 1.0, 0.5, 1.0, sd=0.3, kernels_cpu=0.5)
+    todo = to_decide(c, RacePlan((3, 5, 8), rope=0.5), 1, pd.DataFrame())
+    assert todo.seeds is None and "the shift another CPU gives every seed alike" in todo.words({}, "a CPU")
