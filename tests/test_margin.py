@@ -95,3 +95,15 @@ def test_reruns_split_into_the_seeds_own_shift_and_the_one_they_share() -> None:
     own, shared = shift_parts(both)
     assert own == pytest.approx(0.5, rel=0.05) and shared == pytest.approx(0.8, rel=0.1)
     assert shift_parts([]) == (0.0, 0.0)
+
+
+def test_a_tables_shared_kernels_term_is_read_as_its_per_seed_one_and_a_bad_value_names_the_option() -> None:
+    from omegaconf import OmegaConf
+
+    from ablate.tables.columns import kernels_cpu, kernels_sd
+
+    table = OmegaConf.create({"kernels_sd": 0.2, "kernels_cpu": 0.1})
+    assert (kernels_sd(table), kernels_cpu(table)) == (0.2, 0.1)
+    assert kernels_cpu(OmegaConf.create({"kernels_cpu": None})) == 0.0
+    with pytest.raises(ValueError, match="table.kernels_cpu"):
+        kernels_cpu(OmegaConf.create({"kernels_cpu": "high"}))

@@ -83,8 +83,7 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
                 )
             )
         elif any(c.kind != UNDECIDED and c.n >= 2 for c in raced.comparisons.values()):
-            rows = [str(r) for r in summary["row"] if r in set(runs.get("row", []))]
-            values = seed_values(runs, key)
+            rows, values = race_inputs(summary, runs, key)
             held = kernels_margin(lambda sd: replay(runs, table, rows, values, key, (0.0, sd)) or raced)
             margin = f" {held.words(names, label)}" if held is not None else ""
             lines.append(KERNELS_UNMEASURED.format(cpu=machine(runs), margin=margin))
@@ -126,10 +125,16 @@ def rope_line(table: DictConfig, label: str) -> list[str]:
     return [f"Region of practical equivalence: ±δ = {delta:g} {label}{reason} (the rule: docs/verdicts.md)."]
 
 
+def race_inputs(summary: pd.DataFrame, runs: pd.DataFrame, key: str) -> tuple[list[str], dict[str, pd.Series]]:
+    """The rows a table's race replays (the summary's, in its order, that have runs) and their values of ``key`` by
+    seed."""
+    return [str(r) for r in summary["row"] if r in set(runs.get("row", []))], seed_values(runs, key)
+
+
 def replayed_race(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig, key: str) -> RaceState | None:
     """The race's own decisions, replayed from the runs (ablate.tables.racing); None without a race plan or rows."""
-    rows = [str(r) for r in summary["row"] if r in set(runs.get("row", []))]
-    return replay(runs, table, rows, seed_values(runs, key), key)
+    rows, values = race_inputs(summary, runs, key)
+    return replay(runs, table, rows, values, key)
 
 
 def replay(
@@ -172,9 +177,14 @@ KERNELS_UNMEASURED = (
 )
 
 
-def kernels_sd(table: DictConfig, key: str = "kernels_sd") -> float:
+def kernels_sd(table: DictConfig) -> float:
     """The standard deviation another CPU's kernels add to each seed's paired difference on its own, where the table
     measured it (``table.kernels_sd``: ``bench/kernel_spread.py``, docs/verdicts.md); 0 where it did not."""
+    return measured_sd(table, "kernels_sd")
+
+
+def measured_sd(table: DictConfig, key: str) -> float:
+    """``table.<key>``, a measured standard deviation: a number >= 0, or 0 where it is null (not measured)."""
     value = table.get(key)
     if value is None:
         return 0.0
@@ -186,7 +196,7 @@ def kernels_sd(table: DictConfig, key: str = "kernels_sd") -> float:
 def kernels_cpu(table: DictConfig) -> float:
     """The standard deviation of the shift another CPU's kernels give every seed's paired difference alike, where the
     table measured it (``table.kernels_cpu``: ``bench/kernel_spread.py``); 0 where it did not."""
-    return kernels_sd(table, "kernels_cpu")
+    return measured_sd(table, "kernels_cpu")
 
 
 def kernels_run(table: DictConfig) -> tuple[float, int] | None:
