@@ -18,6 +18,15 @@ that every derived modality follows:
   the BEV and its ground truth do not move. The reading chosen: zoom in only, with the shift inside the margin, so
   the warped image always covers the frame and no pixel is left without data or label.
 
+- **Photometric distortion** (probability ``photometric`` for each of its four steps, default 0: off), the camera's
+  only: SSD's (Liu et al. 2016, §2.2 and its released augmentation), which SMoE trains with ("the data augmentations
+  used in SSD ... modulating brightness and contrast", ../shared/seeds/000 §4.3). Brightness ``+ b``, ``b`` uniform
+  in +-32/255; contrast ``x c``, ``c`` in [0.5, 1.5], applied first or last with equal odds; saturation ``x s``, ``s``
+  in [0.5, 1.5]; hue ``+ h``, ``h`` in +-18 degrees; the image clipped to [0, 1]. Readings chosen: it acts on the camera
+  image after its condition (night, rain, glare are part of Complex KITTI's images, which SSD's distortion would
+  see); SSD's channel swap is left out (it makes a red tail light blue); no LiDAR raster changes (the jet DDM's
+  colours are depths, not light).
+
 Augmentation is for the training split only; the draws come from torch's generator (seeded per worker by
 Lightning), so a frame's augmentation changes from epoch to epoch. The frozen experts' feature cache
 (``ablate.jobs.experts.FeatureCache``), which assumes each frame's input is a constant, is off when it is on.
@@ -47,39 +56,79 @@ class View:
 
     flip: bool = False
     affine: np.ndarray | None = None
+    photometric: Photometric | None = None
+
+
+@dataclass(frozen=True)
+class Photometric:
+    """One draw of SSD's photometric distortion (the module docstring); the neutral value of a step not drawn."""
+
+    brightness: float = 0.0
+    contrast: float = 1.0
+    saturation: float = 1.0
+    hue: float = 0.0
+    contrast_first: bool = True
+
+    @classmethod
+    def draw(cls, p: float, generator: torch.Generator | None = None) -> Photometric:
+        u = torch.rand(9, generator=generator, dtype=torch.float64).tolist()
+        return cls(
+            brightness=(2 * u[1] - 1) * 32 / 255 if u[0] < p else 0.0,
+            contrast=0.5 + u[3] if u[2] < p else 1.0,
+            saturation=0.5 + u[5] if u[4] < p else 1.0,
+            hue=(2 * u[7] - 1) * 18.0 if u[6] < p else 0.0,
+            contrast_first=u[8] < 0.5,
+        )
+
+    def apply(self, rgb: np.ndarray) -> np.ndarray:
+        """The (H, W, 3) float32 image in [0, 1], distorted."""
+        img: np.ndarray = rgb + np.float32(self.brightness)
+        if self.contrast_first:
+            img = img * np.float32(self.contrast)
+        if self.saturation != 1.0 or self.hue != 0.0:
+            hsv = cv2.cvtColor(np.clip(img, 0, 1).astype(np.float32), cv2.COLOR_RGB2HSV)  # H in degrees
+            hsv[..., 1] = np.clip(hsv[..., 1] * self.saturation, 0, 1)
+            hsv[..., 0] = np.mod(hsv[..., 0] + self.hue, 360.0)
+            img = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+        if not self.contrast_first:
+            img = img * np.float32(self.contrast)
+        return np.clip(img, 0, 1).astype(np.float32)
 
 
 class Augment:
     """The draws of one training split (see the module docstring for what each does)."""
 
-    def __init__(self, flip: float = 0.5, scale: tuple[float, float] = (1.0, 1.2)) -> None:
+    def __init__(self, flip: float = 0.5, scale: tuple[float, float] = (1.0, 1.2), photometric: float = 0.0) -> None:
         lo, hi = (float(v) for v in scale)
-        if not 0.0 <= float(flip) <= 1.0:
-            raise ValueError(f"data.augment.flip must be a probability in [0, 1], got {flip}")
+        for name, p in (("flip", flip), ("photometric", photometric)):
+            if not 0.0 <= float(p) <= 1.0:
+                raise ValueError(f"data.augment.{name} must be a probability in [0, 1], got {p}")
         if not 1.0 <= lo <= hi:
             raise ValueError(f"data.augment.scale must be [lo, hi] with 1 <= lo <= hi (zoom in only), got {scale}")
-        self.flip, self.scale = float(flip), (lo, hi)
+        self.flip, self.scale, self.photometric = float(flip), (lo, hi), float(photometric)
 
     @classmethod
     def from_config(cls, options: dict) -> Augment:
         """From ``data.augment``; an unknown option is one error that names it."""
-        valid = ("flip", "scale")
+        valid = ("flip", "scale", "photometric")
         for key in options:
             if key not in valid:
                 raise KeyError(f"unknown option data.augment.{key}; valid: {', '.join(valid)}")
         return cls(**options)
 
     def draw(self, shape: tuple[int, int], generator: torch.Generator | None = None) -> View:
-        """A random :class:`View` of an image of ``shape`` (H, W)."""
+        """A random :class:`View` of an image of ``shape`` (H, W). Without photometric distortion it draws no more
+        numbers than before it existed, so a config without it keeps its stream."""
         u = torch.rand(4, generator=generator, dtype=torch.float64).tolist()
         flip = u[0] < self.flip
+        photometric = Photometric.draw(self.photometric, generator) if self.photometric > 0 else None
         s = self.scale[0] + (self.scale[1] - self.scale[0]) * u[1]
         if s == 1.0:
-            return View(flip)
+            return View(flip, photometric=photometric)
         h, w = shape
         # the output pixel grid 0..W-1 must map inside the zoomed image: tx in [-(s-1)(W-1), 0]
         tx, ty = -(s - 1.0) * (w - 1) * u[2], -(s - 1.0) * (h - 1) * u[3]
-        return View(flip, np.array([[s, 0.0, tx], [0.0, s, ty], [0.0, 0.0, 1.0]]))
+        return View(flip, np.array([[s, 0.0, tx], [0.0, s, ty], [0.0, 0.0, 1.0]]), photometric)
 
 
 def flip_calibration(calib: kitti.Calibration, width: int) -> kitti.Calibration:

@@ -286,6 +286,8 @@ class KittiDataset(Dataset):
         if view.flip:
             rgb = np.ascontiguousarray(rgb[:, ::-1])
         rgb = apply_condition(condition, rgb, rng, self.severity)
+        if view.photometric is not None:  # the camera's own (ablate.data.augment), on the image its condition made
+            rgb = view.photometric.apply(rgb)
         corr = self.corruption or {}
         if corr.get("modality") == "rgb" and rng.random() < corr.get("p", 1.0):
             rgb = apply_corruption(corr["name"], rgb.transpose(2, 0, 1), rng, "rgb", self.severity).transpose(1, 2, 0)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from ablate.data.augment import Augment, View, flip_calibration, mirror_points, warp
+from ablate.data.augment import Augment, Photometric, View, flip_calibration, mirror_points, warp
 from ablate.data.datamodule import KittiDataModule
 from ablate.data.dataset import calibration
 from ablate.data.kitti import Calibration
@@ -85,11 +85,49 @@ def test_a_zoom_maps_the_frame_inside_the_zoomed_image():
         ({"flip": 0.5, "rotate": 10}, "data.augment.rotate"),
         ({"scale": [0.8, 1.0]}, "data.augment.scale"),
         ({"flip": 2}, "data.augment.flip"),
+        ({"photometric": 1.5}, "data.augment.photometric"),
     ],
 )
 def test_bad_augment_options_are_one_clear_error(options, match):
     with pytest.raises((KeyError, ValueError), match=match):
         Augment.from_config(options)
+
+
+def test_without_photometric_distortion_the_draws_keep_their_stream():
+    """A config that predates the option draws the same views and leaves the generator where it did."""
+    a, b = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+    for _ in range(5):
+        va, vb = (
+            Augment(scale=(1.0, 1.3)).draw((64, 208), a),
+            Augment(scale=(1.0, 1.3), photometric=0.0).draw((64, 208), b),
+        )
+        assert va.flip == vb.flip and np.array_equal(va.affine, vb.affine) and vb.photometric is None
+    assert torch.equal(a.get_state(), b.get_state())
+
+
+def test_each_photometric_step_is_the_one_ssd_describes():
+    rgb = np.random.default_rng(0).uniform(0.2, 0.6, (8, 12, 3)).astype(np.float32)
+    np.testing.assert_array_equal(Photometric().apply(rgb), rgb)  # every step neutral: the image unchanged
+    np.testing.assert_allclose(Photometric(brightness=0.1).apply(rgb), rgb + 0.1, atol=1e-6)
+    np.testing.assert_allclose(Photometric(contrast=1.4).apply(rgb), np.clip(rgb * 1.4, 0, 1), atol=1e-6)
+    grey = Photometric(saturation=0.0).apply(rgb)  # no saturation: every channel the pixel's maximum (HSV's value)
+    np.testing.assert_allclose(grey, np.repeat(rgb.max(-1, keepdims=True), 3, -1), atol=1e-5)
+    red = np.zeros((1, 1, 3), np.float32) + [0.8, 0.1, 0.1]
+    shifted = Photometric(hue=18.0).apply(red.astype(np.float32))[0, 0]
+    assert shifted[0] == pytest.approx(0.8, abs=1e-5) and shifted[1] > 0.25 > shifted[2]  # towards orange
+    draws = [Photometric.draw(0.5, torch.Generator().manual_seed(s)) for s in range(200)]
+    assert all(abs(d.brightness) <= 32 / 255 and 0.5 <= d.contrast <= 1.5 and abs(d.hue) <= 18 for d in draws)
+    assert 60 < sum(d.saturation != 1.0 for d in draws) < 140  # each step drawn with its probability
+    assert all(d == Photometric(contrast_first=d.contrast_first) for d in [Photometric.draw(0.0)])
+
+
+def test_photometric_distortion_changes_the_camera_and_no_lidar_raster(data_dir):
+    plain = first(data_dir, None, modalities=("rgb", "ddm_jet"))
+    torch.manual_seed(3)
+    bright = first(data_dir, {"flip": 0.0, "scale": [1.0, 1.0], "photometric": 1.0}, modalities=("rgb", "ddm_jet"))
+    assert torch.equal(bright["ddm_jet"], plain["ddm_jet"])
+    assert (bright["rgb"] - plain["rgb"]).abs().mean() > 0.01
+    assert bright["rgb"].min() >= 0 and bright["rgb"].max() <= 1
 
 
 def test_a_flipped_frame_is_the_mirrored_scene_in_every_modality(data_dir):
