@@ -57,9 +57,9 @@ def open_comparisons(
 
     def record(c, plan, open_count, runs, frames_now=0):  # type: ignore[no-untyped-def]
         todo = original(c, plan, open_count, runs, frames_now)
-        sd = math.hypot(c.sd, c.kernels_sd)
+        sd = math.hypot(c.sd, c.kernels.per_seed)
         frames = frames_now if c.frames else 0
-        found.append((c.a, c.b, c.delta, sd, c.frames_se, plan.rope, todo.level, frames, c.kernels_cpu))
+        found.append((c.a, c.b, c.delta, sd, c.frames_se, plan.rope, todo.level, frames, c.kernels.shared))
         return todo
 
     decide.to_decide = record  # type: ignore[assignment]

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from ablate.tables.decide import MOST_FRAMES, POWER, frames_to_decide, job_cpu_hours, seeds_to_decide
-from ablate.tables.verdicts import paired_tests
+from ablate.tables.verdicts import Kernels, paired_tests
 from tests.published import RESULTS, published_tables
 
 
@@ -156,6 +156,8 @@ def test_a_shift_every_seed_shares_caps_what_seeds_and_frames_can_decide() -> No
     assert seeds_to_decide(1.0, 0.3, 0.5, 0.5, 0.0167) is None  # the shared 0.5 never shrinks
     assert frames_to_decide(1.0, 0.3, 0.3, 0.5, 0.0167, 8, 100) is not None
     assert frames_to_decide(1.0, 0.3, 0.3, 0.5, 0.0167, 8, 100, shared=0.5) is None
-    c = Comparison("a", "b", "reference", 3, 8, 1.0, 0.5, 0.0167, True, 1.0, 0.5, 1.0, sd=0.3, kernels_cpu=0.5)
+    c = Comparison(
+        "a", "b", "reference", 3, 8, 1.0, 0.5, 0.0167, True, 1.0, 0.5, 1.0, sd=0.3, kernels=Kernels(shared=0.5)
+    )
     todo = to_decide(c, RacePlan((3, 5, 8), rope=0.5), 1, pd.DataFrame())
     assert todo.seeds is None and "the shift another CPU gives every seed alike" in todo.words({}, "a CPU")

@@ -13,7 +13,7 @@ import pytest
 from ablate.tables.margin import PRECISION, claims, floor_2, kernels_margin, shift_parts
 from ablate.tables.raceplan import RacePlan
 from ablate.tables.racing import race
-from ablate.tables.verdicts import paired_tests
+from ablate.tables.verdicts import Kernels, paired_tests
 from tests.published import published_tables
 
 
@@ -34,7 +34,7 @@ def test_the_margin_is_the_edge_where_the_first_claim_is_lost() -> None:
     plan = RacePlan((3, 5, 8), rope=1.0)
 
     def at(sd: float):
-        return race(values, list(values), "ref", plan, kernels_cpu=sd)
+        return race(values, list(values), "ref", plan, kernels=Kernels(shared=sd))
 
     made = claims(at(0.0))
     assert len(made) == 3
@@ -50,9 +50,12 @@ def test_the_margin_is_the_edge_where_the_first_claim_is_lost() -> None:
 def test_a_table_without_claims_has_no_margin_and_an_unbeatable_claim_is_unbounded() -> None:
     noise = seeds([0.1, -0.2, 0.15, 0.0, -0.1, 0.05, 0.2, -0.15])
     plan = RacePlan((3, 5, 8), rope=0.01)
-    assert kernels_margin(lambda sd: race({"a": noise, "b": noise * 2}, ["a", "b"], "b", plan, kernels_cpu=sd)) is None
+    assert (
+        kernels_margin(lambda sd: race({"a": noise, "b": noise * 2}, ["a", "b"], "b", plan, kernels=Kernels(shared=sd)))
+        is None
+    )
     exact = {"a": seeds([1.0, 2.0, 3.0]), "b": seeds([1.0, 2.0, 3.0])}  # no plan with δ: identical rows, no claim
-    assert kernels_margin(lambda sd: race(exact, ["a", "b"], "b", RacePlan((3,)), kernels_cpu=sd)) is None
+    assert kernels_margin(lambda sd: race(exact, ["a", "b"], "b", RacePlan((3,)), kernels=Kernels(shared=sd))) is None
 
 
 def test_a_margin_is_shown_rounded_down() -> None:
@@ -77,7 +80,7 @@ def test_a_shift_every_seed_shares_does_not_shrink_with_more_seeds() -> None:
     rng = np.random.default_rng(3)
     for n in (3, 30, 300):
         d = 1.0 + rng.normal(0, 0.2, n)
-        own, shared = paired_tests(d, 0.5, kernels_sd=0.3), paired_tests(d, 0.5, kernels_cpu=0.3)
+        own, shared = paired_tests(d, 0.5, kernels=Kernels(0.3)), paired_tests(d, 0.5, kernels=Kernels(shared=0.3))
         assert own.se == pytest.approx(np.sqrt((d.var(ddof=1) + 0.09) / n))
         assert shared.se == pytest.approx(np.sqrt(d.var(ddof=1) / n + 0.09))
     assert shared.se > 0.3 > 10 * own.se  # at 300 seeds the per-seed part is gone, the shared one is not
@@ -97,13 +100,12 @@ def test_reruns_split_into_the_seeds_own_shift_and_the_one_they_share() -> None:
     assert shift_parts([]) == (0.0, 0.0)
 
 
-def test_a_tables_shared_kernels_term_is_read_as_its_per_seed_one_and_a_bad_value_names_the_option() -> None:
+def test_a_tables_two_kernels_terms_are_read_together_and_a_bad_value_names_its_option() -> None:
     from omegaconf import OmegaConf
 
-    from ablate.tables.columns import kernels_cpu, kernels_sd
+    from ablate.tables.columns import kernels
 
-    table = OmegaConf.create({"kernels_sd": 0.2, "kernels_cpu": 0.1})
-    assert (kernels_sd(table), kernels_cpu(table)) == (0.2, 0.1)
-    assert kernels_cpu(OmegaConf.create({"kernels_cpu": None})) == 0.0
+    assert kernels(OmegaConf.create({"kernels_sd": 0.2, "kernels_cpu": 0.1})) == Kernels(0.2, 0.1)
+    assert kernels(OmegaConf.create({"kernels_sd": 0.2, "kernels_cpu": None})) == Kernels(0.2, 0.0)
     with pytest.raises(ValueError, match="table.kernels_cpu"):
-        kernels_cpu(OmegaConf.create({"kernels_cpu": "high"}))
+        kernels(OmegaConf.create({"kernels_cpu": "high"}))

@@ -16,7 +16,7 @@ from ablate.tables.frames import FROM_COUNTS
 from ablate.tables.raceplan import RacePlan
 from ablate.tables.racing import race
 from ablate.tables.twolevel import frames_variance, jackknife_variance
-from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, WORSE, paired_tests
+from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, WORSE, Kernels, paired_tests
 from tests.published import RESULTS, published_tables
 
 RATE = FROM_COUNTS["det_rate"]
@@ -149,15 +149,15 @@ def test_the_verdicts_are_the_same_whatever_order_the_records_list_the_runs_in()
 def test_another_cpus_kernels_widen_the_seeds_term_where_the_table_measured_them() -> None:
     from omegaconf import OmegaConf
 
-    from ablate.tables.columns import kernels_sd
+    from ablate.tables.columns import kernels
 
     d = np.array([0.20, 0.25, 0.22])
-    seeds, both = paired_tests(d, 0.1), paired_tests(d, 0.1, 0.0, kernels_sd=0.08)
+    seeds, both = paired_tests(d, 0.1), paired_tests(d, 0.1, 0.0, Kernels(0.08))
     assert both.se == pytest.approx(np.sqrt((d.var(ddof=1) + 0.08**2) / 3))
     assert both.p_beyond > seeds.p_beyond and both.interval(0.0167)[0] < seeds.interval(0.0167)[0]
-    assert kernels_sd(OmegaConf.create({"kernels_sd": None})) == 0.0
+    assert kernels(OmegaConf.create({"kernels_sd": None})) == Kernels()
     with pytest.raises(ValueError, match="table.kernels_sd"):
-        kernels_sd(OmegaConf.create({"kernels_sd": -1}))
+        kernels(OmegaConf.create({"kernels_sd": -1}))
 
 
 def kitti_rows(rng: np.random.Generator, frames: int) -> pd.DataFrame:

@@ -28,7 +28,7 @@ from ablate.tables.significance import (
 from ablate.tables.spec import COSTS, LOWER_IS_BETTER
 from ablate.tables.summary import best_of, fmt, per_seed, reference, signed
 from ablate.tables.twolevel import FramesVariance, frames_variance
-from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, UNDECIDED, WORSE
+from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, UNDECIDED, WORSE, Kernels
 
 #: The Δ column's mark of each verdict of the race (ablate.tables.verdicts).
 MARKS = {BETTER: " ↑", WORSE: " ↓", EQUIVALENT: " ≈", DIFFERENT: " *", UNDECIDED: ""}
@@ -72,19 +72,20 @@ def significance(summary: pd.DataFrame, runs: pd.DataFrame, table: DictConfig) -
         lines += rope_line(table, label) + race_lines(raced, names)
         lines += [todo.words(names, machine(runs)) for todo in undecided(raced, runs).values()]
         lines.append(table_cost(raced, runs).words())
-        if kernels_sd(table) or kernels_cpu(table):
+        measured = kernels(table)
+        if measured.per_seed or measured.shared:
             lines.append(
                 "Each seed's paired difference carries another CPU's kernels' variance too, measured by rerunning this "
-                f"table's seeds on other kernels (docs/verdicts.md): an sd of {kernels_sd(table):g} per seed, added to "
+                f"table's seeds on other kernels (docs/verdicts.md): an sd of {measured.per_seed:g} per seed, added to "
                 + (
-                    f"the seeds', and of {kernels_cpu(table):g} shared by every seed, which more seeds do not average away."
-                    if kernels_cpu(table)
+                    f"the seeds', and of {measured.shared:g} shared by every seed, which more seeds do not average away."
+                    if measured.shared
                     else "the seeds'; none of it is shared by every seed."
                 )
             )
         elif any(c.kind != UNDECIDED and c.n >= 2 for c in raced.comparisons.values()):
             rows, values = race_inputs(summary, runs, key)
-            held = kernels_margin(lambda sd: replay(runs, table, rows, values, key, (0.0, sd)) or raced)
+            held = kernels_margin(lambda sd: replay(runs, table, rows, values, key, Kernels(shared=sd)) or raced)
             margin = f" {held.words(names, label)}" if held is not None else ""
             lines.append(KERNELS_UNMEASURED.format(cpu=machine(runs), margin=margin))
         ap = verdict_metric(table)[0] in FROM_DETECTIONS  # a conditions table's primary is <condition>/<metric>
@@ -143,12 +144,12 @@ def replay(
     rows: list[str],
     values: dict[str, pd.Series],
     key: str,
-    kernels: tuple[float, float] | None = None,
+    measured: Kernels | None = None,
 ) -> RaceState | None:
     """The race of ``rows`` on their ``values`` of ``key`` as the table reports it: the plan the runs ran under,
     the table's δ (table.rope) and reference, judged on the seeds and the test frames where the runs kept counts
-    per frame (:func:`ablate.tables.frames.judged`) and with the kernels' terms the table measured (``kernels``, per
-    seed and shared, in their place: :mod:`ablate.tables.margin`); None without a race plan or rows."""
+    per frame (:func:`ablate.tables.frames.judged`) and with the kernels' variance the table measured (``measured`` in
+    its place: :mod:`ablate.tables.margin`); None without a race plan or rows."""
     plan = RacePlan.from_config(recorded_plan(runs) or table.get("seeds"))
     if plan is None or not rows:
         return None
@@ -156,7 +157,6 @@ def replay(
     candidates = [r for r in ([named] if isinstance(named, str) else list(named or [])) if r in rows]
     higher = key not in LOWER_IS_BETTER
     frames_var = table_frames(runs, table) if key == str(table.primary) else None
-    per_seed, shared = (kernels_sd(table), kernels_cpu(table)) if kernels is None else kernels
     return race(
         values,
         rows,
@@ -164,8 +164,7 @@ def replay(
         plan.with_rope(table),
         higher,
         frames_var=frames_var,
-        kernels_sd=per_seed,
-        kernels_cpu=shared,
+        kernels=kernels(table) if measured is None else measured,
     )
 
 
@@ -177,10 +176,11 @@ KERNELS_UNMEASURED = (
 )
 
 
-def kernels_sd(table: DictConfig) -> float:
-    """The standard deviation another CPU's kernels add to each seed's paired difference on its own, where the table
-    measured it (``table.kernels_sd``: ``bench/kernel_spread.py``, docs/verdicts.md); 0 where it did not."""
-    return measured_sd(table, "kernels_sd")
+def kernels(table: DictConfig) -> Kernels:
+    """Another CPU's kernels' variance of each seed's paired difference, where the table measured it
+    (``table.kernels_sd`` per seed, ``table.kernels_cpu`` shared by every seed: ``bench/kernel_spread.py``,
+    docs/verdicts.md); 0 where it did not."""
+    return Kernels(measured_sd(table, "kernels_sd"), measured_sd(table, "kernels_cpu"))
 
 
 def measured_sd(table: DictConfig, key: str) -> float:
@@ -191,12 +191,6 @@ def measured_sd(table: DictConfig, key: str) -> float:
     if not isinstance(value, int | float) or isinstance(value, bool) or value < 0:
         raise ValueError(f"table.{key}: {value!r} must be a number >= 0 (or null: not measured)")
     return float(value)
-
-
-def kernels_cpu(table: DictConfig) -> float:
-    """The standard deviation of the shift another CPU's kernels give every seed's paired difference alike, where the
-    table measured it (``table.kernels_cpu``: ``bench/kernel_spread.py``); 0 where it did not."""
-    return measured_sd(table, "kernels_cpu")
 
 
 def kernels_run(table: DictConfig) -> tuple[float, int] | None:
@@ -281,8 +275,7 @@ def row_difference(
     where the table measured it (as the race reads them)."""
     c = raced.comparisons.get(frozenset((row, ref))) if raced is not None else None
     a, b = (at_look(per_seed(runs, r, key), raced, c) for r in (row, ref))
-    kernels = (c.kernels_sd, c.kernels_cpu) if c is not None else (0.0, 0.0)
-    return difference(a, b, pair_frames(frames_var, row, ref), *kernels)
+    return difference(a, b, pair_frames(frames_var, row, ref), c.kernels if c is not None else Kernels())
 
 
 def top_and_second(

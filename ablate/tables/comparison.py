@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, UNDECIDED, WORSE, words
+from ablate.tables.verdicts import BETTER, DIFFERENT, EQUIVALENT, UNDECIDED, WORSE, Kernels, words
 
 #: The test each verdict rests on (:class:`~ablate.tables.verdicts.PairedTests`' p-value), and how a line names it.
 CLAIM_TESTS = {BETTER: "p_beyond", WORSE: "p_beyond", EQUIVALENT: "p_equiv", DIFFERENT: "p_diff", UNDECIDED: "p_diff"}
@@ -47,8 +47,7 @@ class Comparison:
     frames: bool = False  # the interval adds the test frames' variance (ablate.tables.twolevel) to the seeds'
     sd: float = math.nan  # the seeds' standard deviation of the paired differences
     frames_se: float = 0.0  # the test frames' standard error of the mean difference (0: the seeds alone)
-    kernels_sd: float = 0.0  # the sd another CPU's kernels add to each seed's difference (table.kernels_sd)
-    kernels_cpu: float = 0.0  # the sd of the shift another CPU gives every seed's difference alike (table.kernels_cpu)
+    kernels: Kernels = Kernels()  # another CPU's kernels' variance, where the table measured it
 
     def verdict(self) -> str:
         """The verdict in words, where it was reached, with the figures."""
@@ -62,8 +61,8 @@ class Comparison:
         interval = f"[{self.lo:+.2f}, {self.hi:+.2f}], the unadjusted {share} {over}; " if shown else ""
         spread = (
             f"seeds' sd {self.sd:.3g}"
-            + (f", kernels' sd {self.kernels_sd:.3g}" if self.kernels_sd else "")
-            + (f", another CPU's shift sd {self.kernels_cpu:.3g}" if self.kernels_cpu else "")
+            + (f", kernels' sd {self.kernels.per_seed:.3g}" if self.kernels.per_seed else "")
+            + (f", another CPU's shift sd {self.kernels.shared:.3g}" if self.kernels.shared else "")
             + (f", frames' se {self.frames_se:.3g}" if self.frames else "")
         )
         return (

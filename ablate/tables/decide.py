@@ -195,12 +195,14 @@ def to_decide(c: Comparison, plan: RacePlan, open_count: int, runs: pd.DataFrame
     open, priced from ``runs``' job times; its test frames estimated against the ``frames_now`` its runs were tested
     on (0: none kept)."""
     level = plan.levels()[-1] / max(1, open_count)
-    sd, shared = math.hypot(c.sd, c.kernels_sd), c.kernels_cpu > 0
-    n = seeds_to_decide(c.delta, sd, math.hypot(c.frames_se, c.kernels_cpu), plan.rope, level)
+    sd, shared = math.hypot(c.sd, c.kernels.per_seed), c.kernels.shared > 0
+    n = seeds_to_decide(c.delta, sd, math.hypot(c.frames_se, c.kernels.shared), plan.rope, level)
     last = max(plan.looks[-1], c.n)
     short = c.frames and (n is None or n > last)  # the race's seeds would not decide it
     frames = (
-        frames_to_decide(c.delta, sd, c.frames_se, plan.rope, level, last, frames_now, c.kernels_cpu) if short else None
+        frames_to_decide(c.delta, sd, c.frames_se, plan.rope, level, last, frames_now, c.kernels.shared)
+        if short
+        else None
     )
     if n is None:
         return ToDecide(c.a, c.b, None, 0, math.nan, level, last, frames_now, frames, shared)

@@ -35,6 +35,7 @@ from ablate.tables.verdicts import (
     EQUIVALENT,
     UNDECIDED,
     WORSE,
+    Kernels,
     PairedTests,
     adjusted,
     paired_tests,
@@ -92,17 +93,15 @@ def race(
     higher_is_better: bool = True,
     stop_after: int | None = None,
     frames_var: FramesVariance | None = None,
-    kernels_sd: float = 0.0,
-    kernels_cpu: float = 0.0,
+    kernels: Kernels = Kernels(),
 ) -> RaceState:
     """Replay the race of ``rows`` on ``values``: per row, the primary metric indexed by integer seed.
     ``reference`` is a row, or a list of rows of which the best so far is the reference at each look (the table's
     reading of ``table.reference``, :func:`ablate.tables.summary.reference`). Looks are evaluated in order while their seeds are there (a look none of the racing rows reached
     was not run: the race stops before it), at most ``stop_after`` looks. Returns the state after the last look
     evaluated, with the rows that need seeds at the next one. ``frames_var`` adds the test frames' variance to each
-    comparison's (:mod:`ablate.tables.twolevel`); without it the tests read the seeds alone. ``kernels_sd`` adds the
-    variance another CPU's kernels add to each seed (``table.kernels_sd``), ``kernels_cpu`` that of the shift they give
-    every seed alike (``table.kernels_cpu``)."""
+    comparison's (:mod:`ablate.tables.twolevel`); without it the tests read the seeds alone. ``kernels`` adds another
+    CPU's kernels' variance, where the table measured it (:class:`ablate.tables.verdicts.Kernels`)."""
     state = RaceState(plan, racing=list(rows))
     last = len(plan.looks) if stop_after is None else min(stop_after, len(plan.looks))
     levels = plan.levels()
@@ -123,7 +122,7 @@ def race(
         for key in [k for k in state.comparisons if k not in current]:
             del state.comparisons[key]  # an earlier top vs second (or reference) that no longer is one
         to_test = [pair for pair in pairs if not decided(state, *pair[:2])]
-        _look(state, to_test, seen, k, levels[k], frames_var, kernels_sd, kernels_cpu)
+        _look(state, to_test, seen, k, levels[k], frames_var, kernels)
         state.looks_done = k + 1
         open_pairs = state.undecided()
         state.racing = [r for r in rows if any(r in (c.a, c.b) for c in open_pairs)]
@@ -137,8 +136,7 @@ def _look(
     k: int,
     level: float,
     frames_var: FramesVariance | None = None,
-    kernels_sd: float = 0.0,
-    kernels_cpu: float = 0.0,
+    kernels: Kernels = Kernels(),
 ) -> None:
     """Test the open comparisons ``pairs`` at look ``k`` (0-based) at ``level``, each kind of claim corrected over
     them (:func:`ablate.tables.verdicts.rejected`), and record each one's verdict: a claim of practical size (beyond
@@ -151,7 +149,7 @@ def _look(
         frames_var(a, b, seeds) if frames_var is not None and len(seeds) >= 2 else 0.0
         for (a, b, _), (seeds, _) in zip(pairs, shared)
     ]
-    tests = [paired_tests(d, plan.rope, v, kernels_sd, kernels_cpu) for d, v in zip(diffs, extra)]
+    tests = [paired_tests(d, plan.rope, v, kernels) for d, v in zip(diffs, extra)]
     family = {kind: adjusted([getattr(t, kind) for t in tests], plan.multiplicity) for kind in CLAIM_TESTS.values()}
     claims = {kind: [not math.isnan(q) and q <= level for q in ps] for kind, ps in family.items()}
     for i, (a, b, why) in enumerate(pairs):
@@ -184,8 +182,7 @@ def _look(
             frames_var is not None,
             tests[i].sd,
             tests[i].frames_se,
-            tests[i].kernels_sd,
-            tests[i].kernels_cpu,
+            tests[i].kernels,
         )
 
 

@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from ablate.tables.verdicts import paired_tests
+from ablate.tables.verdicts import Kernels, paired_tests
 
 LEVEL = 0.95
 #: From this many values on, intervals come from a percentile bootstrap; below it from Student's t.
@@ -116,21 +116,20 @@ def difference(
     row: pd.Series,
     ref: pd.Series,
     frames_var: Callable[[list[int]], float] | None = None,
-    kernels_sd: float = 0.0,
-    kernels_cpu: float = 0.0,
+    kernels: Kernels = Kernels(),
 ) -> Difference:
     """``row`` minus ``ref`` (values indexed by seed): mean difference, its 95 % CI and the test's p-value.
 
     Paired over the shared seeds when there are at least two (``frames_var(seeds)``: the test frames' variance of
-    their mean difference, :mod:`ablate.tables.twolevel`; ``kernels_sd``: another CPU's kernels' per seed, where the
-    table measured it, and ``kernels_cpu`` the shift it gives every seed alike); unpaired (Welch) otherwise."""
+    their mean difference, :mod:`ablate.tables.twolevel`; ``kernels``: another CPU's kernels' variance, where the
+    table measured it); unpaired (Welch) otherwise."""
     row, ref = pd.Series(row, dtype=float).dropna(), pd.Series(ref, dtype=float).dropna()
     shared = row.index.intersection(ref.index)
     if len(shared) >= 2:
         shared = sorted(shared, key=lambda s: (float(s), str(s)))  # by seed: the same figures in any record order
         d = (row[shared] - ref[shared]).to_numpy()
         extra = frames_var([int(float(s)) for s in shared]) if frames_var is not None else 0.0
-        t = paired_tests(d, None, extra, kernels_sd, kernels_cpu)
+        t = paired_tests(d, None, extra, kernels)
         level = (1 - LEVEL) / 2
         lo, hi = t.interval(level) if t.se > 0 else (t.mean, t.mean)
         return Difference(

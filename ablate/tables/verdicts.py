@@ -62,6 +62,17 @@ Z_LEVEL = float(stats.norm.ppf(1 - (1 - LEVEL) / 2))
 
 
 @dataclass(frozen=True)
+class Kernels:
+    """Another CPU's kernels as a source of variance of a seed's paired difference (docs/verdicts.md), where a table
+    measured them (``bench/kernel_spread.py``): ``per_seed``, the standard deviation each seed's difference gets on
+    its own (``table.kernels_sd``); ``shared``, that of the shift every seed of a comparison gets alike
+    (``table.kernels_cpu``), which more seeds do not average away (:mod:`ablate.tables.margin`)."""
+
+    per_seed: float = 0.0
+    shared: float = 0.0
+
+
+@dataclass(frozen=True)
 class PairedTests:
     """The paired tests of one comparison: ``n`` seeds, the mean difference and its standard error, and the p-values
     of the two-sided test against 0 (``p_diff``), the one-sided test beyond ±δ in the direction of the mean
@@ -77,8 +88,7 @@ class PairedTests:
     p_equiv: float
     sd: float = math.nan
     frames_se: float = 0.0
-    kernels_sd: float = 0.0
-    kernels_cpu: float = 0.0
+    kernels: Kernels = Kernels()
 
     def interval(self, level: float) -> tuple[float, float]:
         """The (1 - 2 ``level``) interval of the mean difference: what TOST at ``level`` reads."""
@@ -92,8 +102,7 @@ def paired_tests(
     d: Sequence[float] | np.ndarray,
     rope: float | None,
     frames_var: float = 0.0,
-    kernels_sd: float = 0.0,
-    kernels_cpu: float = 0.0,
+    kernels: Kernels = Kernels(),
 ) -> PairedTests:
     """The tests of :class:`PairedTests` on the paired differences ``d``: Student's t on n - 1 degrees of freedom.
 
@@ -101,23 +110,18 @@ def paired_tests(
     of the seeds' mean difference over draws of the test frames. The standard error is then the two levels' sum,
     ``sqrt(s_d^2 / n + frames_var)``, on the seeds' n - 1 degrees of freedom, so the interval is never narrower than
     the seeds' own t interval and equals it where the frames add nothing. A difference without spread at either
-    level is exact: each test rejects (p = 0) or not (p = 1) by its value. ``kernels_sd``: the standard deviation
-    another CPU's kernels add to each seed's paired difference, where the table measured it (``table.kernels_sd``,
-    :mod:`ablate.tables.twolevel`): added to the seeds' variance; ``kernels_cpu``: the standard deviation of the shift
-    another CPU gives every seed's paired difference alike (``table.kernels_cpu``), which more seeds do not average
-    away: ``sqrt((s_d^2 + kernels_sd^2) / n + kernels_cpu^2 + frames_var)`` (:mod:`ablate.tables.margin`)."""
+    level is exact: each test rejects (p = 0) or not (p = 1) by its value. ``kernels``: another CPU's kernels'
+    variance, where the table measured it (:class:`Kernels`): ``sqrt((s_d^2 + per_seed^2) / n + shared^2 +
+    frames_var)``."""
     d = np.asarray(d, dtype=float)
     n = len(d)
     if n < 2:
         mean = float(d.mean()) if n else math.nan
         return PairedTests(n, mean, math.nan, math.nan, math.nan, math.nan)
     mean, sd = float(d.mean()), float(d.std(ddof=1))
-    frames_var, kernels_sd, kernels_cpu = (
-        max(0.0, float(frames_var)),
-        float(kernels_sd or 0.0),
-        float(kernels_cpu or 0.0),
-    )
-    se = math.sqrt((sd * sd + kernels_sd * kernels_sd) / n + kernels_cpu * kernels_cpu + frames_var)
+    frames_var = max(0.0, float(frames_var))
+    own, shared = kernels.per_seed, kernels.shared
+    se = math.sqrt((sd * sd + own * own) / n + shared * shared + frames_var)
     if se == 0:
         exact = PairedTests(n, mean, 0.0, 0.0 if mean else 1.0, math.nan, math.nan, 0.0)
         if rope is None:
@@ -125,7 +129,7 @@ def paired_tests(
         beyond = 0.0 if abs(mean) > rope else 1.0
         return PairedTests(n, mean, 0.0, exact.p_diff, beyond, 0.0 if abs(mean) < rope else 1.0, 0.0)
     tests = t_tests(n, mean, se, rope, sd, math.sqrt(frames_var))
-    return replace(tests, kernels_sd=kernels_sd, kernels_cpu=kernels_cpu)
+    return replace(tests, kernels=kernels)
 
 
 def t_tests(
