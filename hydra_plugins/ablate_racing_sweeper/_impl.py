@@ -44,7 +44,7 @@ from ablate.sweep.parent import STORE_ERRORS, check_launcher, open_parent, ray_d
 from ablate.sweep.tuning import expert_row, tune
 from ablate.tables import table_spec
 from ablate.tables.collect import earlier_wall, job_runs, row_seconds
-from ablate.tables.columns import kernels_sd
+from ablate.tables.columns import kernels
 from ablate.tables.racing import race, table_values
 from ablate.tables.tuning import from_store as tuning_trials
 from ablate.tables.tuning import phase_wall, rung_runs, trial_objectives
@@ -271,7 +271,7 @@ class RacingSweeperImpl:
             race_.higher,
             stop_after=look,
             frames_var=frames_var,
-            kernels_sd=kernels_sd(table),
+            kernels=kernels(table),
         )
         if race_.state.looks_done < look:
             race_.stopped = f"look {look} gave no values (its jobs failed): the race stopped there"
