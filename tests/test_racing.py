@@ -83,6 +83,16 @@ def test_a_row_clearly_better_stops_the_race_at_the_first_look(tmp_path, monkeyp
     assert planned(tmp_path) == 9
 
 
+@pytest.mark.parametrize("term", ["kernels_sd", "kernels_cpu"])
+def test_the_live_race_reads_each_of_the_tables_kernels_terms(tmp_path, monkeypatch, term):
+    """Another CPU's kernels' variance the table measured (per seed, or shared by every seed) widens the live race's
+    tests as it widens the rendered table's: a lead clear on the seeds alone is not decided at the first look."""
+    means = {"chinet": 97.0, "unet": 90.0, "fusenet": 94.0}
+    sweeper, launcher = sweeper_for(tmp_path, monkeypatch, lambda r, s: means[r] + noise(r, s), f"+table.{term}=20")
+    sweeper.sweep([])
+    assert len(launcher.batches) == 3  # every look: the seeds alone decided at the first (the test above)
+
+
 def test_two_identical_rows_race_to_the_last_look_and_nothing_is_declared(tmp_path, monkeypatch):
     sweeper, launcher = sweeper_for(tmp_path, monkeypatch, lambda r, s: 95.0 + noise("same", s) + noise(r, s, 0.5))
     sweeper.sweep(["row=chinet,unet"])
