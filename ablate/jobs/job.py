@@ -28,7 +28,6 @@ import socket
 import sys
 import time
 import traceback
-import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -38,6 +37,7 @@ from omegaconf.errors import OmegaConfBaseException, ValidationError
 
 from ablate.jobs import stage1
 from ablate.jobs.preempt import SETTLE_S, STOP, Stopped, exit_status, loky_worker
+from ablate.jobs.quiet import silence
 from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unreachable
 from ablate.jobs.reuse import Outcome, already_done
 from ablate.jobs.spec import JobSpec
@@ -45,8 +45,7 @@ from ablate.jobs.tags import params_of, run_tags
 from ablate.store import AccessDenied, ServerUnreachable, SweepContext, Tracker
 
 log = logging.getLogger(__name__)
-warnings.filterwarnings("ignore", ".*does not have many workers.*")
-warnings.filterwarnings("ignore", ".*GPU available but not used.*")
+silence()
 
 
 class JobFailed(RuntimeError):

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import copy
 import inspect
-import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any, cast
@@ -16,13 +15,13 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from torch import nn
 from torchmetrics import Metric
 
+from ablate.jobs.quiet import silence
 from ablate.tasks.conditions import EvalConditions, TrainCorruptions
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-# The training corruptions are applied in the module's batch hook whatever the data module: intended.
-warnings.filterwarnings("ignore", ".*overridden `on_before_batch_transfer` in `LightningModule`.*")
+silence()  # among them Lightning's remark on the batch hook, which applies the training corruptions
 
 
 class NonFiniteLossError(FloatingPointError):
