@@ -21,6 +21,12 @@ wrote, rerunning nothing, and pools several (each another draw of the kernels)::
 ``kernel_spread_bifnet_table4_xeon106.json`` holds ``make run``'s runs on an Intel Xeon family 6 model 106 (its own
 kernels, the published config hashes), ``kernel_spread_bifnet_table5_xeon106.json`` this script's reruns there
 (``kernels=default``): another CPU's real shift beside the AVX2 kernels held on the CPU that made the records.
+
+A bf16 table (ChiNet's, DGFN's: records of the EPYC model 17, AVX-512 BF16) has no cheap second draw: held to
+``kernels=avx512`` there (oneDNN's AVX512_CORE, bf16 without its instructions, as a Xeon model 106 runs it) a ChiNet
+Table III job took 8.75 s a step, about 33 min, against 6.7 min on the CPU's own kernels (2026-12-07): 3.3 h for
+one table's 3 seeds of 2 rows, and ``kernels=avx2`` is about 30x slower still. Its second draw is another CPU with
+native bf16 (a Xeon with AMX) running ``kernels=default``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The libraries' remarks a job expects stay out of its log, in a process as a job runs it (ablate.jobs.quiet)."""
+"""The libraries' remarks a job expects stay out of its log, in a process as a job runs it (ablate.tasks.quiet)."""
 
 import subprocess
 import sys

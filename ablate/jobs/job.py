@@ -37,12 +37,12 @@ from omegaconf.errors import OmegaConfBaseException, ValidationError
 
 from ablate.jobs import stage1
 from ablate.jobs.preempt import SETTLE_S, STOP, Stopped, exit_status, loky_worker
-from ablate.jobs.quiet import silence
 from ablate.jobs.record import deliver_earlier, kept_for_later, record_end, unreachable
 from ablate.jobs.reuse import Outcome, already_done
 from ablate.jobs.spec import JobSpec
 from ablate.jobs.tags import params_of, run_tags
 from ablate.store import AccessDenied, ServerUnreachable, SweepContext, Tracker
+from ablate.tasks.quiet import silence
 
 log = logging.getLogger(__name__)
 silence()

@@ -15,8 +15,8 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from torch import nn
 from torchmetrics import Metric
 
-from ablate.jobs.quiet import silence
 from ablate.tasks.conditions import EvalConditions, TrainCorruptions
+from ablate.tasks.quiet import silence
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
