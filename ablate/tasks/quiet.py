@@ -1,5 +1,5 @@
 """The libraries' remarks a job expects, silenced: each is about a use this project makes on purpose, and printed
-once per job process they filled a table's sweep log (28 of the 352 lines of ``make run``'s).
+once per job process they would fill a table's sweep log.
 
 :func:`silence` installs them where a job starts (:mod:`ablate.jobs.job`) and where a task module is imported
 (:mod:`ablate.tasks.base`). A module-level filter alone is not enough: a module first imported inside
@@ -30,6 +30,7 @@ KNOWN: tuple[tuple[str, str], ...] = (
 
 
 def silence() -> None:
-    """Ignore every warning of :data:`KNOWN` in this process (idempotent: a filter already present is not added)."""
+    """Ignore every warning of :data:`KNOWN` in this process (idempotent: a filter already present moves to the front,
+    never listed twice)."""
     for pattern, _ in KNOWN:
         warnings.filterwarnings("ignore", pattern)
