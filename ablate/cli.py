@@ -163,16 +163,17 @@ def own(parser: Parser, args: argparse.Namespace, keys: dict[str, Callable[[str]
 
 
 def report(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Namespace:
-    """``python -m ablate.report [--publish | --load | --seal | --reproduce | --parity] [key=value ...]``:
-    ``publish``, ``load``, ``seal``, ``reproduce`` and ``parity`` (bools),
+    """``python -m ablate.report [--publish | --load | --extend | --seal | --reproduce | --parity] [key=value ...]``:
+    ``publish``, ``load``, ``extend``, ``seal``, ``reproduce`` and ``parity`` (bools),
     ``overrides``. ``--reproduce`` needs ``experiment=`` and ``row=``, ``--parity`` ``experiment=`` and one
-    ``row=``."""
+    ``row=``, ``--extend`` one ``experiment=``."""
     parser = command(
         "python -m ablate.report",
         doc,
         usage="%(prog)s [-h] [experiment=<table>] [key=value ...]\n"
         "%(prog)s --publish [experiment=<table>] [key=value ...]\n"
         "%(prog)s --load [experiment=<table>] [key=value ...]\n"
+        "%(prog)s --extend experiment=<table> [key=value ...]\n"
         "%(prog)s --seal [experiment=<table>]\n"
         "%(prog)s --reproduce experiment=<table> row=<row> [seed=N] [key=value ...]\n"
         "%(prog)s --parity experiment=<table> row=<row> [key=value ...]",
@@ -196,6 +197,14 @@ def report(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Names
         action="store_true",
         help="load the published run records into your store (mlflow.db unless logger.tracking_uri or "
         "MLFLOW_TRACKING_URI says otherwise), marked as imported, so that `mlflow ui` shows the runs behind the tables",
+    )
+    mode.add_argument(
+        "--extend",
+        action="store_true",
+        help="load a raced table's published records into your store as its own finished jobs, where this machine "
+        "and today's code would make the same numbers (the others are named), so that `python -m ablate -m "
+        "experiment=<table>` races on from its next look and trains only the seeds they lack: needs one "
+        "experiment=<table>",
     )
     mode.add_argument(
         "--seal",
@@ -223,6 +232,9 @@ def report(doc: str | None, argv: Sequence[str] | None = None) -> argparse.Names
         parser.error("--reproduce needs experiment=<table> and row=<row>")
     if args.reproduce and not all(o.partition("=")[2].isdigit() for o in args.overrides if key(o) == "seed"):
         parser.error("--reproduce takes one seed=N, N a whole number")
+    tables = [o.partition("=")[2] for o in args.overrides if key(o) == "experiment"]
+    if args.extend and (len(tables) != 1 or "," in tables[0]):
+        parser.error("--extend needs one experiment=<table>")
     if args.parity and ("experiment" not in given or len(rows) != 1 or "," in rows[0]):
         parser.error("--parity needs experiment=<table> and one row=<row>")
     return args

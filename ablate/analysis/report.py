@@ -70,6 +70,8 @@ def _run(parsed: Namespace) -> int:
     rest = [a for a in args if not a.startswith("experiment=")]
     if parsed.load:
         return _load(named or published.experiments(), rest)
+    if parsed.extend:
+        return _extend(named[0], rest)
     if parsed.seal:
         return _seal(named or published.experiments())
     if parsed.publish:
@@ -147,6 +149,35 @@ def _load(names: list[str], rest: list[str]) -> int:
         print(f"{name}: {loaded} run(s) loaded from {path} into {tracker.uri}, under the run '{name}{PARENT}': {link}")
     print("`mlflow ui` here shows them (kind: imported; each table's rows side by side on its parent run)")
     return 1 if broken else 0
+
+
+def _extend(name: str, rest: list[str]) -> int:
+    """Load table ``name``'s published records into the configured store as its own jobs where they stand in for
+    them (:func:`ablate.analysis.extend.extend_table`); records that are not what was published, or a table with a
+    tuning phase, are one error and status 1."""
+    from ablate.analysis.extend import extend_table
+
+    path = published.records(name)
+    if not path.exists():
+        print(f"error: {name} has no run records ({path}): nothing to race on from", file=sys.stderr)
+        return 1
+    try:
+        published.check(name)
+        tracker = Tracker.from_config(compose(rest + [f"experiment={name}"]))
+        done = extend_table(tracker, name, path.parent.parent, fingerprint, rest + [f"experiment={name}"])
+    except (BrokenRecords, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    for line in done.refused:
+        print(f"not loaded, its job will train: {line}")
+    print(
+        f"{name}: {done.loaded} run(s) loaded from {path} into {tracker.uri} as its jobs"
+        + (f", {done.held} already there" if done.held else "")
+        + (f", {len(done.refused)} not loaded (above)" if done.refused else "")
+        + f"; `python -m ablate -m experiment={name}` races on from its next look (a race its wall-time budget "
+        "stopped needs a larger scale.race.budget_min: its earlier sweeps count)"
+    )
+    return 0
 
 
 def source_sweep(tracker: Tracker, cfg: DictConfig) -> str | None:

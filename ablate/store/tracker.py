@@ -233,6 +233,15 @@ class Tracker:
         run = self.call(self._client.create_run, experiment_id, tags=tags, run_name=name)
         return run.info.run_id
 
+    def start_at(self, experiment_id: str, name: str, tags: dict[str, str], start: int) -> str:
+        """A RUNNING run that started at ``start`` (ms): a job made elsewhere, loaded from its record."""
+        run = self.call(self._client.create_run, experiment_id, start_time=start, tags=tags, run_name=name)
+        return str(run.info.run_id)
+
+    def end_at(self, run_id: str, status: str, end: int) -> None:
+        """End a run with ``status`` at ``end`` (ms)."""
+        self.call(self._client.set_terminated, run_id, status, end_time=end)
+
     def import_run(
         self, experiment_id: str, name: str, tags: dict[str, str], metrics: dict[str, float], start: int, end: int
     ) -> str:
