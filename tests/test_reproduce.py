@@ -1,7 +1,9 @@
-"""A real race through the parallel launcher and the store, and the reproduction check on its runs, as a user runs
-them (scale=smoke: one seed at the first look decides nothing, and two seeds of these tiny jobs decide nothing)."""
+"""A real race through the parallel launcher and the store, the reproduction check on its runs, and the race going on
+from its published records in a fresh store, as a user runs them (scale=smoke: one seed at the first look decides
+nothing, and two seeds of these tiny jobs decide nothing)."""
 
 import re
+import shutil
 
 import numpy as np
 import pandas as pd
@@ -9,13 +11,18 @@ import pytest
 
 from ablate.tables.records import reseal_records
 from ablate.tables.significance import prediction_interval
-from tests.test_cli import REPO, TINY, ablate, runs
+from tests.test_cli import REPO, SERIAL, TINY, ablate, runs
+
+#: Where the race's published folder is kept as it was published (the reproduction check edits the records).
+PUBLISHED = "published"
 
 
 @pytest.fixture(scope="module")
 def raced(tmp_path_factory):
     cwd = tmp_path_factory.mktemp("raced")
     out = ablate(cwd, "-m", "experiment=chinet_table2", "row=chinet,unet", "scale.race.looks=[1,2]", *TINY)
+    if (cwd / "results").is_dir():
+        shutil.copytree(cwd / "results", cwd.parent / f"{cwd.name}-{PUBLISHED}")
     return cwd, out
 
 
@@ -38,6 +45,59 @@ def test_an_undecided_race_adds_seeds_at_the_next_look_through_the_launcher(race
     assert "Left undecided, after the last look: ChiNet vs U-Net." in table
     made = r"Made on .+, precision 32-true, 1 thread\(s\) per job; wall time \d+ min over 1 sweep\(s\)"
     assert re.search(made, table), table[-1500:]
+
+
+def test_a_race_goes_on_from_its_published_records_in_a_fresh_store_and_trains_only_what_they_lack(raced, tmp_path):
+    """``--extend``: the published records of a race of looks 1, 2 become the fresh store's jobs, and the same
+    command with a third look trains seed 2 alone; a record made on other numerics (here: edited to another CPU) is
+    named and not loaded, and its job trains again, to the very number recorded (the same machine and code)."""
+    cwd, out = raced
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    here = tmp_path / "later"
+    shutil.copytree(cwd.parent / f"{cwd.name}-{PUBLISHED}", here / "results")
+    records = here / "results" / "runs" / "chinet_table2.csv"
+    before = pd.read_csv(records, dtype=str, keep_default_na=False)
+    edited = before.copy()
+    edited.loc[(edited["row"] == "unet") & (edited["seed"] == "1"), "made_cpu"] = "Another CPU"
+    edited.to_csv(records, index=False)
+    assert reseal_records(here / "results", "chinet_table2") is not None
+    loaded = ablate(here, "--extend", "experiment=chinet_table2", *TINY, module="ablate.report")
+    assert loaded.returncode == 0, loaded.stdout[-3000:] + loaded.stderr[-3000:]
+    assert "chinet_table2: 3 run(s) loaded" in loaded.stdout and "1 not loaded" in loaded.stdout
+    assert re.search(r"unet seed 1: made on other numerics than this machine's \(cpu: Another CPU -> ", loaded.stdout)
+    again = ablate(here, "--extend", "experiment=chinet_table2", *TINY, module="ablate.report")
+    assert "0 run(s) loaded" in again.stdout and "3 already there" in again.stdout  # nothing loaded twice
+
+    looks = ["-m", "experiment=chinet_table2", "row=chinet,unet", "scale.race.looks=[1,2,3]", SERIAL, *TINY]
+    raced_on = ablate(here, *looks)
+    assert raced_on.returncode == 0, raced_on.stdout[-3000:] + raced_on.stderr[-3000:]
+    _, jobs = runs(here, "chinet_table2")
+    assert all(r.info.status == "FINISHED" for r in jobs)
+    trained = sorted((r.data.tags["row"], r.data.tags["seed"]) for r in jobs if "loaded_from" not in r.data.tags)
+    assert trained == [("chinet", "2"), ("unet", "1"), ("unet", "2")]
+    after = pd.read_csv(records, dtype=str, keep_default_na=False).set_index(["row", "seed"])
+    assert sorted(after.index) == [(r, str(s)) for r in ("chinet", "unet") for s in range(3)]
+    # the loaded runs publish their recorded values; the retrained one the recorded numbers again
+    kept = before.set_index(["row", "seed"])
+    same = [c for c in kept.columns if c != "run_id" and not c.startswith("latency")]
+    for key in [("chinet", "0"), ("chinet", "1"), ("unet", "0")]:
+        assert after.loc[key, same].to_dict() == kept.loc[key, same].to_dict(), key
+    assert after.loc[("unet", "1"), "det_rate"] == kept.loc[("unet", "1"), "det_rate"]
+    table = (here / "results" / "chinet_table2.md").read_text()
+    assert "Racing seeds: looks at 1, 2, 3 seeds per row" in table and "over 2 sweep(s)" in table
+
+
+def test_a_table_with_a_tuning_phase_is_not_extended_from_its_records(raced, tmp_path):
+    from ablate.analysis.extend import extend_table
+    from ablate.store import Tracker
+
+    cwd, _ = raced
+    results = tmp_path / "results"
+    shutil.copytree(cwd.parent / f"{cwd.name}-{PUBLISHED}", results)
+    (results / "runs" / "chinet_table2.trials.csv").write_text("run_id,row,trial\n")
+    tracker = Tracker(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    with pytest.raises(ValueError, match="records hold a tuning phase .*race the table again from the start"):
+        extend_table(tracker, "chinet_table2", results, lambda cfg: {}, ["experiment=chinet_table2", *TINY])
 
 
 def test_the_reproduction_check_reruns_a_seed_and_names_what_differs(raced):
