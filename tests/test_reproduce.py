@@ -83,8 +83,12 @@ def test_a_race_goes_on_from_its_published_records_in_a_fresh_store_and_trains_o
     for key in [("chinet", "0"), ("chinet", "1"), ("unet", "0")]:
         assert after.loc[key, same].to_dict() == kept.loc[key, same].to_dict(), key
     assert after.loc[("unet", "1"), "det_rate"] == kept.loc[("unet", "1"), "det_rate"]
+    origin = {k: f"results/runs/chinet_table2.csv#{kept.loc[k, 'run_id']}" for k in [("chinet", "0"), ("chinet", "1")]}
+    assert after.loc[list(origin), "loaded_from"].tolist() == list(origin.values())
+    assert after.loc[("unet", "2"), "loaded_from"] == ""
     table = (here / "results" / "chinet_table2.md").read_text()
     assert "Racing seeds: looks at 1, 2, 3 seeds per row" in table and "over 2 sweep(s)" in table
+    assert "3 of 6 runs were loaded from the published records of an earlier store" in table
 
 
 def test_a_table_with_a_tuning_phase_is_not_extended_from_its_records(raced, tmp_path):

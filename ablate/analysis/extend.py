@@ -17,7 +17,8 @@ next look. A record stands in for its job only where the job would make the same
 A record that fails one is named with the reason and not loaded; its job trains when the race comes to it. A loaded
 run carries the recorded tags (its commit, sweep, times, numerics), final metrics, learning curves (the records'
 per-epoch values, at step = epoch) and per-frame counts or detections (the artifacts a race's verdicts resample),
-its params composed today, and ``loaded_from`` (``<records file>#<run id>``). Its sweep and times are the recorded
+its params composed today, and ``loaded_from`` (``<records file>#<run id>``, or the record's own where it was loaded
+itself), which its table's records keep and whose footer counts. Its sweep and times are the recorded
 ones, so the table's wall time and its race's budget count the earlier sweep: a race stopped by its budget goes on
 only with a larger ``scale.race.budget_min``, given on the command line.
 
@@ -46,11 +47,9 @@ from ablate.tables.curves import COLUMNS as CURVE_COLUMNS
 from ablate.tables.curves import curves_path, read_curves
 from ablate.tables.frames import read_detections, read_frames
 from ablate.tables.provenance import Recompute, fingerprint_check, metric_changed, stale
-from ablate.tables.records import ABSENT, TEXT, WHOLE, read_records, records_path, text_of
+from ablate.tables.records import ABSENT, LOADED, TEXT, WHOLE, read_records, records_path, text_of
 from ablate.tables.tuning import trials_path
 
-#: The tag of a run loaded from a record: ``<records file>#<recorded run id>``.
-LOADED = "loaded_from"
 #: Record columns that are tags of another name on a job's run (the rest of :data:`TAGS` keep theirs).
 TAG_NAMES = {"made_cpu": "cpu", "made_precision": "precision", "made_threads": "threads", "made_gpu": "gpu"}
 #: Record columns a loaded job's run carries as tags (those :func:`ablate.tables.collect.job_runs` reads back).
@@ -162,7 +161,8 @@ def extend_table(tracker: Tracker, name: str, results: Path, recompute: Recomput
     frames, detections = read_frames(results, name), read_detections(results, name)
     out = Extended()
     for _, record in records.iterrows():
-        origin = f"{path.as_posix()}#{record['run_id']}"
+        # a run loaded before it was published keeps the record it first came from
+        origin = str(record.get(LOADED) or "") or f"{path.as_posix()}#{record['run_id']}"
         if origin in loaded or tracker.finished_run(exp, str(record["config_hash"])) is not None:
             out.held += 1
             continue

@@ -21,7 +21,7 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from ablate.store import Tracker
-from ablate.tables.collect import collect, made_lines, resumed_lines, running, state_lines
+from ablate.tables.collect import collect, loaded_lines, made_lines, resumed_lines, running, state_lines
 from ablate.tables.conditions import write_conditions
 from ablate.tables.curves import curves_path, from_store, read_curves, write_curves, write_figure
 from ablate.tables.forest import write_forest
@@ -162,7 +162,11 @@ def footer_lines(
 ) -> list[str]:
     """The footer under a table: how its rows were made, its provenance, and what it leaves out."""
     return (
-        made_lines(runs) + resumed_lines(runs) + provenance(runs, fingerprint, config) + state_lines(runs, in_progress)
+        made_lines(runs)
+        + resumed_lines(runs)
+        + loaded_lines(runs)
+        + provenance(runs, fingerprint, config)
+        + state_lines(runs, in_progress)
     )
 
 

@@ -7,6 +7,7 @@ from mlflow.exceptions import MlflowException
 from omegaconf import DictConfig
 
 from ablate.store import KIND_JOB, SKIPPED_FRAMES, Tracker
+from ablate.tables.records import LOADED
 
 #: The run tags that say where and how a row was computed (ablate.hardware.tags), for the footer.
 MADE = ("cpu", "precision", "threads")
@@ -59,6 +60,7 @@ def job_runs(tracker: Tracker, table: str) -> pd.DataFrame:
             "tuned_config": r.data.tags.get("tuned_config", ""),  # the config a tuning phase chose for its row
             "reused_from": r.data.tags.get("reused_from", ""),
             "resumed_step": resumed_step(r.data.tags),
+            LOADED: r.data.tags.get(LOADED, ""),  # a run loaded from a published record (ablate.analysis.extend)
             "started": r.info.start_time,
             # the job's start before its experts were trained (tag ``job_started``; older runs: the run's start)
             "job_started": int(r.data.tags.get("job_started") or r.info.start_time),
@@ -174,6 +176,18 @@ def resumed_lines(runs: pd.DataFrame) -> list[str]:
     return [
         f"**Resumed runs**: {len(resumed)} of {len(runs)} resumed from a checkpoint ({named}); a run resumed before "
         "resuming restored the training order and generators (6d500ba) is not the computation an uninterrupted run is."
+    ]
+
+
+def loaded_lines(runs: pd.DataFrame) -> list[str]:
+    """The footer's line on the runs loaded from an earlier store's published records (``loaded_from``), where any
+    were: they trained where and when their records say, not in the sweep that loaded them."""
+    loaded = runs[LOADED].fillna("").astype(str) != "" if LOADED in runs else pd.Series(False, index=runs.index)
+    if not loaded.any():
+        return []
+    return [
+        f"{int(loaded.sum())} of {len(runs)} runs were loaded from the published records of an earlier store "
+        "(`python -m ablate.report --extend`) and raced on; each trained where and when its record says."
     ]
 
 

@@ -9,7 +9,8 @@ that made it (``git_commit``, its ``fingerprint``, ``evaluator``, ``targets``), 
 ``made_threads``), when (``started``, ``ended`` in ms, ``seconds``, and
 ``job_started``, the job's start before its experts), the race and
 sweep it belongs to (``race_plan``, ``sweep_id``, ``job_num``, ``reused_from``, ``run_id``), the training step it
-resumed from a checkpoint at (``resumed_step``, empty for a run trained uninterrupted; absent from older records), the config a tuning
+resumed from a checkpoint at (``resumed_step``, empty for a run trained uninterrupted; absent from older records), the
+record it was loaded from (``loaded_from``, :data:`LOADED`; only where a run was), the config a tuning
 phase chose for its row (``tuned_config``, empty where the row was not tuned), and one column per
 final metric: the test metrics the table shows (per condition and difficulty where it has them), latency and
 costs. No per-step history, no checkpoints. Numbers are written as Python's shortest round-trip form, so a table
@@ -52,7 +53,11 @@ TEXT = (
     "tuned_config",
     "reused_from",
     "resumed_step",
+    "loaded_from",
 )
+#: The tag (and record column) of a job's run loaded from a published record (``python -m ablate.report --extend``,
+#: :mod:`ablate.analysis.extend`): ``<records file>#<recorded run id>``; absent from records without such runs.
+LOADED = "loaded_from"
 #: The whole-number columns: the job's number in its sweep, its run's start and end (ms since the epoch), and the
 #: job's start before the experts it trained first (``job_started``; absent from records written before it).
 WHOLE = ("job_num", "started", "ended", "job_started")
@@ -109,6 +114,8 @@ def to_records(runs: pd.DataFrame, table: str) -> pd.DataFrame:
     if "cpu_isa" not in out:
         out["cpu_isa"] = "?"
     out["seconds"] = ((out["ended"] - out["started"]) / 1000.0).astype(float)
+    if LOADED in out and not out[LOADED].fillna("").astype(str).str.len().any():
+        out = out.drop(columns=LOADED)  # no run loaded from records: the column is left out, as before it existed
     known = set(TEXT) | set(WHOLE) | {"seconds"}
     metrics = sorted(c for c in out.columns if c not in known and not str(c).startswith(HISTORY))
     return out[[c for c in (*TEXT, *WHOLE, "seconds") if c in out] + metrics]
