@@ -8,7 +8,9 @@ results summary (one line per paper table, :mod:`ablate.tables.index`) is rewrit
 other ``key=value`` overrides apply): each table's records are written from the store's runs, then the table from
 them. Nothing else writes under ``results/``: a sweep writes its table into its own folder (``publish=true``
 publishes it too). ``python -m ablate.report --load [experiment=<table>]`` loads the published records into your
-store, marked as imported, so that ``mlflow ui`` shows the runs behind the published tables.
+store, marked as imported, so that ``mlflow ui`` shows the runs behind the published tables. ``python -m ablate.report
+--extend experiment=<table>`` loads them as the table's own jobs instead, where this machine and today's code make
+their numbers, so that the table's sweep races on from its next look (:mod:`ablate.analysis.extend`).
 
 ``python -m ablate.report --reproduce experiment=<table> row=<row> [seed=N]`` reruns one seed of a row here and says
 whether it holds (:mod:`ablate.analysis.reproduce`). ``python -m ablate.report --parity experiment=<table> row=<row>``
