@@ -71,8 +71,10 @@ def test_a_race_goes_on_from_its_published_records_in_a_fresh_store_and_trains_o
     looks = ["-m", "experiment=chinet_table2", "row=chinet,unet", "scale.race.looks=[1,2,3]", SERIAL, *TINY]
     raced_on = ablate(here, *looks)
     assert raced_on.returncode == 0, raced_on.stdout[-3000:] + raced_on.stderr[-3000:]
-    _, jobs = runs(here, "chinet_table2")
+    client, jobs = runs(here, "chinet_table2")
     assert all(r.info.status == "FINISHED" for r in jobs)
+    # each run has the config its footer's fingerprint check reads where the code changed since its commit
+    assert all("config.yaml" in {a.path for a in client.list_artifacts(r.info.run_id)} for r in jobs)
     trained = sorted((r.data.tags["row"], r.data.tags["seed"]) for r in jobs if "loaded_from" not in r.data.tags)
     assert trained == [("chinet", "2"), ("unet", "1"), ("unet", "2")]
     after = pd.read_csv(records, dtype=str, keep_default_na=False).set_index(["row", "seed"])

@@ -17,7 +17,7 @@ next look. A record stands in for its job only where the job would make the same
 A record that fails one is named with the reason and not loaded; its job trains when the race comes to it. A loaded
 run carries the recorded tags (its commit, sweep, times, numerics), final metrics, learning curves (the records'
 per-epoch values, at step = epoch) and per-frame counts or detections (the artifacts a race's verdicts resample),
-its params composed today, and ``loaded_from`` (``<records file>#<run id>``, or the record's own where it was loaded
+its params and config (``config.yaml``) composed today, and ``loaded_from`` (``<records file>#<run id>``, or the record's own where it was loaded
 itself), which its table's records keep and whose footer counts. Its sweep and times are the recorded
 ones, so the table's wall time and its race's budget count the earlier sweep: a race stopped by its budget goes on
 only with a larger ``scale.race.budget_min``, given on the command line.
@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from ablate import hardware
 from ablate.analysis.reproduce import recorded_config
@@ -171,7 +171,9 @@ def extend_table(tracker: Tracker, name: str, results: Path, recompute: Recomput
         if reason is not None:
             out.refused.append(f"{record['row']} seed {record['seed']}: {reason}")
             continue
-        run_id = load_job(tracker, exp, record, origin, params_of(resolved_config(cfg)[0]))
+        resolved = resolved_config(cfg)[0]
+        run_id = load_job(tracker, exp, record, origin, params_of(resolved))
+        tracker.log_text(run_id, OmegaConf.to_yaml(resolved, resolve=True), "config.yaml")  # as a job logs it
         log_curves(tracker, run_id, record, curves)
         log_frames(tracker, run_id, str(record["run_id"]), frames, detections)
         tracker.end_at(run_id, "FINISHED", int(record["ended"]))
