@@ -64,7 +64,7 @@ def test_a_race_goes_on_from_its_published_records_in_a_fresh_store_and_trains_o
     loaded = ablate(here, "--extend", "experiment=chinet_table2", *TINY, module="ablate.report")
     assert loaded.returncode == 0, loaded.stdout[-3000:] + loaded.stderr[-3000:]
     assert "chinet_table2: 3 run(s) loaded" in loaded.stdout and "1 not loaded" in loaded.stdout
-    assert re.search(r"unet seed 1: made on other numerics than this machine's \(cpu: Another CPU -> ", loaded.stdout)
+    assert re.search(r"unet seed 1: made on other numerics than this machine's \(CPU: Another CPU -> ", loaded.stdout)
     again = ablate(here, "--extend", "experiment=chinet_table2", *TINY, module="ablate.report")
     assert "0 run(s) loaded" in again.stdout and "3 already there" in again.stdout  # nothing loaded twice
 

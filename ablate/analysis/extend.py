@@ -47,42 +47,17 @@ from ablate.tables.curves import COLUMNS as CURVE_COLUMNS
 from ablate.tables.curves import curves_path, read_curves
 from ablate.tables.frames import read_detections, read_frames
 from ablate.tables.provenance import Recompute, fingerprint_check, metric_changed, stale
-from ablate.tables.records import ABSENT, LOADED, TEXT, WHOLE, read_records, records_path, text_of
+from ablate.tables.records import LOADED, NUMERICS, TEXT, WHOLE, numerics_differ, read_records, records_path, text_of
 from ablate.tables.tuning import trials_path
 
 #: Record columns that are tags of another name on a job's run (the rest of :data:`TAGS` keep theirs).
 TAG_NAMES = {"made_cpu": "cpu", "made_precision": "precision", "made_threads": "threads", "made_gpu": "gpu"}
+#: Record columns that are no tag of a loaded job's run: what the store gives it (status, run id, times), its
+#: targets (from its params), and the record it came from (the tag :data:`LOADED`, set apart); a run copied from
+#: another table (``reused_from``) is loaded as the table's own, its artifacts with it.
+NOT_TAGS = ("status", "run_id", "targets", "reused_from", LOADED, "started", "ended")
 #: Record columns a loaded job's run carries as tags (those :func:`ablate.tables.collect.job_runs` reads back).
-TAGS = (
-    "table",
-    "row",
-    "seed",
-    "scale",
-    "config_hash",
-    "git_commit",
-    "evaluator",
-    "fingerprint",
-    "made_cpu",
-    "cpu_isa",
-    "cpu_kernels",
-    "made_gpu",
-    "made_precision",
-    "made_threads",
-    "sweep_id",
-    "race_plan",
-    "job_num",
-    "resumed_step",
-    "job_started",
-)
-#: A record's machine and numerics against this machine's (:func:`ablate.hardware.tags`): column -> tag.
-MACHINE = {
-    "made_cpu": "cpu",
-    "cpu_isa": "cpu_isa",
-    "cpu_kernels": "cpu_kernels",
-    "made_gpu": "gpu",
-    "made_precision": "precision",
-    "made_threads": "threads",
-}
+TAGS = tuple(c for c in (*TEXT, *WHOLE) if c not in NOT_TAGS)
 
 
 @dataclass
@@ -96,15 +71,10 @@ class Extended:
 
 
 def machine_differs(record: pd.Series, mine: dict[str, str]) -> str | None:
-    """How the machine and numerics that made ``record`` differ from this machine's tags ``mine`` (``CPU: recorded
-    -> here``), or None; kernels a record predates are not known to differ."""
-    out = []
-    for column, tag in MACHINE.items():
-        was, is_ = text_of(record.get(column), column), text_of(mine.get(tag), column)
-        if column == "cpu_kernels" and was == ABSENT[column]:
-            continue
-        if was != is_:
-            out.append(f"{tag.replace('cpu_', '')}: {was} -> {is_}")
+    """How the machine and numerics that made ``record`` differ from this machine's tags ``mine``
+    (:func:`ablate.tables.records.numerics_differ`: ``CPU: recorded -> here``), or None."""
+    here = pd.DataFrame([{c: mine.get(TAG_NAMES.get(c, c)) for c in NUMERICS}])
+    out = numerics_differ(record.to_frame().T, here)
     return "made on other numerics than this machine's (" + "; ".join(out) + ")" if out else None
 
 
@@ -131,10 +101,9 @@ def code_refusals(records: pd.DataFrame, recompute: Recompute, config: Callable[
     return out
 
 
-def refusal(record: pd.Series, cfg: DictConfig) -> str | None:
-    """Why ``record`` cannot stand in for its job here (its config hash today, its machine), or None; ``cfg``: its
-    config composed today."""
-    resolved, _, _ = resolved_config(cfg)
+def refusal(record: pd.Series, resolved: DictConfig) -> str | None:
+    """Why ``record`` cannot stand in for its job here (its config hash today, its machine), or None; ``resolved``:
+    its config composed today, resolved for this machine (:func:`ablate.jobs.spec.resolved_config`)."""
     today = config_hash(resolved)
     if today != str(record["config_hash"]):
         return f"its config today has config hash {today}, the record {record['config_hash']}"
@@ -166,12 +135,11 @@ def extend_table(tracker: Tracker, name: str, results: Path, recompute: Recomput
         if origin in loaded or tracker.finished_run(exp, str(record["config_hash"])) is not None:
             out.held += 1
             continue
-        cfg = config(str(record["run_id"]))
-        reason = by_code.get(str(record["row"])) or refusal(record, cfg)
+        resolved = resolved_config(config(str(record["run_id"])))[0]
+        reason = by_code.get(str(record["row"])) or refusal(record, resolved)
         if reason is not None:
             out.refused.append(f"{record['row']} seed {record['seed']}: {reason}")
             continue
-        resolved = resolved_config(cfg)[0]
         run_id = load_job(tracker, exp, record, origin, params_of(resolved))
         tracker.log_text(run_id, OmegaConf.to_yaml(resolved, resolve=True), "config.yaml")  # as a job logs it
         log_curves(tracker, run_id, record, curves)
