@@ -77,6 +77,10 @@ def test_a_race_goes_on_from_its_published_records_in_a_fresh_store_and_trains_o
     assert all("config.yaml" in {a.path for a in client.list_artifacts(r.info.run_id)} for r in jobs)
     trained = sorted((r.data.tags["row"], r.data.tags["seed"]) for r in jobs if "loaded_from" not in r.data.tags)
     assert trained == [("chinet", "2"), ("unet", "1"), ("unet", "2")]
+    # each row is timed from a checkpoint trained here: a loaded run (chinet seed 0, its lowest) has none here
+    hashes = {r.data.tags["config_hash"] for r in jobs if "loaded_from" not in r.data.tags}
+    timed = {r.data.tags["row"]: r.data.tags["latency_checkpoint"] for r in jobs}
+    assert all(any(h in path for h in hashes) for path in timed.values()), timed
     after = pd.read_csv(records, dtype=str, keep_default_na=False).set_index(["row", "seed"])
     assert sorted(after.index) == [(r, str(s)) for r in ("chinet", "unet") for s in range(3)]
     # the loaded runs publish their recorded values; the retrained one the recorded numbers again

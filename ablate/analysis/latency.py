@@ -45,6 +45,7 @@ from ablate.jobs.experts import expert_config, load_model
 from ablate.jobs.spec import best_checkpoint
 from ablate.store import Tracker
 from ablate.tables import collect, published, table_spec
+from ablate.tables.records import LOADED
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +109,14 @@ def row_checkpoint(tracker: Tracker, run: Run) -> Path | None:
         expert = best_checkpoint(expert_tags.get("table", ""), expert_tags.get("config_hash", ""))
         return expert if expert.exists() else None
     return None
+
+
+def no_checkpoint(seeds: pd.DataFrame) -> str:
+    """Why none of a row's runs ``seeds`` has a checkpoint on this machine, in words for the log."""
+    loaded = seeds[LOADED].fillna("").astype(str) != "" if LOADED in seeds else pd.Series(False, index=seeds.index)
+    if loaded.all():
+        return "its runs were loaded from published records: no checkpoint here"
+    return "no checkpoint of its runs here"
 
 
 def row_model(cfg: DictConfig, ckpt: Path | None) -> torch.nn.Module:
@@ -197,18 +206,24 @@ def load_rows(
     overrides: Sequence[str],
     device: torch.device,
 ) -> tuple[dict[str, Callable[[], object]], dict[str, dict[str, float]], dict[str, str]]:
-    """Each row's model (the checkpoint of its lowest seed, else its initial weights) on its first test frame:
-    {row: forward pass}, {row: params and MACs}, {row: the checkpoint it was loaded from}."""
+    """Each row's model (the checkpoint of its lowest seed that has one here, else its lowest seed's initial
+    weights) on its first test frame: {row: forward pass}, {row: params and MACs}, {row: the checkpoint it was
+    loaded from}. A run loaded from published records (``python -m ablate.report --extend``) has no checkpoint
+    here, so a row's seeds trained in this store are timed before it."""
     forwards: dict[str, Callable[[], object]] = {}
     figures: dict[str, dict[str, float]] = {}
     checkpoints: dict[str, str] = {}
     for row in rows:
-        first = runs[runs["row"] == row].sort_values("seed").iloc[0]
+        seeds = runs[runs["row"] == row].sort_values("seed")
+        first, ckpt = seeds.iloc[0], None
+        for _, run in seeds.iterrows():
+            if (ckpt := row_checkpoint(tracker, tracker.get_run(run["run_id"]))) is not None:
+                first = run
+                break
         rcfg = compose(list(overrides) + [f"row={row}", f"seed={first['seed']}"])
-        ckpt = row_checkpoint(tracker, tracker.get_run(first["run_id"]))
         model = row_model(rcfg, ckpt).to(device).eval()
         sample = {k: v.to(device) for k, v in first_test_sample(rcfg).items()}
-        log.info("Latency: %s from %s", row, ckpt or "initial weights (no checkpoint here)")
+        log.info("Latency: %s from %s", row, ckpt or f"initial weights ({no_checkpoint(seeds)})")
         checkpoints[row] = str(ckpt or "none")
         figures[row] = {
             "params_m": sum(p.numel() for p in model.parameters()) / 1e6,
