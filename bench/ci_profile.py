@@ -1,6 +1,7 @@
 """Where the test suite's CPU goes: every Python process of ``make test`` sampled by py-spy (the pytest workers,
-the commands they fork from their warm interpreter, the sweeps' joblib, Ray and submitit workers, the spawned DDP
-and capacity-check children, the servers), each busy sample put in one activity:
+the commands they fork from their warm interpreter, the sweeps' joblib, Ray and submitit workers, the processes
+spawned by multiprocessing (the tracking server's workers, the data generator's pools, DDP), the servers), each busy
+sample put in one activity:
 
 - **import**: a module being imported (a fresh process imports torch, Lightning and MLflow: seconds);
 - **training and testing**: inside Lightning's fit or test loop;
@@ -87,7 +88,7 @@ def process_kind(stack: str) -> str:
         ("loky", "joblib worker"),
         ("ray", "Ray process"),
         ("submitit", "submitit job"),
-        ("multiprocessing.spawn", "spawned child (DDP, capacity check)"),
+        ("multiprocessing.spawn", "spawned by multiprocessing"),
         ("uvicorn", "tracking server"),
         ("mlflow ui", "tracking server"),
         ("exec(eval(sys.stdin", "pytest worker"),

@@ -45,7 +45,7 @@ from ablate.jobs.experts import expert_config, load_model
 from ablate.jobs.spec import best_checkpoint
 from ablate.store import Tracker
 from ablate.tables import collect, published, table_spec
-from ablate.tables.records import LOADED
+from ablate.tables.collect import loaded_runs
 
 log = logging.getLogger(__name__)
 
@@ -113,8 +113,7 @@ def row_checkpoint(tracker: Tracker, run: Run) -> Path | None:
 
 def no_checkpoint(seeds: pd.DataFrame) -> str:
     """Why none of a row's runs ``seeds`` has a checkpoint on this machine, in words for the log."""
-    loaded = seeds[LOADED].fillna("").astype(str) != "" if LOADED in seeds else pd.Series(False, index=seeds.index)
-    if loaded.all():
+    if loaded_runs(seeds).all():
         return "its runs were loaded from published records: no checkpoint here"
     return "no checkpoint of its runs here"
 

@@ -179,10 +179,15 @@ def resumed_lines(runs: pd.DataFrame) -> list[str]:
     ]
 
 
+def loaded_runs(runs: pd.DataFrame) -> pd.Series:
+    """Which of ``runs`` were loaded from an earlier store's published records (``loaded_from``), by run."""
+    return runs[LOADED].fillna("").astype(str) != "" if LOADED in runs else pd.Series(False, index=runs.index)
+
+
 def loaded_lines(runs: pd.DataFrame) -> list[str]:
     """The footer's line on the runs loaded from an earlier store's published records (``loaded_from``), where any
     were: they trained where and when their records say, not in the sweep that loaded them."""
-    loaded = runs[LOADED].fillna("").astype(str) != "" if LOADED in runs else pd.Series(False, index=runs.index)
+    loaded = loaded_runs(runs)
     if not loaded.any():
         return []
     return [
